@@ -1,0 +1,391 @@
+"""Gymnasium environments of the MK-V: ``MKV-v0`` (wander) and ``MKVJam-v0`` (escape a jam)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from mkv_env.jams import SCENARIOS, build_scenario
+from mkv_env.params import RobotParams, channel_specs
+from mkv_env.sensors import SensorSuite
+from mkv_env.tracker import MotionTracker
+from mkv_env.world import World, generate_layout, random_free_pose
+
+
+def _check(cond: bool, msg: str) -> None:
+    if not cond:
+        raise ValueError(msg)
+
+
+class MKVEnv(gym.Env):
+    """The MK-V robot wandering a cluttered arena.
+
+    ## Description
+    A three-wheeled, non-holonomic robot seen from above (pymunk 2-D, no gravity in the plane):
+    one powered drive wheel at the rear, fixed in the chassis; one unpowered front steering
+    wheel turned by a steering motor between mechanical stops (+-35 deg); a free caster. Both
+    motors are DC motors driven open loop with three-valued commands. Wheels resist sideways slip
+    up to a traction limit (friction circle), so the robot skids when pushed and, blocked, its
+    drive wheel stalls (high current) or spins (slippery floor patches, side load). The arena
+    (4 m x 4 m by default) holds seeded random clutter: boxes, cylinders, wall pieces, corners
+    and dead ends, some gaps narrower than the robot. The learner sees only sensor channels.
+
+    ## Action Space
+    ``MultiDiscrete([3, 3])`` = [drive, steer]: drive 0 reverse, 1 off, 2 forward; steer 0 left,
+    1 off, 2 right. "Off" removes the supply but leaves the armature connected: the wheel coasts
+    and is damped by back-EMF.
+
+    ## Observation Space
+    ``Box(low, high, (10,), float32)`` of raw sensor readings, names in
+    ``env.unwrapped.sensor_names``; each is truth + bias + Gaussian noise, quantised, clipped:
+
+    | idx | name             | low   | high | unit         | default noise / quantum        |
+    |-----|------------------|-------|------|--------------|--------------------------------|
+    | 0   | drive_ticks      | -60   | 60   | ticks/period | exact / 1 tick (128 per rev)   |
+    | 1   | roller_ticks     | -60   | 60   | ticks/period | exact / 1 tick, steering wheel |
+    | 2   | steer_angle      | -0.8  | 0.8  | rad          | 0.005 / 0.0061 (10-bit pot)    |
+    | 3   | compass          | -pi   | pi   | rad          | 2 deg / 1 deg, wrapped         |
+    | 4   | bump_front_left  | 0     | 1    | bool         | none                           |
+    | 5   | bump_front_right | 0     | 1    | bool         | none                           |
+    | 6   | bump_rear        | 0     | 1    | bool         | none                           |
+    | 7   | drive_current    | -1.2  | 1.2  | A            | 0.01 / 0.0024 (stall 0.5 A)    |
+    | 8   | steer_current    | -1.0  | 1.0  | A            | 0.01 / 0.002 (stall 0.4 A)     |
+    | 9   | battery          | 0     | 8    | V            | 0.02 / 0.0078, sags with load  |
+
+    ## Rewards
+    Per step: ``progress_reward * forward progress [m]`` (displacement along the heading; negative
+    when reversing), minus ``stuck_penalty`` while stuck (commanded to drive, moving slower than
+    ``stuck_speed_mps``), minus ``collision_penalty`` for each new contact with an obstacle.
+
+    ## Starting State
+    A new seeded layout each reset; the robot at rest at a uniformly random pose at least
+    0.26 m from every obstacle, steering centred.
+
+    ## Episode End
+    No termination. Truncation after ``max_episode_steps`` (600 steps = 60 s by default, set by
+    the registration's TimeLimit).
+
+    ## Info
+    Every step: ``stuck``, ``bumped`` (any bump switch), ``collision`` (new contact this step),
+    ``distance_m`` (cumulative), ``jams``, ``escapes``, ``collisions`` (counts), ``in_jam``,
+    ``pose`` (x [m], y [m], heading [rad]). A jam begins after ``jam_steps`` stuck steps; it is
+    escaped once the robot, not stuck, is ``escape_distance_m`` from where it began. No wall-clock
+    values.
+
+    ## Arguments
+    ```python
+    import gymnasium as gym
+    import mkv_env
+    env = gym.make("MKV-v0", arena_size_m=4.0, n_clutter=14, sensor_noise=1.0,
+                   control_period_s=0.1, substeps=4, max_episode_steps=600)
+    ```
+    * ``arena_size_m``: side of the square arena [m], 2 to 20.
+    * ``n_clutter``: number of clutter items (an L or U counts as one), 0 to 200.
+    * ``n_patches``: slippery floor patches; ``patch_friction``: their friction multiplier.
+    * ``sensor_noise``: multiplier of every channel's default noise (0 = noise-free).
+    * ``sensor_params``: per-channel overrides, ``{"compass": {"bias": 0.1, "quantum": 0}}``.
+    * ``robot_params``: overrides of :class:`mkv_env.params.RobotParams` fields.
+    * ``control_period_s`` (0.1), ``substeps`` (4): control period and physics substeps.
+    * ``stuck_speed_mps``, ``jam_steps``, ``escape_distance_m``: the stuck/jam/escape measures.
+    * ``progress_reward``, ``stuck_penalty``, ``collision_penalty``: reward weights.
+    * ``render_mode``: ``"rgb_array"`` or ``"human"`` (pygame, imported lazily).
+
+    ## Version History
+    * v0: initial release.
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        arena_size_m: float = 4.0,
+        n_clutter: int = 14,
+        n_patches: int = 2,
+        patch_friction: float = 0.3,
+        sensor_noise: float = 1.0,
+        sensor_params: dict | None = None,
+        robot_params: dict | None = None,
+        control_period_s: float = 0.1,
+        substeps: int = 4,
+        stuck_speed_mps: float = 0.02,
+        jam_steps: int = 3,
+        escape_distance_m: float = 0.3,
+        progress_reward: float = 10.0,
+        stuck_penalty: float = 0.1,
+        collision_penalty: float = 0.05,
+    ):
+        _check(render_mode is None or render_mode in self.metadata["render_modes"],
+               f"render_mode must be one of {self.metadata['render_modes']} or None, "
+               f"got {render_mode!r}")
+        _check(_num(arena_size_m) and 2.0 <= arena_size_m <= 20.0,
+               f"arena_size_m must be in [2, 20] metres, got {arena_size_m!r}")
+        _check(_int(n_clutter) and 0 <= n_clutter <= 200,
+               f"n_clutter must be an integer in [0, 200], got {n_clutter!r}")
+        _check(_int(n_patches) and 0 <= n_patches <= 20,
+               f"n_patches must be an integer in [0, 20], got {n_patches!r}")
+        _check(_num(patch_friction) and 0.0 < patch_friction <= 2.0,
+               f"patch_friction must be in (0, 2], got {patch_friction!r}")
+        _check(_num(control_period_s) and 0.01 <= control_period_s <= 1.0,
+               f"control_period_s must be in [0.01, 1] seconds, got {control_period_s!r}")
+        _check(_int(substeps) and 1 <= substeps <= 100,
+               f"substeps must be an integer in [1, 100], got {substeps!r}")
+        _check(control_period_s / substeps <= 0.05,
+               f"physics substep control_period_s/substeps = {control_period_s / substeps:.3f} s "
+               "is too long (max 0.05 s); raise substeps")
+        for name, v in (("stuck_speed_mps", stuck_speed_mps),
+                        ("escape_distance_m", escape_distance_m)):
+            _check(_num(v) and v > 0, f"{name} must be a positive number, got {v!r}")
+        _check(_int(jam_steps) and jam_steps >= 1,
+               f"jam_steps must be a positive integer, got {jam_steps!r}")
+        for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
+                        ("collision_penalty", collision_penalty)):
+            _check(_num(v), f"{name} must be a finite number, got {v!r}")
+        try:
+            self.robot_params = RobotParams(**(robot_params or {}))
+        except TypeError as e:
+            raise ValueError(f"bad robot_params: {e}") from None
+        self.channel_specs = channel_specs(sensor_params, sensor_noise)
+
+        self.render_mode = render_mode
+        self.arena_size_m = float(arena_size_m)
+        self.n_clutter, self.n_patches = int(n_clutter), int(n_patches)
+        self.patch_friction = float(patch_friction)
+        self.control_period_s, self.substeps = float(control_period_s), int(substeps)
+        self.progress_reward = float(progress_reward)
+        self.stuck_penalty, self.collision_penalty = float(stuck_penalty), float(collision_penalty)
+
+        self.sensors = SensorSuite(self.channel_specs)
+        self.sensor_names = list(self.sensors.names)
+        self.observation_space = spaces.Box(
+            self.sensors.low.astype(np.float32), self.sensors.high.astype(np.float32),
+            dtype=np.float32,
+        )
+        self.action_space = spaces.MultiDiscrete([3, 3])
+        self.tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
+                                     escape_distance_m)
+        self.world: World | None = None
+        self.trail: list[tuple[float, float]] = []
+        self._renderer = None
+        self._last_action = (1, 1)
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self.world = self._build_world()
+        self.sensors.reset(self.np_random, self.world)
+        self._reset_tracker()
+        self.trail = [self._pose()[:2]]
+        self._last_action = (1, 1)
+        obs = self.sensors.read(self.world)
+        if self.render_mode == "human":
+            self.render()
+        return obs, self._info(False, False)
+
+    def step(self, action):
+        if self.world is None:
+            raise RuntimeError("call reset() before step()")
+        drive, steer = self._decode(action)
+        self.world.step(drive, steer, self.control_period_s, self.substeps)
+        obs = self.sensors.read(self.world)
+        pose = self._pose()
+        progress, stuck, collision, escaped = self.tracker.update(
+            pose, drive, self.world.contacts[0])
+        reward = self._reward(progress, stuck, collision, escaped)
+        terminated = self._terminated(escaped)
+        self.trail.append(pose[:2])
+        if len(self.trail) > 600:
+            del self.trail[:100]
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, False, self._info(stuck, collision)
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode= to make()")
+            return None
+        if self._renderer is None:
+            from mkv_env.render import Renderer  # pygame only here
+
+            self._renderer = Renderer(self.render_mode, self.metadata["render_fps"])
+        return self._renderer.draw(self)
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # ------------------------------------------------------------------ pieces
+    def _decode(self, action) -> tuple[int, int]:
+        try:
+            a0, a1 = action
+            a0, a1 = int(a0), int(a1)
+            ok = a0 == action[0] and a1 == action[1] and 0 <= a0 <= 2 and 0 <= a1 <= 2
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"invalid action {action!r}: expected [drive, steer] with each in {{0, 1, 2}}"
+            )
+        self._last_action = (a0, a1)
+        return a0 - 1, 1 - a1  # steer: 0 = left = +1 (counter-clockwise)
+
+    def _build_world(self) -> World:
+        rng = self.np_random
+        for _ in range(20):
+            layout = generate_layout(rng, self.arena_size_m, self.arena_size_m, self.n_clutter,
+                                     self.n_patches, self.patch_friction)
+            world = World(layout, self.robot_params, (0.0, 0.0, 0.0))
+            pose = random_free_pose(world, rng)
+            if pose is not None:
+                _place(world, pose)
+                return world
+        raise RuntimeError("could not find a free start pose; reduce n_clutter")
+
+    def _reset_tracker(self) -> None:
+        self.tracker.reset(self._pose(), False, self.world.contacts[0])
+
+    def _pose(self) -> tuple[float, float, float]:
+        b = self.world.robot.body
+        x, y = b.position
+        return (x, y, math.remainder(b.angle, 2 * math.pi))
+
+    def _reward(self, progress, stuck, collision, escaped) -> float:
+        return (self.progress_reward * progress - self.stuck_penalty * stuck
+                - self.collision_penalty * collision)
+
+    def _terminated(self, escaped: bool) -> bool:
+        return False
+
+    def _info(self, stuck: bool, collision: bool) -> dict[str, Any]:
+        t = self.tracker
+        return {
+            "stuck": bool(stuck),
+            "bumped": any(self.world.bumps),
+            "collision": bool(collision),
+            "distance_m": t.distance_m,
+            "jams": t.jams,
+            "escapes": t.escapes,
+            "collisions": t.collisions,
+            "in_jam": t.in_jam,
+            "pose": (t.x, t.y, t.heading),
+        }
+
+
+class MKVJamEnv(MKVEnv):
+    """The MK-V starting jammed; the task is to get free.
+
+    ## Description
+    As ``MKV-v0`` (see :class:`MKVEnv` for the robot, sensors and arguments), but every episode
+    starts with the robot physically stuck in one of four situations: against the arena wall
+    (head-on or angled), in an arena corner, at the closed end of a U-shaped dead end narrower
+    than its turning circle, or wedged in a gap between two cylinders narrower than itself. The
+    start is made by driving the robot forward from an approach pose until it has been stuck for
+    ``jam_steps`` steps, so the first observation already shows the stalled or spinning drive.
+
+    ## Action Space / Observation Space
+    As ``MKV-v0``.
+
+    ## Rewards
+    As ``MKV-v0`` plus ``escape_reward`` (default 5) on the step the robot gets free.
+
+    ## Starting State
+    A seeded layout, a scenario drawn uniformly from ``scenarios``, the robot jammed in it.
+    ``info["scenario"]`` names it.
+
+    ## Episode End
+    Terminated with ``info["escaped"] = True`` once the robot, not stuck, is
+    ``escape_distance_m`` (0.3 m) from its start; truncated after ``max_episode_steps``
+    (300 steps = 30 s by default).
+
+    ## Arguments
+    ```python
+    env = gym.make("MKVJam-v0", scenarios=("dead_end", "wedge"), escape_reward=5.0)
+    ```
+    All ``MKV-v0`` arguments, plus ``scenarios`` (subset of ``mkv_env.jams.SCENARIOS``),
+    ``escape_reward`` and ``n_clutter`` (default 10).
+
+    ## Version History
+    * v0: initial release.
+    """
+
+    def __init__(self, scenarios=SCENARIOS, escape_reward: float = 5.0, n_clutter: int = 10,
+                 **kwargs):
+        scenarios = tuple(scenarios) if not isinstance(scenarios, str) else (scenarios,)
+        _check(len(scenarios) > 0 and set(scenarios) <= set(SCENARIOS),
+               f"scenarios must be a non-empty subset of {SCENARIOS}, got {scenarios!r}")
+        _check(_num(escape_reward), f"escape_reward must be a finite number, got {escape_reward!r}")
+        super().__init__(n_clutter=n_clutter, **kwargs)
+        self.scenarios = scenarios
+        self.escape_reward = float(escape_reward)
+        self.scenario = None
+
+    def _build_world(self) -> World:
+        rng = self.np_random
+        W = self.arena_size_m
+        for _ in range(50):
+            kind = self.scenarios[int(rng.integers(len(self.scenarios)))]
+            walls, boxes, cylinders, reserved, pose = build_scenario(kind, rng, W, W)
+            layout = generate_layout(rng, W, W, self.n_clutter, self.n_patches,
+                                     self.patch_friction, reserved=reserved)
+            layout.walls += [tuple(map(float, w)) for w in walls]
+            layout.boxes += [tuple(map(float, b)) for b in boxes]
+            layout.cylinders += [tuple(map(float, c)) for c in cylinders]
+            world = World(layout, self.robot_params, pose)
+            if world.robot_overlaps():
+                continue
+            if _drive_until_jammed(world, self, rng):
+                self.scenario = kind
+                return world
+        raise RuntimeError("could not build a jam scenario; check arena_size_m and n_clutter")
+
+    def _reset_tracker(self) -> None:
+        self.tracker.reset(self._pose(), True, self.world.contacts[0])
+
+    def _reward(self, progress, stuck, collision, escaped) -> float:
+        return super()._reward(progress, stuck, collision, escaped) + self.escape_reward * escaped
+
+    def _terminated(self, escaped: bool) -> bool:
+        return escaped
+
+    def _info(self, stuck: bool, collision: bool) -> dict[str, Any]:
+        info = super()._info(stuck, collision)
+        info["escaped"] = self.tracker.escapes > 0
+        info["scenario"] = self.scenario
+        return info
+
+
+def _drive_until_jammed(world: World, env: MKVEnv, rng, max_steps: int = 40) -> bool:
+    """Drive forward (steering held at a random command) until stuck for jam_steps steps."""
+    steer = int(rng.integers(-1, 2))
+    limit = env.tracker.stuck_speed_mps * env.control_period_s
+    run = 0
+    x0, y0 = world.robot.body.position
+    for _ in range(max_steps):
+        world.step(1, steer, env.control_period_s, env.substeps)
+        x, y = world.robot.body.position
+        run = run + 1 if math.hypot(x - x0, y - y0) < limit else 0
+        x0, y0 = x, y
+        if run >= env.tracker.jam_steps:
+            return world.in_contact
+    return False
+
+
+def _place(world: World, pose) -> None:
+    body = world.robot.body
+    body.position = pose[:2]
+    body.angle = pose[2]
+    world.space.reindex_shapes_for_body(body)
+
+
+def _num(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
+        and math.isfinite(v)
+
+
+def _int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)

@@ -1,0 +1,63 @@
+"""Ground-truth bookkeeping every evaluation needs: distance, stuck, jams and escapes.
+
+Nothing here is visible to the learner; it feeds ``info`` and the reward.
+"""
+
+from __future__ import annotations
+
+import math
+
+
+class MotionTracker:
+    """Per-step motion measures of the robot, from its true pose.
+
+    Args:
+        period_s: control period [s].
+        stuck_speed_mps: below this speed a robot commanded to drive counts as stuck.
+        jam_steps: consecutive stuck steps that make a jam.
+        escape_distance_m: distance from where a jam began that counts as free (when not stuck).
+    """
+
+    def __init__(self, period_s, stuck_speed_mps, jam_steps, escape_distance_m):
+        self.period_s = period_s
+        self.stuck_speed_mps = stuck_speed_mps
+        self.jam_steps = jam_steps
+        self.escape_distance_m = escape_distance_m
+
+    def reset(self, pose, jammed: bool = False, contact_events: int = 0) -> None:
+        self.x, self.y, self.heading = pose
+        self.distance_m = 0.0
+        self.stuck_run = 0
+        self.jams = 1 if jammed else 0
+        self.escapes = 0
+        self.in_jam = jammed
+        self.jam_x, self.jam_y = self.x, self.y
+        self.collisions = 0
+        self._events = contact_events
+
+    def update(self, pose, drive_cmd: int, contact_events: int):
+        """Advance one step. Returns (progress_m, stuck, new_collision, escaped_now)."""
+        x, y, heading = pose
+        dx, dy = x - self.x, y - self.y
+        step = math.hypot(dx, dy)
+        mid = self.heading + 0.5 * math.remainder(heading - self.heading, 2 * math.pi)
+        progress = dx * math.cos(mid) + dy * math.sin(mid)
+        self.x, self.y, self.heading = x, y, heading
+        self.distance_m += step
+        stuck = drive_cmd != 0 and step < self.stuck_speed_mps * self.period_s
+        self.stuck_run = self.stuck_run + 1 if stuck else 0
+        new_collision = contact_events > self._events
+        if new_collision:
+            self.collisions += 1
+        self._events = contact_events
+        escaped_now = False
+        if self.in_jam:
+            if not stuck and math.hypot(x - self.jam_x, y - self.jam_y) >= self.escape_distance_m:
+                self.in_jam = False
+                self.escapes += 1
+                escaped_now = True
+        elif self.stuck_run >= self.jam_steps:
+            self.in_jam = True
+            self.jams += 1
+            self.jam_x, self.jam_y = x, y
+        return progress, stuck, new_collision, escaped_now

@@ -1,0 +1,237 @@
+"""The arena: walls, seeded clutter, slippery floor patches, and the pymunk space holding the robot.
+
+A layout is plain data (:class:`Layout`: lists of tuples), generated from a numpy Generator and
+then built into static pymunk shapes. Keeping the layout as data lets the renderer draw it,
+pickling rebuild it, and tests inspect it without touching pymunk.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pymunk
+
+from mkv_env.params import RobotParams
+from mkv_env.robot import BUMP_FL, BUMP_FR, BUMP_REAR, CHASSIS, OBSTACLE, ROBOT_FILTER, Robot
+
+WALL_RADIUS_M = 0.04
+"""Half thickness of arena walls and wall pieces [m]; far above the <1 cm a substep moves."""
+ROBOT_CLEARANCE_M = 0.26
+"""Free radius required around a start position [m] (robot circumradius 0.19 m + margin)."""
+
+
+@dataclass
+class Layout:
+    """Obstacles and floor of one arena, in world metres.
+
+    boxes: (cx, cy, w, h, angle); cylinders: (cx, cy, r); walls: (ax, ay, bx, by) segments of
+    radius WALL_RADIUS_M (the arena boundary included); patches: (x0, y0, x1, y1, friction_scale).
+    """
+
+    width_m: float
+    height_m: float
+    boxes: list = field(default_factory=list)
+    cylinders: list = field(default_factory=list)
+    walls: list = field(default_factory=list)
+    patches: list = field(default_factory=list)
+
+
+def _bounding(kind: str, spec) -> tuple[float, float, float]:
+    """Centre and radius of a circle around an obstacle (for spacing clutter)."""
+    if kind == "box":
+        cx, cy, w, h, _ = spec
+        return cx, cy, 0.5 * math.hypot(w, h)
+    if kind == "cylinder":
+        return spec
+    ax, ay, bx, by = spec
+    return 0.5 * (ax + bx), 0.5 * (ay + by), 0.5 * math.hypot(bx - ax, by - ay) + WALL_RADIUS_M
+
+
+def dead_end_walls(cx, cy, angle, gap_m, depth_m) -> list[tuple[float, float, float, float]]:
+    """Three wall segments forming a U open towards ``angle`` (inner width ``gap_m``)."""
+    c, s = math.cos(angle), math.sin(angle)
+    half = 0.5 * gap_m + WALL_RADIUS_M
+
+    def w(x, y):
+        return (cx + c * x - s * y, cy + s * x + c * y)
+
+    back_l, back_r = w(0.0, half), w(0.0, -half)
+    open_l, open_r = w(depth_m, half), w(depth_m, -half)
+    return [(*back_l, *back_r), (*back_l, *open_l), (*back_r, *open_r)]
+
+
+def generate_layout(
+    rng: np.random.Generator,
+    width_m: float = 4.0,
+    height_m: float = 4.0,
+    n_clutter: int = 14,
+    n_patches: int = 2,
+    patch_friction_scale: float = 0.3,
+    reserved: list[tuple[float, float, float]] | None = None,
+) -> Layout:
+    """Random clutter: boxes, cylinders, wall pieces, corners (L) and dead ends (U).
+
+    ``reserved`` lists circles (cx, cy, r) to keep free (e.g. a jam scenario's structure).
+    Gaps between obstacles are drawn from 0.1 m to 0.6 m: some narrower than the robot (0.22 m
+    wide), so wandering robots wedge themselves.
+    """
+    lay = Layout(width_m, height_m)
+    W, H = width_m, height_m
+    lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
+    circles = list(reserved or [])
+    kinds = ("box", "cylinder", "wall", "corner", "dead_end")
+    probs = (0.32, 0.24, 0.16, 0.16, 0.12)
+    for _ in range(n_clutter):
+        for _attempt in range(30):
+            kind = kinds[rng.choice(len(kinds), p=probs)]
+            cx, cy = rng.uniform(0.35, W - 0.35), rng.uniform(0.35, H - 0.35)
+            ang = rng.uniform(-math.pi, math.pi)
+            if kind == "box":
+                items = [("box", (cx, cy, rng.uniform(0.15, 0.5), rng.uniform(0.15, 0.5), ang))]
+            elif kind == "cylinder":
+                items = [("cylinder", (cx, cy, rng.uniform(0.06, 0.2)))]
+            elif kind == "wall":
+                half = 0.5 * rng.uniform(0.4, 1.1)
+                dx, dy = half * math.cos(ang), half * math.sin(ang)
+                items = [("wall", (cx - dx, cy - dy, cx + dx, cy + dy))]
+            elif kind == "corner":
+                la, lb = rng.uniform(0.35, 0.8), rng.uniform(0.35, 0.8)
+                ex, ey = cx + la * math.cos(ang), cy + la * math.sin(ang)
+                fx, fy = cx - lb * math.sin(ang), cy + lb * math.cos(ang)
+                items = [("wall", (cx, cy, ex, ey)), ("wall", (cx, cy, fx, fy))]
+            else:
+                segs = dead_end_walls(cx, cy, ang, rng.uniform(0.3, 0.45), rng.uniform(0.4, 0.75))
+                items = [("wall", sg) for sg in segs]
+            bounds = [_bounding(k, sp) for k, sp in items]
+            if not all(_inside(b, W, H) for b in bounds):
+                continue
+            gap = rng.uniform(0.1, 0.6)
+            if any(
+                math.hypot(bx - ox, by - oy) < br + orad + gap
+                for bx, by, br in bounds[:1] + bounds[1:]
+                for ox, oy, orad in circles
+            ):
+                continue
+            for k, sp in items:
+                getattr(lay, {"box": "boxes", "cylinder": "cylinders", "wall": "walls"}[k]).append(
+                    tuple(float(v) for v in sp)
+                )
+            circles += bounds
+            break
+    for _ in range(n_patches):
+        pw, ph = rng.uniform(0.5, 1.0), rng.uniform(0.5, 1.0)
+        x0, y0 = rng.uniform(0, W - pw), rng.uniform(0, H - ph)
+        lay.patches.append((x0, y0, x0 + pw, y0 + ph, float(patch_friction_scale)))
+    return lay
+
+
+def _inside(bound, W, H) -> bool:
+    cx, cy, r = bound
+    return r < cx < W - r and r < cy < H - r
+
+
+def _on_begin(arbiter, space, counts):
+    a, b = arbiter.shapes
+    t = a.collision_type if a.collision_type != OBSTACLE else b.collision_type
+    counts[t] += 1
+    counts[0] += 1  # contact events since the space was built
+
+
+def _on_separate(arbiter, space, counts):
+    a, b = arbiter.shapes
+    t = a.collision_type if a.collision_type != OBSTACLE else b.collision_type
+    counts[t] -= 1
+
+
+class World:
+    """A built layout plus the robot, stepping physics at a fixed substep.
+
+    Attributes:
+        contacts: list indexed by collision type; ``contacts[BUMP_FL]`` etc. are the number of
+            obstacle shapes touching that part now; ``contacts[0]`` counts contact events.
+    """
+
+    def __init__(self, layout: Layout, robot_params: RobotParams, pose, iterations: int = 10):
+        self.layout = layout
+        self.robot_params = robot_params
+        self.space = space = pymunk.Space()
+        space.iterations = iterations
+        space.damping = 0.6  # rolling resistance of the caster and wheels: 40 % speed lost per s
+        sb = space.static_body
+        shapes = []
+        for ax, ay, bx, by in layout.walls:
+            shapes.append(pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M))
+        for cx, cy, w, h, ang in layout.boxes:
+            t = pymunk.Transform.translation(cx, cy).rotated(ang)
+            verts = [(-w / 2, -h / 2), (w / 2, -h / 2), (w / 2, h / 2), (-w / 2, h / 2)]
+            shapes.append(pymunk.Poly(sb, verts, transform=t))
+        for cx, cy, r in layout.cylinders:
+            shapes.append(pymunk.Circle(sb, r, (cx, cy)))
+        for s in shapes:
+            s.collision_type = OBSTACLE
+            s.friction = 0.6
+            s.elasticity = 0.0
+        space.add(*shapes)
+        self.contacts = [0] * 5
+        for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
+            space.on_collision(ctype, OBSTACLE, begin=_on_begin, separate=_on_separate,
+                               data=self.contacts)
+        self.robot = Robot(space, robot_params, pose[:2], pose[2])
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, drive_cmd: int, steer_cmd: int, period_s: float, substeps: int) -> None:
+        """Advance one control period with constant motor commands (-1, 0, +1 each)."""
+        robot, space = self.robot, self.space
+        robot.set_floor_friction_scale(self.floor_friction_scale())
+        h = period_s / substeps
+        sub, stp = robot.substep, space.step
+        for _ in range(substeps):
+            sub(drive_cmd, steer_cmd, h)
+            stp(h)
+
+    def floor_friction_scale(self) -> float:
+        """Friction multiplier under the drive wheel (slippery patches)."""
+        patches = self.layout.patches
+        if not patches:
+            return 1.0
+        x, y = self.robot.body.local_to_world((self.robot_params.drive_x_m, 0.0))
+        for x0, y0, x1, y1, scale in patches:
+            if x0 <= x <= x1 and y0 <= y <= y1:
+                return scale
+        return 1.0
+
+    # ------------------------------------------------------------------ queries
+    def is_clear(self, x: float, y: float, radius: float = ROBOT_CLEARANCE_M) -> bool:
+        """True when no obstacle lies within ``radius`` of (x, y) (robot shapes ignored)."""
+        return self.space.point_query_nearest((x, y), radius, ROBOT_FILTER) is None
+
+    def robot_overlaps(self) -> bool:
+        """True when any robot shape intersects an obstacle (used to validate start poses)."""
+        for shape in self.robot.shapes:
+            for info in self.space.shape_query(shape):
+                if info.shape.body is not self.robot.body:
+                    return True
+        return False
+
+    @property
+    def bumps(self) -> tuple[bool, bool, bool]:
+        c = self.contacts
+        return c[BUMP_FL] > 0, c[BUMP_FR] > 0, c[BUMP_REAR] > 0
+
+    @property
+    def in_contact(self) -> bool:
+        c = self.contacts
+        return (c[CHASSIS] + c[BUMP_FL] + c[BUMP_FR] + c[BUMP_REAR]) > 0
+
+
+def random_free_pose(world: World, rng: np.random.Generator, tries: int = 200):
+    """A uniformly random pose whose footprint is clear of obstacles, or None."""
+    W, H = world.layout.width_m, world.layout.height_m
+    m = ROBOT_CLEARANCE_M + WALL_RADIUS_M
+    for _ in range(tries):
+        x, y = rng.uniform(m, W - m), rng.uniform(m, H - m)
+        if world.is_clear(x, y):
+            return (float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
+    return None
