@@ -250,9 +250,8 @@ class MKVEnv(gym.Env):
         self.tracker.reset(self._pose(), False, self.world.contacts[0])
 
     def _pose(self) -> tuple[float, float, float]:
-        b = self.world.robot.body
-        x, y = b.position
-        return (x, y, math.remainder(b.angle, 2 * math.pi))
+        x, y, th = self.world.robot.pose()
+        return (x, y, math.remainder(th, 2 * math.pi))
 
     def _reward(self, progress, stuck, collision, escaped) -> float:
         return (self.progress_reward * progress - self.stuck_penalty * stuck

@@ -19,6 +19,11 @@ from dataclasses import dataclass
 
 import pymunk
 
+try:  # pymunk's own cffi layer: the same calls its properties make, minus the wrappers
+    from pymunk._chipmunk import lib as _cp
+except ImportError:  # pragma: no cover - other pymunk builds
+    _cp = None
+
 from mkv_env.params import GRAVITY_MPS2, RobotParams
 
 # Collision types of the robot's shapes (obstacles use OBSTACLE).
@@ -73,6 +78,7 @@ class Robot:
         space.add(self.body, *self.shapes)
         self.state = WheelState()
         self._mu_scale = 1.0
+        self.fast = True  # use the cffi hot path (False: public API, for cross-checks)
         self._precompute()
 
     def _precompute(self) -> None:
@@ -96,107 +102,168 @@ class Robot:
         self._mu_scale = scale
 
     # ------------------------------------------------------------------ hot path
-    def substep(self, drive_cmd: int, steer_cmd: int, dt: float) -> None:
-        """Advance motors and apply wheel impulses for one physics substep of ``dt`` seconds.
+    def advance(self, drive_cmd: int, steer_cmd: int, dt: float, n: int, space) -> None:
+        """Run ``n`` physics substeps of ``dt`` seconds with constant motor commands.
 
-        ``drive_cmd``/``steer_cmd`` are -1, 0 or +1 (steer +1 = left). Call ``space.step(dt)``
-        afterwards to integrate positions and resolve contacts.
+        ``drive_cmd``/``steer_cmd`` are -1, 0 or +1 (steer +1 = left). Each substep: steering
+        motor, drive motor (implicit), wheel-floor impulses, then ``space.step(dt)`` for
+        positions and contacts. State lives in locals for the loop; pymunk is touched through
+        its cffi layer (``pymunk._chipmunk.lib``) when available: the public properties cost
+        several times more and this loop is the simulator's whole budget.
         """
         p = self.params
         st = self.state
-        body = self.body
-        vx, vy = body.velocity
-        om = body.angular_velocity
-        th = body.angle
-        c, s = math.cos(th), math.sin(th)
-        u = c * vx + s * vy  # forward velocity of the chassis centre
-        w = -s * vx + c * vy  # leftward velocity
         xd, xs = p.drive_x_m, p.steer_x_m
         rw = p.drive_wheel_radius_m
-
-        # Free-rolling steering wheel encoder: the actual motion after last substep's contacts.
-        delta = st.steer
-        cd, sd = math.cos(delta), math.sin(delta)
-        st.roller_angle += (cd * u + sd * (w + om * xs)) * dt / p.steer_wheel_radius_m
-
-        # Steering motor, implicit in its rate; dry friction opposes motion; stops clamp it.
-        vs = self._s_v * steer_cmd
-        torque = self._s_k * vs / self._s_r
-        rate = st.steer_rate
-        fric = p.steer_coulomb_nm
-        if rate > 1e-6 or (rate >= -1e-6 and torque > fric):
-            torque -= fric
-        elif rate < -1e-6 or torque < -fric:
-            torque += fric
-        else:
-            torque = 0.0
-        rate = (self._s_j * rate + dt * torque) / (self._s_j + dt * self._s_c)
-        delta += rate * dt
+        inv_rs = 1.0 / p.steer_wheel_radius_m
         lim = p.steer_limit_rad
-        if delta > lim:
-            delta, rate = lim, 0.0
-        elif delta < -lim:
-            delta, rate = -lim, 0.0
-        st.steer, st.steer_rate = delta, rate
-        st.steer_current = (vs - self._s_k * rate) / self._s_r
-        cd, sd = math.cos(delta), math.sin(delta)
-
-        # Drive motor, implicit: over the substep the wheel behaves as inertia jp with momentum
-        # j*omega + dt*k*V/R; the floor impulse lam2 then acts on that.
-        vd = self._d_v * drive_cmd
-        jp = self._d_j + dt * self._d_c
-        ww = (self._d_j * st.drive_omega + dt * self._d_k * vd / self._d_r) / jp
-
-        im, iI, iJ = self._im, self._iI, 1.0 / jp
-        # constraint velocities: drive lateral, drive rolling slip, steering-wheel lateral
-        v1 = w + om * xd
-        v2 = u - ww * rw
-        v3 = -sd * u + cd * (w + om * xs)
+        im, iI = self._im, self._iI
         k11 = im + xd * xd * iI
-        k22 = im + rw * rw * iJ
-        k33 = im + cd * cd * xs * xs * iI
-        k13 = cd * im + xd * cd * xs * iI
-        k23 = -sd * im
-        # Solve K lam = -v (K symmetric, k12 = 0) by Cramer's rule.
-        det = k11 * (k22 * k33 - k23 * k23) - k13 * k13 * k22
-        r1, r2, r3 = -v1, -v2, -v3
-        l1 = (r1 * (k22 * k33 - k23 * k23) + k13 * (r2 * k23 - r3 * k22)) / det
-        l2 = (k11 * (r2 * k33 - r3 * k23) - k13 * k13 * r2 + k13 * r1 * k23) / det
-        l3 = (k11 * (k22 * r3 - k23 * r2) - r1 * k13 * k22) / det
         mu = p.tire_friction * self._mu_scale
         cap_d = mu * self._n_drive * dt
         cap_s = mu * self._n_steer * dt
-        if l1 * l1 + l2 * l2 > cap_d * cap_d or abs(l3) > cap_s:
-            # Sliding: projected Gauss-Seidel on the friction circle / interval.
-            l1 = l2 = l3 = 0.0
-            a1, a2, a3 = v1, v2, v3
-            for _ in range(8):
-                n1 = l1 - a1 / k11
-                n2 = l2 - a2 / k22
-                norm = math.hypot(n1, n2)
-                if norm > cap_d:
-                    n1, n2 = n1 * cap_d / norm, n2 * cap_d / norm
-                d1, d2 = n1 - l1, n2 - l2
-                l1, l2 = n1, n2
-                a1 += k11 * d1
-                a2 += k22 * d2
-                a3 += k13 * d1 + k23 * d2
-                n3 = min(max(l3 - a3 / k33, -cap_s), cap_s)
-                d3 = n3 - l3
-                l3 = n3
-                a1 += k13 * d3
-                a2 += k23 * d3
-        u += im * (l2 - sd * l3)
-        w += im * (l1 + cd * l3)
-        om += iI * (xd * l1 + cd * xs * l3)
-        ww -= iJ * rw * l2
-        st.drive_omega = ww
-        st.drive_angle += ww * dt
-        st.drive_current = (vd - self._d_k * ww) / self._d_r
-        body.velocity = (c * u - s * w, s * u + c * w)
-        body.angular_velocity = om
+        # steering motor constants for this command
+        vs = self._s_v * steer_cmd
+        s_drive = self._s_k * vs / self._s_r
+        s_j = self._s_j
+        s_den = s_j + dt * self._s_c
+        fric = p.steer_coulomb_nm
+        s_k_over_r = self._s_k / self._s_r
+        vs_over_r = vs / self._s_r
+        # drive motor: implicit inertia jp, momentum j*omega + dt*k*V/R
+        vd = self._d_v * drive_cmd
+        d_j = self._d_j
+        jp = d_j + dt * self._d_c
+        d_push = dt * self._d_k * vd / self._d_r
+        iJ = 1.0 / jp
+        k22 = im + rw * rw * iJ
+        d_k_over_r = self._d_k / self._d_r
+        vd_over_r = vd / self._d_r
+
+        ww, delta, rate = st.drive_omega, st.steer, st.steer_rate
+        drive_angle, roller_angle = st.drive_angle, st.roller_angle
+        cd, sd = math.cos(delta), math.sin(delta)
+        k33 = im + cd * cd * xs * xs * iI
+        k13 = cd * im + xd * cd * xs * iI
+        k23 = -sd * im
+        steer_idle = steer_cmd == 0 and rate == 0.0
+        cos, sin, hypot = math.cos, math.sin, math.hypot
+        get_v, get_w, get_a, set_v, set_w, step, cpb = self._accessors(space)
+
+        for _ in range(n):
+            v = get_v(cpb)
+            vx, vy = v.x, v.y
+            om = get_w(cpb)
+            th = get_a(cpb)
+            c, s = cos(th), sin(th)
+            u = c * vx + s * vy  # forward velocity of the chassis centre
+            w = c * vy - s * vx  # leftward velocity
+            # free-rolling steering wheel encoder: the actual motion after the last contacts
+            roller_angle += (cd * u + sd * (w + om * xs)) * dt * inv_rs
+
+            if not steer_idle:
+                # steering motor, implicit in its rate; dry friction; stops clamp it
+                torque = s_drive
+                if rate > 1e-6 or (rate >= -1e-6 and torque > fric):
+                    torque -= fric
+                elif rate < -1e-6 or torque < -fric:
+                    torque += fric
+                else:
+                    torque = 0.0
+                rate = (s_j * rate + dt * torque) / s_den
+                delta += rate * dt
+                if delta > lim:
+                    delta, rate = lim, 0.0
+                elif delta < -lim:
+                    delta, rate = -lim, 0.0
+                steer_idle = steer_cmd == 0 and rate == 0.0
+                cd, sd = cos(delta), sin(delta)
+                k33 = im + cd * cd * xs * xs * iI
+                k13 = cd * im + xd * cd * xs * iI
+                k23 = -sd * im
+
+            ww = (d_j * ww + d_push) / jp
+            # constraint velocities: drive lateral, drive rolling slip, steering-wheel lateral
+            v1 = w + om * xd
+            v2 = u - ww * rw
+            v3 = cd * (w + om * xs) - sd * u
+            # solve K lam = -v (K symmetric, k12 = 0) by Cramer's rule
+            a = k22 * k33 - k23 * k23
+            det = k11 * a - k13 * k13 * k22
+            l1 = (-v1 * a + k13 * (v3 * k22 - v2 * k23)) / det
+            l2 = (k11 * (v3 * k23 - v2 * k33) + k13 * (k13 * v2 - v1 * k23)) / det
+            l3 = (k11 * (k23 * v2 - k22 * v3) + v1 * k13 * k22) / det
+            if l1 * l1 + l2 * l2 > cap_d * cap_d or abs(l3) > cap_s:
+                # sliding: projected Gauss-Seidel on the friction circle / interval
+                l1 = l2 = l3 = 0.0
+                a1, a2, a3 = v1, v2, v3
+                for _it in range(8):
+                    n1 = l1 - a1 / k11
+                    n2 = l2 - a2 / k22
+                    norm = hypot(n1, n2)
+                    if norm > cap_d:
+                        n1, n2 = n1 * cap_d / norm, n2 * cap_d / norm
+                    d1, d2 = n1 - l1, n2 - l2
+                    l1, l2 = n1, n2
+                    a1 += k11 * d1
+                    a2 += k22 * d2
+                    a3 += k13 * d1 + k23 * d2
+                    n3 = min(max(l3 - a3 / k33, -cap_s), cap_s)
+                    d3 = n3 - l3
+                    l3 = n3
+                    a1 += k13 * d3
+                    a2 += k23 * d3
+            u += im * (l2 - sd * l3)
+            w += im * (l1 + cd * l3)
+            om += iI * (xd * l1 + cd * xs * l3)
+            ww -= iJ * rw * l2
+            drive_angle += ww * dt
+            set_v(cpb, (c * u - s * w, s * u + c * w))
+            set_w(cpb, om)
+            step(dt)
+
+        st.drive_omega, st.steer, st.steer_rate = ww, delta, rate
+        st.drive_angle, st.roller_angle = drive_angle, roller_angle
+        st.drive_current = vd_over_r - d_k_over_r * ww
+        st.steer_current = vs_over_r - s_k_over_r * rate
+
+    def _accessors(self, space):
+        """(get_velocity, get_angular_velocity, get_angle, set_velocity, set_angular_velocity,
+        space_step, body_handle), through cffi when possible, else the public pymunk API."""
+        if _cp is not None and not space._bodies_to_check and self.fast:
+            cpspace = space._space
+            cp_step = _cp.cpSpaceStep
+
+            def step(dt):
+                cp_step(cpspace, dt)
+
+            return (_cp.cpBodyGetVelocity, _cp.cpBodyGetAngularVelocity, _cp.cpBodyGetAngle,
+                    _cp.cpBodySetVelocity, _cp.cpBodySetAngularVelocity, step, self.body._body)
+        b = self.body
+
+        def set_v(_, v):
+            b.velocity = v
+
+        def set_w(_, w):
+            b.angular_velocity = w
+
+        return (lambda _: b.velocity, lambda _: b.angular_velocity, lambda _: b.angle,
+                set_v, set_w, space.step, None)
 
     # ------------------------------------------------------------------ queries
+    def pose(self) -> tuple[float, float, float]:
+        """(x [m], y [m], heading [rad], not wrapped) of the chassis centre."""
+        if _cp is not None:
+            b = self.body._body
+            v = _cp.cpBodyGetPosition(b)
+            return v.x, v.y, _cp.cpBodyGetAngle(b)
+        x, y = self.body.position
+        return x, y, self.body.angle
+
+    def angle(self) -> float:
+        """Heading [rad], not wrapped."""
+        return _cp.cpBodyGetAngle(self.body._body) if _cp is not None else self.body.angle
+
     def forward_speed(self) -> float:
         """Chassis speed along its heading [m/s] (ground truth)."""
         vx, vy = self.body.velocity

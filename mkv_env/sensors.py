@@ -47,9 +47,11 @@ class SensorSuite:
         q = np.array([s.quantum for s in specs.values()])
         self._q = np.where(q > 0, q, _FINE)
         self._inv_q = 1.0 / self._q
+        self._q_l, self._inv_q_l = self._q.tolist(), self._inv_q.tolist()
+        self._low_l, self._high_l = self.low.tolist(), self.high.tolist()
         self._tick_angle = _TWO_PI / TICKS_PER_REV
         self._rng = None
-        self._noise = np.zeros((0, len(specs)))
+        self._noise: list[list[float]] = []
         self._row = 0
         self._last_ticks = (0, 0)
 
@@ -67,28 +69,30 @@ class SensorSuite:
     def read(self, world: World) -> np.ndarray:
         """One observation, float32 of shape (n_channels,)."""
         st = world.robot.state
-        ticks = self._ticks(world)
-        d_ticks = ticks[0] - self._last_ticks[0]
-        r_ticks = ticks[1] - self._last_ticks[1]
-        self._last_ticks = ticks
+        tick = self._tick_angle
+        dt_, rt_ = math.floor(st.drive_angle / tick), math.floor(st.roller_angle / tick)
+        d0, r0 = self._last_ticks
+        self._last_ticks = (dt_, rt_)
         c = world.contacts
         i_d, i_s = st.drive_current, st.steer_current
-        heading = world.robot.body.angle
-        truth = np.array((
-            d_ticks, r_ticks, st.steer, heading,
-            c[2] > 0, c[3] > 0, c[4] > 0,
-            i_d, i_s, BATTERY_NOMINAL_V - BATTERY_INTERNAL_OHM * (abs(i_d) + abs(i_s)),
-        ), dtype=np.float64)
         if self._row >= _NOISE_BLOCK:
-            self._noise = self._rng.standard_normal((_NOISE_BLOCK, len(self.names)))
-            self._noise *= self._std
-            self._noise += self._bias
+            block = self._rng.standard_normal((_NOISE_BLOCK, len(self.names)))
+            block *= self._std
+            block += self._bias
+            self._noise = block.tolist()  # plain floats: per-step work stays in Python scalars
             self._row = 0
-        truth += self._noise[self._row]
+        nz = self._noise[self._row]
         self._row += 1
-        truth[3] = (truth[3] + math.pi) % _TWO_PI - math.pi
-        np.round(truth * self._inv_q, out=truth)
-        truth *= self._q
-        np.maximum(truth, self.low, out=truth)
-        np.minimum(truth, self.high, out=truth)
-        return truth.astype(np.float32)
+        heading = (world.robot.angle() + nz[3] + math.pi) % _TWO_PI - math.pi
+        truth = (
+            dt_ - d0 + nz[0], rt_ - r0 + nz[1], st.steer + nz[2], heading,
+            (c[2] > 0) + nz[4], (c[3] > 0) + nz[5], (c[4] > 0) + nz[6],
+            i_d + nz[7], i_s + nz[8],
+            BATTERY_NOMINAL_V - BATTERY_INTERNAL_OHM * (abs(i_d) + abs(i_s)) + nz[9],
+        )
+        return np.array(
+            [min(max(round(x * iq) * q, lo), hi)
+             for x, iq, q, lo, hi in zip(truth, self._inv_q_l, self._q_l, self._low_l,
+                                         self._high_l)],
+            dtype=np.float32,
+        )

@@ -182,22 +182,21 @@ class World:
 
     # ------------------------------------------------------------------ stepping
     def step(self, drive_cmd: int, steer_cmd: int, period_s: float, substeps: int) -> None:
-        """Advance one control period with constant motor commands (-1, 0, +1 each)."""
-        robot, space = self.robot, self.space
-        robot.set_floor_friction_scale(self.floor_friction_scale())
-        h = period_s / substeps
-        sub, stp = robot.substep, space.step
-        for _ in range(substeps):
-            sub(drive_cmd, steer_cmd, h)
-            stp(h)
+        """Advance one control period with constant motor commands (-1, 0, +1 each).
+
+        The floor under the drive wheel is looked up once per period (it moves < 3 cm).
+        """
+        robot = self.robot
+        if self.layout.patches:
+            robot.set_floor_friction_scale(self.floor_friction_scale())
+        robot.advance(drive_cmd, steer_cmd, period_s / substeps, substeps, self.space)
 
     def floor_friction_scale(self) -> float:
         """Friction multiplier under the drive wheel (slippery patches)."""
-        patches = self.layout.patches
-        if not patches:
-            return 1.0
-        x, y = self.robot.body.local_to_world((self.robot_params.drive_x_m, 0.0))
-        for x0, y0, x1, y1, scale in patches:
+        x, y, th = self.robot.pose()
+        xd = self.robot_params.drive_x_m
+        x, y = x + xd * math.cos(th), y + xd * math.sin(th)
+        for x0, y0, x1, y1, scale in self.layout.patches:
             if x0 <= x <= x1 and y0 <= y <= y1:
                 return scale
         return 1.0
