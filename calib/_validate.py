@@ -1,0 +1,64 @@
+"""Input checks shared by every fitting routine; each failure is a one-line CalibrationError."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .result import CalibrationError
+
+
+def check_dof(dof: int) -> int:
+    if dof not in (2, 3, 6):
+        raise CalibrationError(f"dof must be 2, 3 or 6, got {dof!r}")
+    return int(dof)
+
+
+def force_rank(dof: int) -> int:
+    """Rank r of the motion matrix: dimension of the force vector (2 planar, 3 spatial, 3 for 6-DOF)."""
+    return 2 if dof == 2 else 3
+
+
+def check_matrix(Z, name: str = "Z", drop_nonfinite: bool = False) -> tuple[np.ndarray, int]:
+    """Return (float 2-D array, number of rows dropped). NaN/inf rows are an error unless opted out."""
+    Z = np.asarray(Z, dtype=float)
+    if Z.ndim != 2:
+        raise CalibrationError(f"{name} must be 2-D (n_samples, n_channels), got shape {Z.shape}")
+    bad = ~np.isfinite(Z).all(axis=1)
+    nbad = int(bad.sum())
+    if nbad:
+        if not drop_nonfinite:
+            first = int(np.flatnonzero(bad)[0])
+            raise CalibrationError(
+                f"{name} has {nbad} row(s) with NaN/inf (first at row {first}); "
+                "clean the data or opt in to dropping them (--drop-nonfinite)"
+            )
+        Z = Z[~bad]
+    return Z, nbad
+
+
+def check_samples(Z: np.ndarray, n_params: int, name: str = "Z") -> None:
+    """Too few samples, or constant channels."""
+    n, p = Z.shape
+    if n < n_params:
+        raise CalibrationError(
+            f"{name} has {n} samples, at least {n_params} are needed for this fit"
+        )
+    spread = Z.max(axis=0) - Z.min(axis=0)
+    scale = np.maximum(np.abs(Z).max(axis=0), 1e-300)
+    const = np.flatnonzero(spread <= 1e-12 * scale)
+    if len(const):
+        raise CalibrationError(
+            f"{name} channel(s) {const.tolist()} are constant; a dead or disconnected sense element "
+            "cannot be calibrated"
+        )
+
+
+def check_rank(singular_values: np.ndarray, r: int, what: str, rel_tol: float = 1e-9) -> None:
+    """Rank-deficient excitation: the r-th singular value must stand clear of zero."""
+    s = np.asarray(singular_values)
+    if len(s) < r or s[r - 1] <= rel_tol * max(s[0], 1e-300):
+        have = int((s > rel_tol * max(s[0], 1e-300)).sum())
+        raise CalibrationError(
+            f"rank-deficient excitation: {what} has rank {have}, needs {r}; move the load through "
+            "more directions"
+        )

@@ -1,0 +1,268 @@
+"""Shape from motion with sensor bias: ``Z = [M 1] [S; z0^T]`` (paper eqs. 15-18).
+
+Two routes, both returning a :class:`calib.result.Calibration` with the offset filled in:
+
+``method="paper"`` (section 7.1): rank r+1 SVD of the raw data, ``M^ = U* Sigma*^1/2``. The last
+column of ``A^-1`` satisfies the plane ``m^T a4 = 1`` (linear least squares); the first r columns
+``B^T`` the cylinder ``m^T B^T B m = 1`` (18). Start: the linear quadric ``m^T Q m = 1`` (19). On the
+plane that fit is not unique (``Q + lam a4 a4^T``, rescaled, fits the same points), so the
+free ``lam`` is fixed where Q becomes singular: by the matrix determinant lemma
+``lam = -1 / (a4^T Q^-1 a4)``. Zeroing the smallest singular value of that Q gives B. Refinement:
+``scipy.optimize.least_squares`` on the residuals ``|B m_i| - 1`` and ``m_i^T a4 - 1``, or plain
+gradient descent on their mean square, as in the paper (``refine="gd"``). Needs p >= r+1.
+
+``method="centered"``: subtract the mean, rank-r PCA, fit an ellipsoid to the r-dimensional
+coordinates (:mod:`calib.ellipsoid`, approximate maximum likelihood); its centre c gives the offset
+``z0 = mean + V_r c`` and its shape the calibration. Works for p = r (3-axis magnetometers).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ._validate import check_dof, check_matrix, check_rank, check_samples, force_rank
+from .ellipsoid import fit_ellipsoid
+from .result import (
+    Calibration,
+    CalibrationError,
+    coverage_diagnostics,
+    excitation_is_poor,
+    warn,
+)
+from .sfm import finish_frame, fit_unit_quadric, principal, rank_gap
+
+METHODS = ("centered", "paper")
+
+
+def fit_bias(Z, dof: int = 3, method: str = "centered", known_Z=None, known_M=None,
+             magnitude: float | None = None, drop_nonfinite: bool = False, **kwargs) -> Calibration:
+    """Shape from motion with bias; dispatches to :func:`fit_centered` or :func:`fit_paper`.
+
+    Parameters
+    ----------
+    Z : array of shape (n, p)
+    dof : 2 or 3 (6-DOF: :func:`calib.ft6.fit_ft6`)
+    method : "centered" (default) or "paper"
+    known_Z, known_M : optional known pairs (k, p), (k, dof) fixing rotation and scale
+    magnitude : load magnitude used as scale when no known pairs are given
+    """
+    if method == "centered":
+        return fit_centered(Z, dof, known_Z, known_M, magnitude, drop_nonfinite, **kwargs)
+    if method == "paper":
+        return fit_paper(Z, dof, known_Z, known_M, magnitude, drop_nonfinite, **kwargs)
+    raise CalibrationError(f"method must be one of {METHODS}, got {method!r}")
+
+
+def _prepare(Z, dof, drop_nonfinite, extra_rank):
+    dof = check_dof(dof)
+    if dof == 6:
+        raise CalibrationError("6-DOF calibration needs known loads: use calib.ft6.fit_ft6")
+    r = force_rank(dof)
+    Z, nbad = check_matrix(Z, "Z", drop_nonfinite)
+    p = Z.shape[1]
+    if p < r + extra_rank:
+        if extra_rank:
+            raise CalibrationError(
+                f"method 'paper' needs p >= r+1 = {r + 1} channels for dof={dof}, got p={p}; "
+                "use --method centered"
+            )
+        raise CalibrationError(f"need at least {r} channels for dof={dof}, got p={p}")
+    n_params = r + r * (r + 1) // 2 + 1
+    check_samples(Z, n_params)
+    return dof, r, Z, nbad
+
+
+def _finish(Z, C_unit, offset, dof, method, s, r, nbad, extra, known_Z, known_M, magnitude,
+            offset_stderr=None):
+    U = (Z - offset) @ C_unit.T
+    mags = np.linalg.norm(U, axis=1)
+    cov = coverage_diagnostics(U)
+    diag = {
+        "n_samples": len(Z),
+        "n_dropped_nonfinite": nbad,
+        "singular_values": s,
+        "rank": r,
+        "rank_gap": rank_gap(s, r),
+        "coverage": cov,
+        "condition_number_C": float(np.linalg.cond(C_unit)),
+        "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
+        "magnitude_mean": float(mags.mean()),
+    }
+    if offset_stderr is not None:
+        diag["offset_stderr"] = offset_stderr
+    diag.update(extra)
+    poor = excitation_is_poor(cov)
+    diag["excitation_poor"] = bool(poor)
+    if poor:
+        warn(f"poor excitation (isotropy {cov['isotropy']:.2f}, directions within "
+             f"{cov['cap_half_angle_deg']:.0f} deg of their mean): the offset is unreliable")
+    cal = Calibration(C=C_unit, offset=offset, dof=dof, method=method, diagnostics=diag)
+    return finish_frame(cal, known_Z, known_M, magnitude)
+
+
+# --------------------------------------------------------------------------------- centered
+
+
+def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
+                 drop_nonfinite: bool = False, refine: bool = True) -> Calibration:
+    """Mean removal, rank-r PCA, ellipsoid fit; see the module docstring. Works for p >= r.
+
+    Returns a Calibration with ``method="centered"``; extra diagnostics: ``ellipsoid`` (fit info),
+    ``offset_stderr`` (p,) from the refinement's Jacobian.
+    """
+    dof, r, Z, nbad = _prepare(Z, dof, drop_nonfinite, 0)
+    mu = Z.mean(axis=0)
+    s, V = principal(Z, center=mu)
+    check_rank(s, r, "the centred data")
+    Vr = V[:, :r]
+    Y = (Z - mu) @ Vr
+    fit = fit_ellipsoid(Y, refine=refine)
+    offset = mu + Vr @ fit.centre
+    C_unit = fit.W @ Vr.T
+    stderr = np.sqrt((Vr**2) @ fit.centre_stderr**2)
+    return _finish(Z, C_unit, offset, dof, "centered", s, r, nbad, {"ellipsoid": fit.info},
+                   known_Z, known_M, magnitude, offset_stderr=stderr)
+
+
+# ------------------------------------------------------------------------------------ paper
+
+
+def cylinder_start(Mhat: np.ndarray, a4: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Paper's start for B (r, r+1): linear quadric, freedom resolved, smallest singular value zeroed.
+
+    Returns (B, info) with ``info["lambda"]`` the resolved ``Q + lam a4 a4^T`` parameter and
+    ``info["ok"]`` False if the quadric could not be made a cylinder (then the caller falls back).
+    """
+    q = Mhat.shape[1]
+    r = q - 1
+    Q0 = fit_unit_quadric(Mhat)
+    info = {"ok": False}
+    try:
+        t = float(a4 @ np.linalg.solve(Q0, a4))
+    except np.linalg.LinAlgError:
+        t = np.inf
+    if np.isfinite(t) and abs(t) > 1e-300:
+        lam = -1.0 / t
+        Q = (Q0 + lam * np.outer(a4, a4)) / (1.0 + lam)
+        info["lambda"] = lam
+    else:  # Q0 already singular: it is the cylinder
+        Q = Q0
+        info["lambda"] = 0.0
+    w, V = np.linalg.eigh((Q + Q.T) / 2)
+    order = np.argsort(np.abs(w))[::-1]
+    w, V = w[order], V[:, order]
+    info["eigenvalues"] = w.tolist()
+    if np.all(w[:r] > 0):
+        info["ok"] = True
+    B = np.sqrt(np.abs(w[:r]))[:, None] * V[:, :r].T
+    return B, info
+
+
+def _plane_start(Mhat, a4):
+    """Fallback start: ellipsoid fit in plane coordinates, B = W (P^T - c a4^T)."""
+    q = Mhat.shape[1]
+    # orthonormal basis P (q, r) of a4's orthogonal complement
+    Qf, _ = np.linalg.qr(np.column_stack([a4, np.eye(q)]))
+    P = Qf[:, 1:q]
+    Y = Mhat @ P
+    fit = fit_ellipsoid(Y, refine=False)
+    return fit.W @ (P.T - np.outer(fit.centre, a4))
+
+
+def _residuals(x, Mhat, r):
+    q = r + 1
+    B = x[: r * q].reshape(r, q)
+    a4 = x[r * q :]
+    return np.concatenate([np.linalg.norm(Mhat @ B.T, axis=1) - 1.0, Mhat @ a4 - 1.0])
+
+
+def _jacobian(x, Mhat, r):
+    q = r + 1
+    n = len(Mhat)
+    B = x[: r * q].reshape(r, q)
+    V = Mhat @ B.T  # (n, r)
+    rho = np.maximum(np.linalg.norm(V, axis=1), 1e-300)
+    J = np.zeros((2 * n, r * q + q))
+    # d|Bm|/dB_jk = (Bm)_j m_k / |Bm|
+    J[:n, : r * q] = ((V / rho[:, None])[:, :, None] * Mhat[:, None, :]).reshape(n, r * q)
+    J[n:, r * q :] = Mhat
+    return J
+
+
+def refine_gradient_descent(x0, Mhat, r, max_iter: int = 20000, tol: float = 1e-12):
+    """Plain gradient descent on the mean squared residual, fixed step 1 / (2 lambda_max(m m^T)).
+
+    Returns (x, info) with ``iterations``, ``converged``, ``cost``.
+    """
+    n = len(Mhat)
+    H = Mhat.T @ Mhat / n
+    step = 0.5 / np.linalg.eigvalsh(H)[-1]
+    x = x0.copy()
+    prev = np.inf
+    it = 0
+    converged = False
+    for it in range(1, max_iter + 1):
+        res = _residuals(x, Mhat, r)
+        cost = float(res @ res / n)
+        grad = 2.0 * (_jacobian(x, Mhat, r).T @ res) / n
+        x = x - step * grad
+        if abs(prev - cost) <= tol * max(cost, 1e-300):
+            converged = True
+            break
+        prev = cost
+    res = _residuals(x, Mhat, r)
+    return x, {"iterations": it, "converged": converged, "cost": float(res @ res / n)}
+
+
+def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
+              drop_nonfinite: bool = False, refine: str | None = "lsq",
+              gd_max_iter: int = 20000) -> Calibration:
+    """The paper's rank-(r+1) plane + cylinder method; see the module docstring.
+
+    Parameters
+    ----------
+    refine : "lsq" (scipy least_squares, default), "gd" (plain gradient descent), or None
+    """
+    dof, r, Z, nbad = _prepare(Z, dof, drop_nonfinite, 1)
+    q = r + 1
+    s, V = principal(Z)
+    check_rank(s, q, "Z (with offset)")
+    Vq, sq = V[:, :q], s[:q]
+    Mhat = (Z @ Vq) / np.sqrt(sq)
+    a4, *_ = np.linalg.lstsq(Mhat, np.ones(len(Z)), rcond=None)
+    B, start = cylinder_start(Mhat, a4)
+    if not start["ok"]:
+        warn("the quadric start is not a cylinder (poor excitation?); starting from a plane-"
+             "coordinate ellipsoid fit instead")
+        B = _plane_start(Mhat, a4)
+    x0 = np.concatenate([B.ravel(), a4])
+    cost0 = float(np.mean(_residuals(x0, Mhat, r) ** 2))
+    extra = {"paper_start": start, "start_cost": cost0}
+    if refine == "lsq":
+        sol = least_squares(_residuals, x0, jac=_jacobian, args=(Mhat, r), method="lm",
+                            xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=2000)
+        x = sol.x
+        extra["refinement"] = {"solver": "scipy least_squares (lm)", "nfev": int(sol.nfev),
+                               "converged": bool(sol.status > 0),
+                               "cost": float(np.mean(sol.fun**2))}
+    elif refine == "gd":
+        x, info = refine_gradient_descent(x0, Mhat, r, max_iter=gd_max_iter)
+        extra["refinement"] = {"solver": "gradient descent", **info}
+    elif refine is None:
+        x = x0
+    else:
+        raise CalibrationError(f"refine must be 'lsq', 'gd' or None, got {refine!r}")
+    B = x[: r * q].reshape(r, q)
+    a4 = x[r * q :]
+    Ainv = np.column_stack([B.T, a4])
+    cond_A = float(np.linalg.cond(Ainv))
+    if not np.isfinite(cond_A) or cond_A > 1e12:
+        raise CalibrationError("the plane and cylinder are degenerate (A^-1 singular); "
+                               "excitation is too poor for the paper method")
+    S_aug = np.linalg.solve(Ainv, np.sqrt(sq)[:, None] * Vq.T)
+    S_unit, offset = S_aug[:r], S_aug[r]
+    C_unit = np.linalg.pinv(S_unit.T)
+    extra["condition_number_Ainv"] = cond_A
+    return _finish(Z, C_unit, offset, dof, "paper", s, r, nbad, extra, known_Z, known_M, magnitude)
+

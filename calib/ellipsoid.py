@@ -1,0 +1,212 @@
+"""Ellipse / ellipsoid fitting in r dimensions: ``(y - c)^T W^T W (y - c) = 1``, W symmetric PD.
+
+1. Algebraic start: the general quadric ``y^T A y + b^T y + d = 0`` with unit-norm coefficients
+   (smallest eigenvector of the design's Gram matrix, on normalised data). If A is not definite
+   (a hyperboloid, typical for partial coverage) a CalibrationWarning is raised and the start
+   becomes the constrained fit: a sphere (A = I, linear), which the refinement can only deform
+   into ellipsoids.
+2. Refinement (approximate maximum likelihood): Levenberg-Marquardt on the first-order geometric
+   (Sampson) distance ``d_i = (rho_i - 1) rho_i / |W^T v_i|`` with ``v_i = W (y_i - c)``,
+   ``rho_i = |v_i|``; the weights are refreshed every iteration (IRLS). Parametrising W as a symmetric
+   matrix removes the rotation gauge, and steps that leave the PD cone are rejected, so the result is
+   always an ellipsoid. Normal equations are accumulated in row chunks, so memory stays O(chunk).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .result import warn
+
+CHUNK_ROWS = 1 << 17
+
+
+@dataclass
+class EllipsoidFit:
+    """Result of :func:`fit_ellipsoid`.
+
+    centre : (r,)  c
+    W : (r, r)     symmetric PD map from the ellipsoid to the unit sphere: u = W (y - c)
+    centre_stderr : (r,) standard errors of c from the final Jacobian (noise estimated from residuals)
+    info : dict    start kind, iterations, convergence, residual rms, condition number
+    """
+
+    centre: np.ndarray
+    W: np.ndarray
+    centre_stderr: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def _sym_index(r):
+    return [(j, k) for j in range(r) for k in range(j, r)]
+
+
+def _algebraic(Y: np.ndarray):
+    """General quadric fit on (already normalised) Y; returns (centre, E) or None if not an ellipsoid."""
+    n, r = Y.shape
+    idx = _sym_index(r)
+    nq = len(idx)
+    npar = nq + r + 1
+    G = np.zeros((npar, npar))
+    for i in range(0, n, CHUNK_ROWS):
+        y = Y[i : i + CHUNK_ROWS]
+        D = np.empty((len(y), npar))
+        for c, (j, k) in enumerate(idx):
+            D[:, c] = y[:, j] * y[:, k] * (1.0 if j == k else 2.0)
+        D[:, nq : nq + r] = y
+        D[:, -1] = 1.0
+        G += D.T @ D
+    w, V = np.linalg.eigh(G)
+    theta = V[:, 0]
+    A = np.zeros((r, r))
+    for c, (j, k) in enumerate(idx):
+        A[j, k] = A[k, j] = theta[c]
+    b = theta[nq : nq + r]
+    d = theta[-1]
+    ev = np.linalg.eigvalsh(A)
+    if ev[0] < 0 < ev[-1] or np.all(ev == 0):
+        return None, float(w[1] / max(w[0], 1e-300))
+    if ev[0] < 0:
+        A, b, d = -A, -b, -d
+    c = -0.5 * np.linalg.solve(A, b)
+    k = c @ A @ c - d
+    if k <= 0:
+        return None, float(w[1] / max(w[0], 1e-300))
+    return (c, A / k), float(w[1] / max(w[0], 1e-300))
+
+
+def _sphere(Y: np.ndarray):
+    """Linear sphere fit |y|^2 + b^T y + d = 0; returns (centre, E = I / R^2)."""
+    r = Y.shape[1]
+    X = np.column_stack([Y, np.ones(len(Y))])
+    t, *_ = np.linalg.lstsq(X, -np.sum(Y**2, axis=1), rcond=None)
+    c = -0.5 * t[:r]
+    R2 = max(c @ c - t[r], 1e-12)
+    return c, np.eye(r) / R2
+
+
+def _sqrt_sym(E):
+    w, V = np.linalg.eigh((E + E.T) / 2)
+    return (V * np.sqrt(np.clip(w, 1e-300, None))) @ V.T
+
+
+def _normal_equations(Y, c, W, idx):
+    """Accumulate J^T J, J^T e, e^T e and n for the Sampson residuals at (c, W)."""
+    r = Y.shape[1]
+    npar = r + len(idx)
+    JTJ = np.zeros((npar, npar))
+    JTe = np.zeros(npar)
+    ee = 0.0
+    for i in range(0, len(Y), CHUNK_ROWS):
+        dlt = Y[i : i + CHUNK_ROWS] - c
+        v = dlt @ W  # W symmetric
+        rho = np.sqrt(np.einsum("ij,ij->i", v, v))
+        g = v @ W
+        gn = np.sqrt(np.einsum("ij,ij->i", g, g))
+        wgt = rho / np.maximum(gn, 1e-300)  # 1 / |grad rho|
+        e = wgt * (rho - 1.0)
+        J = np.empty((len(dlt), npar))
+        inv_rho = 1.0 / np.maximum(rho, 1e-300)
+        J[:, :r] = -(g * inv_rho[:, None])
+        for col, (j, k) in enumerate(idx):
+            if j == k:
+                J[:, r + col] = v[:, j] * dlt[:, j] * inv_rho
+            else:
+                J[:, r + col] = (v[:, j] * dlt[:, k] + v[:, k] * dlt[:, j]) * inv_rho
+        J *= wgt[:, None]
+        JTJ += J.T @ J
+        JTe += J.T @ e
+        ee += float(e @ e)
+    return JTJ, JTe, ee
+
+
+def _cost(Y, c, W):
+    ee = 0.0
+    for i in range(0, len(Y), CHUNK_ROWS):
+        v = (Y[i : i + CHUNK_ROWS] - c) @ W
+        rho = np.sqrt(np.einsum("ij,ij->i", v, v))
+        g = v @ W
+        gn = np.sqrt(np.einsum("ij,ij->i", g, g))
+        e = rho / np.maximum(gn, 1e-300) * (rho - 1.0)
+        ee += float(e @ e)
+    return ee
+
+
+def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 50,
+                  tol: float = 1e-12) -> EllipsoidFit:
+    """Fit an ellipse (r=2) or ellipsoid (r=3) to points Y of shape (n, r).
+
+    Returns an :class:`EllipsoidFit`; ``info["start"]`` is ``"algebraic"`` or
+    ``"sphere (hyperboloid rejected)"``.
+    """
+    Y = np.asarray(Y, float)
+    n, r = Y.shape
+    mu = Y.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((Y - mu) ** 2, axis=1)))) or 1.0
+    Yn = (Y - mu) / scale
+    start, gap = _algebraic(Yn)
+    info = {"algebraic_eigen_gap": gap}
+    if start is None:
+        warn("the unconstrained quadric fit is a hyperboloid (partial coverage?); using a "
+             "constrained ellipsoid fit, the offset is unreliable")
+        c, E = _sphere(Yn)
+        info["start"] = "sphere (hyperboloid rejected)"
+    else:
+        c, E = start
+        info["start"] = "algebraic"
+    W = _sqrt_sym(E)
+    idx = _sym_index(r)
+    lam = 1e-3
+    it = 0
+    converged = not refine
+    JTJ = None
+    if refine:
+        cost = _cost(Yn, c, W)
+        for it in range(1, max_iter + 1):
+            JTJ, JTe, _ = _normal_equations(Yn, c, W, idx)
+            step_ok = False
+            for _ in range(20):
+                Aug = JTJ + lam * np.diag(np.diag(JTJ) + 1e-12)
+                try:
+                    delta = -np.linalg.solve(Aug, JTe)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                c_new = c + delta[:r]
+                W_new = W.copy()
+                for col, (j, k) in enumerate(idx):
+                    W_new[j, k] += delta[r + col]
+                    if j != k:
+                        W_new[k, j] += delta[r + col]
+                if np.linalg.eigvalsh(W_new)[0] <= 0:
+                    lam *= 10
+                    continue
+                new_cost = _cost(Yn, c_new, W_new)
+                if new_cost <= cost:
+                    step_ok = True
+                    rel = (cost - new_cost) / max(cost, 1e-300)
+                    c, W, cost = c_new, W_new, new_cost
+                    lam = max(lam / 10, 1e-12)
+                    break
+                lam *= 10
+            if not step_ok or rel < tol or np.max(np.abs(delta)) < 1e-13:
+                converged = True
+                break
+        JTJ, _, _ = _normal_equations(Yn, c, W, idx)
+        info["residual_rms"] = float(np.sqrt(cost / n)) * scale
+    npar = r + len(idx)
+    if JTJ is None:
+        JTJ, _, _ = _normal_equations(Yn, c, W, idx)
+        cost = _cost(Yn, c, W)
+    sigma2 = cost / max(n - npar, 1)
+    try:
+        cov = np.linalg.inv(JTJ) * sigma2
+        stderr = np.sqrt(np.clip(np.diag(cov)[:r], 0, None)) * scale
+        cond = float(np.linalg.cond(JTJ))
+    except np.linalg.LinAlgError:
+        stderr = np.full(r, np.inf)
+        cond = float("inf")
+    info.update({"iterations": it, "converged": bool(converged), "condition_number_JTJ": cond})
+    return EllipsoidFit(centre=mu + scale * c, W=W / scale, centre_stderr=stderr, info=info)

@@ -1,0 +1,211 @@
+"""The calibration result, its warning and error types, and the diagnostics every fit reports.
+
+A calibration maps raw sense-element readings ``z`` (p channels) to loads ``m`` (dof components):
+``m = C (z - offset)``, i.e. for a batch ``M = (Z - offset) @ C.T``.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class CalibrationError(ValueError):
+    """Bad input to a calibration routine; the message is one line and names the bad value."""
+
+
+class CalibrationWarning(UserWarning):
+    """The fit succeeded but its result is unreliable (poor excitation, hyperboloid, mirror ambiguity)."""
+
+
+def warn(message: str) -> None:
+    """Emit a :class:`CalibrationWarning` attributed to the caller of the public function."""
+    warnings.warn(message, CalibrationWarning, stacklevel=3)
+
+
+@dataclass
+class Calibration:
+    """A fitted calibration.
+
+    Attributes
+    ----------
+    C : ndarray of shape (dof, p)
+        Calibration matrix, eq. (1) of the paper: ``m = C z``.
+    offset : ndarray of shape (p,)
+        Sensor bias ``z0`` subtracted from every raw sample before applying ``C``.
+    dof : int
+        Number of load components (2, 3 or 6).
+    method : str
+        Which estimator produced it (``"least_squares"``, ``"sfm"``, ``"paper"``, ``"centered"``, ...).
+    diagnostics : dict
+        JSON-serialisable numbers: singular values, rank gap, excitation coverage, condition numbers,
+        residuals. See :func:`coverage_diagnostics` and the fitting functions for the keys.
+    """
+
+    C: np.ndarray
+    offset: np.ndarray
+    dof: int
+    method: str = "unknown"
+    diagnostics: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.C = np.atleast_2d(np.asarray(self.C, dtype=float))
+        self.offset = np.asarray(self.offset, dtype=float).reshape(-1)
+        if self.C.shape[1] != self.offset.shape[0]:
+            raise CalibrationError(
+                f"C has {self.C.shape[1]} columns but offset has {self.offset.shape[0]} entries"
+            )
+        self.dof = int(self.dof)
+
+    @property
+    def n_channels(self) -> int:
+        """Number of raw sense elements p."""
+        return self.C.shape[1]
+
+    def apply(self, Z: np.ndarray) -> np.ndarray:
+        """Loads from raw readings.
+
+        Parameters
+        ----------
+        Z : ndarray of shape (n_samples, p) or (p,)
+
+        Returns
+        -------
+        ndarray of shape (n_samples, dof) or (dof,)
+        """
+        Z = np.asarray(Z, dtype=float)
+        if Z.shape[-1] != self.n_channels:
+            raise CalibrationError(
+                f"data has {Z.shape[-1]} channels, calibration expects {self.n_channels}"
+            )
+        return (Z - self.offset) @ self.C.T
+
+    def to_dict(self) -> dict:
+        return {
+            "C": self.C.tolist(),
+            "offset": self.offset.tolist(),
+            "dof": self.dof,
+            "method": self.method,
+            "diagnostics": _jsonable(self.diagnostics),
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Calibration:
+        missing = [k for k in ("C", "offset", "dof") if k not in d]
+        if missing:
+            raise CalibrationError(f"calibration file lacks key(s) {missing}")
+        return cls(
+            C=np.asarray(d["C"], dtype=float),
+            offset=np.asarray(d["offset"], dtype=float),
+            dof=int(d["dof"]),
+            method=str(d.get("method", "unknown")),
+            diagnostics=dict(d.get("diagnostics", {})),
+        )
+
+
+def _jsonable(x):
+    """Recursively convert numpy scalars/arrays to plain Python for json.dumps."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        v = float(x)
+        return v if np.isfinite(v) else None
+    return x
+
+
+# ----------------------------------------------------------------------------------- diagnostics
+
+#: Below this coverage isotropy (smallest eigenvalue of r * mean(u u^T); 1 = uniform sphere), or with
+#: the force directions inside a cap narrower than COVERAGE_MIN_CAP_DEG, offsets are unreliable.
+COVERAGE_MIN_ISOTROPY = 0.35
+COVERAGE_MIN_CAP_DEG = 100.0
+
+
+def coverage_diagnostics(U: np.ndarray) -> dict:
+    """How well the load directions excite the measurement space.
+
+    Parameters
+    ----------
+    U : ndarray of shape (n_samples, r)
+        Load vectors in any orthonormal frame (magnitude is ignored).
+
+    Returns
+    -------
+    dict with
+        ``isotropy``: smallest eigenvalue of ``r * mean(u u^T)`` for unit ``u`` (1 for uniform cover,
+        0 when all directions lie in a plane);
+        ``mean_direction_norm``: ``|mean(u)|`` (0 for a full sphere, 1 for a single direction);
+        ``cap_half_angle_deg``: largest angle between a direction and the mean direction;
+        ``covered_fraction``: fraction of 2r equal axis-aligned... (r=3: 20 icosahedron cells,
+        r=2: 12 arcs) that contain at least one direction.
+    """
+    U = np.asarray(U, dtype=float)
+    r = U.shape[1]
+    norms = np.linalg.norm(U, axis=1)
+    u = U[norms > 0] / norms[norms > 0, None]
+    if len(u) == 0:
+        return {"isotropy": 0.0, "mean_direction_norm": 1.0, "cap_half_angle_deg": 0.0,
+                "covered_fraction": 0.0}
+    second = r * (u.T @ u) / len(u)
+    iso = float(np.linalg.eigvalsh(second)[0])
+    mean = u.mean(axis=0)
+    mnorm = float(np.linalg.norm(mean))
+    if mnorm > 1e-12:
+        ang = np.degrees(np.arccos(np.clip(u @ (mean / mnorm), -1, 1)))
+        cap = float(ang.max())
+    else:
+        cap = 180.0
+    cells = _cell_centres(r)
+    if cells is not None:
+        hit = np.unique(np.argmax(u @ cells.T, axis=1))
+        frac = len(hit) / len(cells)
+    else:
+        frac = float("nan")
+    return {"isotropy": iso, "mean_direction_norm": mnorm, "cap_half_angle_deg": cap,
+            "covered_fraction": float(frac)}
+
+
+def _cell_centres(r: int) -> np.ndarray | None:
+    if r == 2:
+        a = 2 * np.pi * (np.arange(12) + 0.5) / 12
+        return np.column_stack([np.cos(a), np.sin(a)])
+    if r == 3:
+        # face centres of an icosahedron = vertices of a dodecahedron: 20 equal-area cells
+        phi = (1 + 5 ** 0.5) / 2
+        v = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+        for a in (-1, 1):
+            for b in (-1, 1):
+                v += [(0, a / phi, b * phi), (a / phi, b * phi, 0), (a * phi, 0, b / phi)]
+        v = np.asarray(v, dtype=float)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+    return None
+
+
+def excitation_is_poor(cov: dict) -> bool:
+    """True when the coverage is too poor for a reliable offset (see module constants)."""
+    return (cov["isotropy"] < COVERAGE_MIN_ISOTROPY) or (
+        cov["cap_half_angle_deg"] < COVERAGE_MIN_CAP_DEG
+    )
+
+
+def magnitude_stats(loads: np.ndarray) -> dict:
+    """Mean, std and coefficient of variation of the load magnitude, shape (n, dof) -> dict."""
+    mag = np.linalg.norm(np.asarray(loads)[:, :3], axis=1)
+    mean = float(mag.mean())
+    std = float(mag.std())
+    return {"magnitude_mean": mean, "magnitude_std": std,
+            "magnitude_cv": std / mean if mean > 0 else float("nan")}

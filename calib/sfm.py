@@ -1,0 +1,214 @@
+"""Shape from motion without bias (paper eqs. 7-14) and the frame alignment from known pairs.
+
+Pipeline for ``Z`` (n, p) of a constant-magnitude load moved over orientations:
+
+1. SVD ``Z = U Sigma V^T`` (7), keep rank r (8); ``M^ = U* Sigma*^1/2``, ``S^ = Sigma*^1/2 V*^T`` (9).
+2. The unit-magnitude constraint ``|m_i| = 1`` (14) is linear in the symmetric ``Q = A^-1 A^-T``:
+   ``m^_i^T Q m^_i = 1``, solved in the least-squares sense over all rows.
+3. Factor ``Q = L L^T`` (``L = A^-1``; the symmetric square root is used, which fixes the
+   arbitrary rotation canonically). Then ``M = M^ L``, ``S = L^-1 S^`` (11), ``C = (S^T)^+`` (5).
+4. A few known (z, m) pairs rotate and scale ``C`` into the user's frame (orthogonal Procrustes
+   with scale, :func:`align_to_known`).
+
+The SVD is taken through the p x p Gram matrix ``Z^T Z`` for large n, which never forms U.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import check_dof, check_matrix, check_rank, check_samples, force_rank
+from .result import (
+    Calibration,
+    CalibrationError,
+    coverage_diagnostics,
+    excitation_is_poor,
+    warn,
+)
+
+#: Above this many rows the right singular vectors come from the Gram matrix (no n x p U).
+GRAM_THRESHOLD_ROWS = 20_000
+#: Rows per chunk when accumulating Gram matrices (bounds the temporary memory).
+CHUNK_ROWS = 1 << 17
+
+
+def gram(Z: np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
+    """``(Z - center)^T (Z - center)`` of shape (p, p), accumulated in chunks of rows."""
+    n, p = Z.shape
+    G = np.zeros((p, p))
+    for i in range(0, n, CHUNK_ROWS):
+        block = Z[i : i + CHUNK_ROWS]
+        if center is not None:
+            block = block - center
+        G += block.T @ block
+    return G
+
+
+def principal(Z: np.ndarray, center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values (p,) descending and right singular vectors V (p, p) of ``Z - center``.
+
+    Signs are deterministic: the largest-magnitude entry of every column of V is positive.
+    """
+    n, p = Z.shape
+    if n > GRAM_THRESHOLD_ROWS:
+        w, V = np.linalg.eigh(gram(Z, center))
+        w, V = w[::-1], V[:, ::-1]
+        s = np.sqrt(np.clip(w, 0, None))
+    else:
+        X = Z if center is None else Z - center
+        _, s, Vt = np.linalg.svd(X, full_matrices=False)
+        V = Vt.T
+        if len(s) < p:  # fewer rows than channels
+            s = np.concatenate([s, np.zeros(p - len(s))])
+            V = np.linalg.svd(X, full_matrices=True)[2].T
+    idx = np.argmax(np.abs(V), axis=0)
+    V = V * np.sign(V[idx, np.arange(p)])
+    return s, V
+
+
+def rank_gap(s: np.ndarray, r: int) -> float:
+    """``s[r-1] / s[r]``: how far the r-th singular value stands above the noise floor."""
+    if len(s) <= r:
+        return float("inf")
+    return float(s[r - 1] / s[r]) if s[r] > 0 else float("inf")
+
+
+def quadric_design(X: np.ndarray) -> np.ndarray:
+    """Rows ``[x_j x_k (j<=k, off-diagonal doubled)]`` so that ``design @ q == x^T Q x``."""
+    r = X.shape[1]
+    cols = []
+    for j in range(r):
+        for k in range(j, r):
+            cols.append(X[:, j] * X[:, k] * (1.0 if j == k else 2.0))
+    return np.column_stack(cols)
+
+
+def sym_from_vec(q: np.ndarray, r: int) -> np.ndarray:
+    Q = np.zeros((r, r))
+    it = iter(q)
+    for j in range(r):
+        for k in range(j, r):
+            Q[j, k] = Q[k, j] = next(it)
+    return Q
+
+
+def fit_unit_quadric(X: np.ndarray) -> np.ndarray:
+    """Least-squares symmetric Q (r, r) with ``x_i^T Q x_i = 1`` for the rows of X (n, r)."""
+    r = X.shape[1]
+    D = quadric_design(X)
+    q, *_ = np.linalg.lstsq(D, np.ones(len(X)), rcond=None)
+    return sym_from_vec(q, r)
+
+
+def sqrt_psd(Q: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Symmetric square root of Q; returns (root, was_definite). Negative eigenvalues are clipped."""
+    w, V = np.linalg.eigh((Q + Q.T) / 2)
+    ok = bool(w.min() > 0)
+    w = np.clip(w, 1e-12 * max(w.max(), 1e-300), None)
+    return (V * np.sqrt(w)) @ V.T, ok
+
+
+def fit_sfm(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
+            drop_nonfinite: bool = False) -> Calibration:
+    """Shape from motion without bias.
+
+    Parameters
+    ----------
+    Z : array of shape (n, p), raw readings of a constant-magnitude load over orientations
+    dof : 2 or 3 (for 6 use :func:`calib.ft6.fit_ft6`)
+    known_Z, known_M : optional arrays (k, p) and (k, dof): known pairs that fix rotation and scale
+    magnitude : optional load magnitude used as scale when no known pairs are given
+
+    Returns
+    -------
+    Calibration (``method="sfm"``, zero offset). Without known pairs ``C`` maps to a unit-magnitude
+    load in an arbitrary (canonical) frame, scaled by ``magnitude`` if given.
+    """
+    dof = check_dof(dof)
+    if dof == 6:
+        raise CalibrationError("6-DOF shape from motion needs known loads: use calib.ft6.fit_ft6")
+    r = force_rank(dof)
+    Z, nbad = check_matrix(Z, "Z", drop_nonfinite)
+    check_samples(Z, r * (r + 1) // 2 + 1)
+    if Z.shape[1] < r:
+        raise CalibrationError(f"need at least {r} channels for dof={dof}, got {Z.shape[1]}")
+    s, V = principal(Z)
+    check_rank(s, r, "Z")
+    Vr, sr = V[:, :r], s[:r]
+    Mhat = (Z @ Vr) / np.sqrt(sr)
+    Q = fit_unit_quadric(Mhat)
+    L, definite = sqrt_psd(Q)
+    if not definite:
+        warn("unit-norm quadric is not positive definite; excitation too poor or rank wrong")
+    C_unit = (L.T / np.sqrt(sr)) @ Vr.T
+    U = Z @ C_unit.T
+    mags = np.linalg.norm(U, axis=1)
+    cov = coverage_diagnostics(U)
+    diag = {
+        "n_samples": len(Z),
+        "n_dropped_nonfinite": nbad,
+        "singular_values": s,
+        "rank": r,
+        "rank_gap": rank_gap(s, r),
+        "coverage": cov,
+        "condition_number_C": float(np.linalg.cond(C_unit)),
+        "condition_number_Q": float(np.linalg.cond(Q)),
+        "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
+    }
+    if excitation_is_poor(cov):
+        warn(f"poor excitation (isotropy {cov['isotropy']:.2f}, cap {cov['cap_half_angle_deg']:.0f}"
+             " deg): the shape is unreliable")
+    cal = Calibration(C=C_unit, offset=np.zeros(Z.shape[1]), dof=dof, method="sfm",
+                      diagnostics=diag)
+    return finish_frame(cal, known_Z, known_M, magnitude)
+
+
+def finish_frame(cal: Calibration, known_Z, known_M, magnitude) -> Calibration:
+    """Apply known pairs (rotation + scale) or a bare magnitude to a unit-frame calibration."""
+    if known_Z is not None and known_M is not None:
+        R, scale, info = align_to_known(cal.C, cal.offset, known_Z, known_M)
+        cal.C = scale * R @ cal.C
+        cal.diagnostics["alignment"] = info
+    elif magnitude is not None:
+        cal.C = float(magnitude) * cal.C
+    return cal
+
+
+def align_to_known(C_unit: np.ndarray, offset: np.ndarray, known_Z, known_M):
+    """Rotation R (r, r) in O(r) and scale s with ``m ~= s R C_unit (z - offset)``.
+
+    Orthogonal Procrustes with scale on the force components of the known pairs. With pairs spanning
+    only r-1 directions (2 pairs in 3-D, 1 in 2-D) a mirror image fits equally well: the proper
+    rotation is chosen and a CalibrationWarning says so; a further pair removes the ambiguity.
+
+    Returns (R, s, info) where info holds ``n_pairs``, ``residual_rms`` and ``mirror_ambiguous``.
+    """
+    Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
+    Mk = np.atleast_2d(np.asarray(known_M, float))
+    r = C_unit.shape[0]
+    if len(Zk) != len(Mk):
+        raise CalibrationError(f"{len(Zk)} known readings but {len(Mk)} known loads")
+    if Mk.shape[1] < r:
+        raise CalibrationError(f"known loads need at least {r} force columns, got {Mk.shape[1]}")
+    Uk = (Zk - offset) @ C_unit.T
+    Fk = Mk[:, :r]
+    H = Uk.T @ Fk
+    P, sig, Qt = np.linalg.svd(H)
+    if sig[0] <= 0:
+        raise CalibrationError("known loads are all zero: cannot fix rotation and scale")
+    ambiguous = len(Zk) < r or sig[-1] <= 1e-9 * sig[0]
+    if len(Zk) < r - 1 or (r > 1 and sig[r - 2] <= 1e-9 * sig[0]):
+        raise CalibrationError(
+            f"known loads span fewer than {r - 1} directions; rotation is not determined"
+        )
+    D = np.eye(r)
+    if ambiguous:
+        D[-1, -1] = np.sign(np.linalg.det(P @ Qt)) or 1.0
+        warn(f"{len(Zk)} known pair(s) fix the frame only up to a mirror image; proper rotation "
+             "assumed (add a pair off their plane to resolve)")
+    R = (P @ D @ Qt).T
+    scale = float(np.trace(np.diag(sig) @ D) / np.sum(Uk**2))
+    res = Fk - scale * Uk @ R.T
+    info = {"n_pairs": len(Zk), "scale": scale, "residual_rms": float(np.sqrt(np.mean(res**2))),
+            "mirror_ambiguous": bool(ambiguous)}
+    return R, scale, info
