@@ -106,6 +106,18 @@ def _as_2d_float(a, name):
     return arr
 
 
+def _column_means(a):
+    """Column means; exactly the common value for a constant column.
+
+    Summation round-off would otherwise leave a constant column with centred values of about
+    ``n * eps * |value|``, which standardisation would blow up into a unit-variance noise column.
+    """
+    mean = a.mean(axis=0)
+    constant = (a == a[0]).all(axis=0)
+    mean[constant] = a[0, constant]
+    return mean
+
+
 def _centred_r_factor(known, missing, mean):
     """Upper-triangular ``R`` (p x p) with ``R^T R = (X - mean)^T (X - mean)``, X = [known, missing].
 
@@ -367,7 +379,7 @@ class EigenspaceProjector:
 
     def _accumulate(self, known, missing, forgetting):
         n = known.shape[0]
-        batch_mean = np.concatenate([known.mean(axis=0), missing.mean(axis=0)])
+        batch_mean = np.concatenate([_column_means(known), _column_means(missing)])
         batch_r = _centred_r_factor(known, missing, batch_mean)
         if self._weight == 0.0:
             self._weight, self._mean, self._r = float(n), batch_mean, batch_r
@@ -399,7 +411,7 @@ class EigenspaceProjector:
             floor = max(floor, self.noise_std * (np.sqrt(w) + np.sqrt(p)))
         if self.n_components is None:
             n, ratios = select_rank(s, floor, max_rank=n_known)
-            if ratios.size == 0:
+            if ratios.size == 0 and self.n_rows_seen_ > 1:  # one row: nothing to learn yet
                 warnings.warn(f"no singular value is above the floor {floor:.3g} "
                               f"(largest {s[0]:.3g}); keeping 1 component", stacklevel=3)
         else:
