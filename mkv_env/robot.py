@@ -43,6 +43,7 @@ class WheelState:
     steer_rate: float = 0.0  # [rad/s]
     drive_current: float = 0.0  # [A] at the end of the last substep
     steer_current: float = 0.0  # [A]
+    drive_budget: float = 0.0  # traction impulse left unused by the last substep [N s]
 
 
 class Robot:
@@ -142,13 +143,16 @@ class Robot:
 
         ww, delta, rate = st.drive_omega, st.steer, st.steer_rate
         drive_angle, roller_angle = st.drive_angle, st.roller_angle
+        budget = st.drive_budget
+        jw_over_rw = d_j / rw
         cd, sd = math.cos(delta), math.sin(delta)
         k33 = im + cd * cd * xs * xs * iI
         k13 = cd * im + xd * cd * xs * iI
         k23 = -sd * im
         steer_idle = steer_cmd == 0 and rate == 0.0
         cos, sin, hypot = math.cos, math.sin, math.hypot
-        get_v, get_w, get_a, set_v, set_w, step, cpb = self._accessors(space)
+        get_v, get_w, get_a, set_f, set_t, step, cpb = self._accessors(space)
+        m_dt, i_dt = self.params.mass_kg / dt, self.body.moment / dt
 
         for _ in range(n):
             v = get_v(cpb)
@@ -160,6 +164,17 @@ class Robot:
             w = c * vy - s * vx  # leftward velocity
             # free-rolling steering wheel encoder: the actual motion after the last contacts
             roller_angle += (cd * u + sd * (w + om * xs)) * dt * inv_rs
+            # The solve below cannot see obstacles; after contacts the chassis may have moved
+            # less than the wheel rolled. Reconcile the wheel with the chassis's actual motion,
+            # within the traction the last substep left unused: a blocked wheel with traction to
+            # spare stops (stall), one without keeps spinning.
+            if budget > 0.0:
+                slip = u / rw - ww
+                cap = budget / jw_over_rw
+                ww += slip if -cap <= slip <= cap else (cap if slip > 0 else -cap)
+            # encoder and current see the wheel's reconciled speed over the last substep
+            drive_angle += ww * dt
+            ww_seen = ww
 
             if not steer_idle:
                 # steering motor, implicit in its rate; dry friction; stops clamp it
@@ -193,7 +208,8 @@ class Robot:
             l1 = (-v1 * a + k13 * (v3 * k22 - v2 * k23)) / det
             l2 = (k11 * (v3 * k23 - v2 * k33) + k13 * (k13 * v2 - v1 * k23)) / det
             l3 = (k11 * (k23 * v2 - k22 * v3) + v1 * k13 * k22) / det
-            if l1 * l1 + l2 * l2 > cap_d * cap_d or abs(l3) > cap_s:
+            used = l1 * l1 + l2 * l2
+            if used > cap_d * cap_d or abs(l3) > cap_s:
                 # sliding: projected Gauss-Seidel on the friction circle / interval
                 l1 = l2 = l3 = 0.0
                 a1, a2, a3 = v1, v2, v3
@@ -213,22 +229,26 @@ class Robot:
                     l3 = n3
                     a1 += k13 * d3
                     a2 += k23 * d3
-            u += im * (l2 - sd * l3)
-            w += im * (l1 + cd * l3)
-            om += iI * (xd * l1 + cd * xs * l3)
+                used = l1 * l1 + l2 * l2
+            budget = cap_d - math.sqrt(used)
+            # The wheel impulses go to Chipmunk as force and torque: it integrates positions
+            # *before* solving contacts, so velocities set directly would push the robot into
+            # walls; forces enter its velocity phase, where contacts can still cancel them.
+            du = im * (l2 - sd * l3)
+            dw = im * (l1 + cd * l3)
+            set_f(cpb, ((c * du - s * dw) * m_dt, (s * du + c * dw) * m_dt))
+            set_t(cpb, (xd * l1 + cd * xs * l3) * iI * i_dt)
             ww -= iJ * rw * l2
-            drive_angle += ww * dt
-            set_v(cpb, (c * u - s * w, s * u + c * w))
-            set_w(cpb, om)
             step(dt)
 
         st.drive_omega, st.steer, st.steer_rate = ww, delta, rate
         st.drive_angle, st.roller_angle = drive_angle, roller_angle
-        st.drive_current = vd_over_r - d_k_over_r * ww
+        st.drive_budget = budget
+        st.drive_current = vd_over_r - d_k_over_r * ww_seen
         st.steer_current = vs_over_r - s_k_over_r * rate
 
     def _accessors(self, space):
-        """(get_velocity, get_angular_velocity, get_angle, set_velocity, set_angular_velocity,
+        """(get_velocity, get_angular_velocity, get_angle, set_force, set_torque,
         space_step, body_handle), through cffi when possible, else the public pymunk API."""
         if _cp is not None and not space._bodies_to_check and self.fast:
             cpspace = space._space
@@ -238,17 +258,17 @@ class Robot:
                 cp_step(cpspace, dt)
 
             return (_cp.cpBodyGetVelocity, _cp.cpBodyGetAngularVelocity, _cp.cpBodyGetAngle,
-                    _cp.cpBodySetVelocity, _cp.cpBodySetAngularVelocity, step, self.body._body)
+                    _cp.cpBodySetForce, _cp.cpBodySetTorque, step, self.body._body)
         b = self.body
 
-        def set_v(_, v):
-            b.velocity = v
+        def set_f(_, f):
+            b.force = f
 
-        def set_w(_, w):
-            b.angular_velocity = w
+        def set_t(_, t):
+            b.torque = t
 
         return (lambda _: b.velocity, lambda _: b.angular_velocity, lambda _: b.angle,
-                set_v, set_w, space.step, None)
+                set_f, set_t, space.step, None)
 
     # ------------------------------------------------------------------ queries
     def pose(self) -> tuple[float, float, float]:
