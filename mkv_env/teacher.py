@@ -31,8 +31,10 @@ Behaviour (a small state machine per environment):
 
 1. **cruise**: drive forward. Now and then (a Poisson process at ``wander_rate_hz``) steer left or
    right (seeded coin) for a random time up to ``wander_turn_s``; otherwise re-centre the steering.
-2. **back off** (on a bump or stall): reverse for ``backoff_s`` while steering to a random side
-   (seeded coin, the paper's random escape direction). A rear bump cuts it short.
+2. **back off** (on a bump or stall): reverse for ``backoff_s``: the first ``straight_s`` with the
+   steering re-centred (so the robot backs straight out of a narrow dead end instead of turning
+   sideways inside it), then steering to a random side (seeded coin, the paper's random escape
+   direction). A rear bump cuts it short.
 3. **turn**: drive forward for ``turn_s`` steering to the other side, so that back-off and turn
    together make a three-point turn away from the obstacle; then cruise. A bump or stall during
    the turn starts a new back-off with a fresh random direction.
@@ -67,6 +69,8 @@ class ScriptedTeacher:
     Args:
         backoff_s: time to reverse after a bump or stall [s].
         turn_s: time to drive forward steering the other way after the back-off [s].
+        straight_s: the first part of the back-off, steering re-centred [s] (< backoff_s to
+            steer at all while backing off).
         wander_rate_hz: mean rate of wander steering episodes while cruising [1/s].
         wander_turn_s: longest wander steering episode [s] (each lasts uniform(0.2 s, this)).
         stall_current_a: drive current at or above which the drive counts as stalled [A].
@@ -96,7 +100,7 @@ class ScriptedTeacher:
         self,
         backoff_s: float = 1.5,
         turn_s: float = 1.0,
-        straight_s: float = 0.0,
+        straight_s: float = 0.5,
         wander_rate_hz: float = 0.3,
         wander_turn_s: float = 1.0,
         stall_current_a: float = 0.3,
@@ -113,6 +117,8 @@ class ScriptedTeacher:
                         ("stall_current_a", stall_current_a), ("centre_rad", centre_rad)):
             if not (_real(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if not (_real(straight_s) and straight_s >= 0):
+            raise ValueError(f"straight_s must be a number >= 0, got {straight_s!r}")
         if not (_real(wander_rate_hz) and wander_rate_hz >= 0):
             raise ValueError(f"wander_rate_hz must be a number >= 0, got {wander_rate_hz!r}")
         if not (_real(spin_ratio) and 0 <= spin_ratio < 1):
