@@ -1,0 +1,175 @@
+"""Policy specs shared by every command: ``teacher``, ``random``, ``script:PATH``, and plug-ins.
+
+A *policy* here is anything with the stable-baselines3 method
+``predict(observation, state=None, episode_start=None, deterministic=True) -> (action, state)``,
+optionally with ``reset(seed=None)``, which the episode runners call at the start of every episode
+with that episode's seed (so a seeded policy replays exactly).
+
+Specs understood here:
+
+* ``teacher`` or ``teacher:key=value,...``: :class:`mkv_env.teacher.ScriptedTeacher` with optional
+  parameter overrides, e.g. ``teacher:backoff_s=2,wander_rate_hz=0``.
+* ``random``: uniformly random actions from the env's action space (seeded).
+* ``script:PATH``: replay a command script (:mod:`mkv_env.script`).
+
+Other packages add prefixes with :func:`register_policy_loader`, giving either a callable or a
+``"module:function"`` string that is imported only when the spec is used (so ``mkv eval --policy
+teacher`` never imports torch). ``mkv_env`` itself never imports ``sfm_learn``; ``sfm_learn``
+registers ``sfm:``, ``ppo:`` and ``bc:`` from its side.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from collections.abc import Callable
+
+import numpy as np
+
+from mkv_env.script import ScriptError, ScriptPolicy
+from mkv_env.teacher import ScriptedTeacher
+
+
+class PolicySpecError(ValueError):
+    """A policy spec that names no known policy or cannot be loaded; the message is one line."""
+
+
+# A loader gets the text after "prefix:" ("" if none), the env (for spaces, control period) and
+# a seed, and returns a policy.
+Loader = Callable[[str, object, "int | None"], object]
+
+_LOADERS: dict[str, Loader | str] = {}
+
+
+def register_policy_loader(prefix: str, loader: Loader | str, *, replace: bool = False) -> None:
+    """Make ``prefix`` or ``prefix:ARG`` a valid policy spec.
+
+    Args:
+        prefix: the spec's name, letters/digits/``_``/``-`` (``"sfm"`` for ``sfm:PATH``).
+        loader: ``loader(arg, env, seed) -> policy``, or a ``"package.module:function"`` string
+            naming such a function, imported on first use.
+        replace: allow overriding an existing prefix.
+    """
+    if not prefix or not all(c.isalnum() or c in "_-" for c in prefix):
+        raise ValueError(f"policy prefix must be a non-empty word, got {prefix!r}")
+    if prefix in _LOADERS and not replace and _LOADERS[prefix] != loader:
+        raise ValueError(f"policy prefix {prefix!r} is already registered")
+    if isinstance(loader, str) and ":" not in loader:
+        raise ValueError(f"lazy loader must be 'module:function', got {loader!r}")
+    _LOADERS[prefix] = loader
+
+
+def known_prefixes() -> list[str]:
+    return sorted(_LOADERS)
+
+
+def make_policy(spec: str, env=None, seed: int | None = None):
+    """Build the policy named by ``spec`` for ``env`` (a Gymnasium env, used for its spaces and
+    control period). Raises :class:`PolicySpecError` with a one-line message on a bad spec."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise PolicySpecError(f"policy spec must be a non-empty string, got {spec!r}")
+    prefix, _, arg = spec.strip().partition(":")
+    if prefix not in _LOADERS:
+        raise PolicySpecError(
+            f"unknown policy spec {spec!r}; known: "
+            + ", ".join(p + (":PATH" if p not in ("teacher", "random") else "")
+                        for p in known_prefixes())
+        )
+    loader = _LOADERS[prefix]
+    if isinstance(loader, str):
+        module, _, func = loader.partition(":")
+        try:
+            loader = getattr(importlib.import_module(module), func)
+        except (ImportError, AttributeError) as e:
+            raise PolicySpecError(f"policy {prefix!r} is unavailable: {e}") from None
+    try:
+        return loader(arg, env, seed)
+    except PolicySpecError:
+        raise
+    except (ScriptError, FileNotFoundError) as e:
+        raise PolicySpecError(str(e)) from None
+
+
+def describe(policy) -> str:
+    """A short name for a policy object (for reports)."""
+    return getattr(policy, "spec", None) or type(policy).__name__
+
+
+class RandomPolicy:
+    """Uniformly random actions of a ``MultiDiscrete`` space, from a seeded numpy stream."""
+
+    def __init__(self, nvec=(3, 3), seed: int | None = None):
+        self.nvec = np.asarray(nvec, dtype=np.int64).reshape(-1)
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+
+    def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
+        obs = np.asarray(observation)
+        n = 1 if obs.ndim == 1 else obs.shape[0]
+        a = self.rng.integers(0, self.nvec, size=(n, len(self.nvec)), dtype=np.int64)
+        return (a[0] if obs.ndim == 1 else a), None
+
+
+def _control_period(env) -> float:
+    return float(getattr(getattr(env, "unwrapped", env), "control_period_s", 0.1))
+
+
+def _load_teacher(arg: str, env, seed):
+    kwargs = {}
+    names = {f for f in inspect.signature(ScriptedTeacher).parameters} - {"seed"}
+    for item in filter(None, (s.strip() for s in arg.split(","))):
+        key, eq, value = item.partition("=")
+        key = key.strip()
+        if not eq or key not in names:
+            raise PolicySpecError(
+                f"bad teacher option {item!r}; expected key=value with key among "
+                + ", ".join(sorted(names))
+            )
+        try:
+            num = float(value)
+            kwargs[key] = int(num) if key in ("stall_steps", "grace_steps") and num.is_integer() \
+                else num
+        except ValueError:
+            raise PolicySpecError(f"teacher option {key} must be a number, got {value!r}") from None
+    kwargs.setdefault("control_period_s", _control_period(env))
+    try:
+        teacher = ScriptedTeacher(seed=seed, **kwargs)
+    except ValueError as e:
+        raise PolicySpecError(f"bad teacher option: {e}") from None
+    if env is not None:
+        try:
+            teacher.check_env(env)
+        except ValueError as e:
+            raise PolicySpecError(str(e)) from None
+    teacher.spec = "teacher" + (f":{arg}" if arg else "")
+    return teacher
+
+
+def _load_random(arg: str, env, seed):
+    if arg:
+        raise PolicySpecError(f"'random' takes no argument, got 'random:{arg}'")
+    nvec = getattr(getattr(env, "action_space", None), "nvec", (3, 3))
+    policy = RandomPolicy(nvec, seed)
+    policy.spec = "random"
+    return policy
+
+
+def _load_script(arg: str, env, seed):
+    if not arg:
+        raise PolicySpecError("'script' needs a file: script:PATH")
+    policy = ScriptPolicy.from_file(arg, _control_period(env))
+    policy.spec = f"script:{arg}"
+    return policy
+
+
+register_policy_loader("teacher", _load_teacher)
+register_policy_loader("random", _load_random)
+register_policy_loader("script", _load_script)
+
+__all__ = [
+    "PolicySpecError", "RandomPolicy", "describe", "known_prefixes", "make_policy",
+    "register_policy_loader",
+]
