@@ -1,0 +1,206 @@
+"""Run a policy in a registered env and record every step into a :class:`~mkv_env.dataset.Dataset`.
+
+::
+
+    from mkv_env.recorder import record
+    from mkv_env.dataset import save
+    data = record("MKV-v0", "teacher", episodes=10, seed=0)   # episode i uses seed 0 + i
+    save(data, "teacher.npz")
+
+The policy may be a spec string (:func:`mkv_env.policies.make_policy`) or any object with the
+SB3 ``predict``. Before each episode the recorder calls ``policy.reset(seed=...)`` if the policy
+has it, with a seed derived from the episode's env seed (:func:`policy_seed`), so every episode
+replays exactly on its own, whatever ran before it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+
+import mkv_env
+from mkv_env import dataset as ds
+from mkv_env.policies import make_policy
+
+_BOOL_INFO = ("stuck", "bumped", "collision", "in_jam")
+_INT_INFO = ("jams", "escapes", "collisions")
+
+
+def policy_seed(env_seed: int) -> int:
+    """The policy's seed for an episode whose env is reset with ``env_seed``: a different stream
+    from the env's own (gymnasium seeds ``np_random`` with the plain seed)."""
+    return int(np.random.SeedSequence([int(env_seed), 0x7EAC4E12]).generate_state(1)[0])
+
+
+def make_env(env_id: str, env_kwargs: dict | None = None, **extra) -> gym.Env:
+    """``gymnasium.make`` with one-line errors: ValueError for an unknown id or bad kwargs."""
+    try:
+        return gym.make(env_id, **(env_kwargs or {}), **extra)
+    except gym.error.Error as e:
+        raise ValueError(f"cannot make env {env_id!r}: {str(e).splitlines()[0]}") from None
+    except TypeError as e:
+        raise ValueError(f"bad arguments for env {env_id!r}: {e}") from None
+
+
+class EpisodeRecorder:
+    """Accumulates steps of consecutive episodes; :meth:`to_dataset` stacks them.
+
+    Args:
+        sensor_names: channel names of the observation.
+    """
+
+    def __init__(self, sensor_names: Sequence[str]):
+        self.sensor_names = list(sensor_names)
+        self._obs: list[np.ndarray] = []
+        self._act: list = []
+        self._rew: list[float] = []
+        self._term: list[bool] = []
+        self._trunc: list[bool] = []
+        self._info: dict[str, list] = {k: [] for k in ds.INFO_FIELDS}
+        self._escaped: list[bool] = []
+        self._seeds: list[int] = []
+        self._lengths: list[int] = []
+        self._final: list[np.ndarray] = []
+        self._scenarios: list = []
+        self.has_escaped: bool | None = None
+
+    def begin(self, seed: int, info: dict) -> None:
+        self._seeds.append(int(seed))
+        self._lengths.append(0)
+        self._scenarios.append(info.get("scenario"))
+        if self.has_escaped is None:
+            self.has_escaped = "escaped" in info
+
+    def add(self, obs, action, reward, terminated, truncated, info: dict) -> None:
+        self._obs.append(obs)
+        self._act.append(action)
+        self._rew.append(reward)
+        self._term.append(terminated)
+        self._trunc.append(truncated)
+        for k, lst in self._info.items():
+            lst.append(info[k])
+        if self.has_escaped:
+            self._escaped.append(info["escaped"])
+        self._lengths[-1] += 1
+
+    def end(self, final_obs) -> None:
+        self._final.append(np.asarray(final_obs, dtype=np.float32))
+
+    def to_dataset(self, metadata: dict) -> ds.Dataset:
+        c = len(self.sensor_names)
+        n = len(self._act)
+        lengths = np.asarray(self._lengths, dtype=np.int64)
+        arrays = {
+            "observations": np.asarray(self._obs, dtype=np.float32).reshape(n, c),
+            "actions": np.asarray(self._act, dtype=np.int64).reshape(n, 2),
+            "rewards": np.asarray(self._rew, dtype=np.float64),
+            "terminated": np.asarray(self._term, dtype=bool),
+            "truncated": np.asarray(self._trunc, dtype=bool),
+            "episode": np.repeat(np.arange(len(lengths), dtype=np.int32), lengths),
+            "step": (np.concatenate([np.arange(k, dtype=np.int32) for k in lengths])
+                     if len(lengths) else np.zeros(0, dtype=np.int32)),
+            "pose": np.asarray(self._info["pose"], dtype=np.float64).reshape(n, 3),
+            "distance_m": np.asarray(self._info["distance_m"], dtype=np.float64),
+            "episode_seeds": np.asarray(self._seeds, dtype=np.int64),
+            "episode_lengths": lengths,
+            "final_observations": np.asarray(self._final, dtype=np.float32).reshape(-1, c),
+        }
+        for k in _BOOL_INFO:
+            arrays[k] = np.asarray(self._info[k], dtype=bool)
+        for k in _INT_INFO:
+            arrays[k] = np.asarray(self._info[k], dtype=np.int32)
+        if self.has_escaped:
+            arrays["escaped"] = np.asarray(self._escaped, dtype=bool)
+        scen = self._scenarios if any(s is not None for s in self._scenarios) else None
+        meta = dict(metadata, sensor_names=self.sensor_names, has_escaped=bool(self.has_escaped),
+                    episode_scenarios=scen)
+        return ds.build(arrays, meta)
+
+
+def run_episodes(env: gym.Env, policy, seeds: Sequence[int], recorder: EpisodeRecorder,
+                 on_episode: Callable[[int, int], None] | None = None,
+                 max_steps: int | None = None) -> None:
+    """Run one episode per seed, feeding every step to ``recorder``.
+
+    ``on_episode(i, n_steps)`` is called after episode ``i``. ``max_steps`` caps an episode
+    (needed only for envs without a time limit); capped episodes end with ``truncated`` True.
+    """
+    predict = policy.predict
+    reset_policy = getattr(policy, "reset", None)
+    add = recorder.add
+    for i, seed in enumerate(seeds):
+        obs, info = env.reset(seed=int(seed))
+        if reset_policy is not None:
+            reset_policy(seed=policy_seed(seed))
+        recorder.begin(seed, info)
+        start = True
+        k = 0
+        while True:
+            action, _ = predict(obs, episode_start=start)
+            start = False
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            k += 1
+            if max_steps is not None and k >= max_steps:
+                truncated = True
+            add(obs, action, float(reward), bool(terminated), bool(truncated), info)
+            obs = next_obs
+            if terminated or truncated:
+                break
+        recorder.end(obs)
+        if on_episode is not None:
+            on_episode(i, k)
+
+
+def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict | None = None,
+           on_episode: Callable[[int, int], None] | None = None,
+           max_steps: int | None = None) -> ds.Dataset:
+    """Record ``episodes`` episodes of ``policy`` (spec string or object) in ``env_id``.
+
+    Episode ``i`` resets the env with seed ``seed + i``. Returns the dataset (in memory; write it
+    with :func:`mkv_env.dataset.save`).
+    """
+    if not (isinstance(episodes, (int, np.integer)) and episodes >= 1):
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if not (isinstance(seed, (int, np.integer)) and 0 <= seed < 2**63 - episodes):
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    env = make_env(env_id, env_kwargs)
+    try:
+        if isinstance(policy, str):
+            spec = policy
+            policy = make_policy(policy, env, seed=policy_seed(seed))
+        else:
+            spec = getattr(policy, "spec", type(policy).__name__)
+        recorder = EpisodeRecorder(env.unwrapped.sensor_names)
+        seeds = [int(seed) + i for i in range(int(episodes))]
+        run_episodes(env, policy, seeds, recorder, on_episode, max_steps)
+        meta = {
+            "format": ds.FORMAT,
+            "schema_version": ds.SCHEMA_VERSION,
+            "env_id": env_id,
+            "env_kwargs": dict(env_kwargs or {}),
+            "policy": spec,
+            "seed": int(seed),
+            "control_period_s": float(getattr(env.unwrapped, "control_period_s", 0.1)),
+            "package_version": mkv_env.__version__,
+        }
+        return recorder.to_dataset(meta)
+    finally:
+        env.close()
+
+
+def summarize(data: ds.Dataset) -> dict:
+    """Steps, episodes, jams, escapes and stuck fraction of a dataset (ground truth)."""
+    last = np.cumsum(data["episode_lengths"]) - 1
+    out = {
+        "steps": data.n_steps,
+        "episodes": data.n_episodes,
+        "jams": int(data["jams"][last].sum()),
+        "escapes": int(data["escapes"][last].sum()),
+        "stuck_fraction": float(data["stuck"].mean()) if data.n_steps else 0.0,
+        "distance_m": float(data["distance_m"][last].sum()),
+    }
+    if "escaped" in data:
+        out["escaped_episodes"] = int(data["escaped"][last].sum())
+    return out
