@@ -105,8 +105,13 @@ def _finish(Z, C_unit, offset, dof, method, s, r, nbad, extra, known_Z, known_M,
 
 
 def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
-                 drop_nonfinite: bool = False, refine: bool = True) -> Calibration:
+                 drop_nonfinite: bool = False, refine: bool = True,
+                 isotropy_prior: float | None = 0.1) -> Calibration:
     """Mean removal, rank-r PCA, ellipsoid fit; see the module docstring. Works for p >= r.
+
+    ``refine`` runs the approximate maximum-likelihood refinement; ``isotropy_prior`` is the prior
+    spread of the shape around a sphere (see :func:`calib.ellipsoid.fit_ellipsoid`): negligible with
+    good coverage, it keeps the offset bounded under partial coverage.
 
     Returns a Calibration with ``method="centered"``; extra diagnostics: ``ellipsoid`` (fit info),
     ``offset_stderr`` (p,) from the refinement's Jacobian.
@@ -117,7 +122,7 @@ def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float |
     check_rank(s, r, "the centred data")
     Vr = V[:, :r]
     Y = (Z - mu) @ Vr
-    fit = fit_ellipsoid(Y, refine=refine)
+    fit = fit_ellipsoid(Y, refine=refine, isotropy_prior=isotropy_prior)
     offset = mu + Vr @ fit.centre
     C_unit = fit.W @ Vr.T
     stderr = np.sqrt((Vr**2) @ fit.centre_stderr**2)
@@ -128,8 +133,12 @@ def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float |
 # ------------------------------------------------------------------------------------ paper
 
 
-def cylinder_start(Mhat: np.ndarray, a4: np.ndarray) -> tuple[np.ndarray, dict]:
+def cylinder_start(Mhat: np.ndarray, a4: np.ndarray, resolve: bool = True
+                   ) -> tuple[np.ndarray, dict]:
     """Paper's start for B (r, r+1): linear quadric, freedom resolved, smallest singular value zeroed.
+
+    ``resolve=False`` is the literal paper recipe (least-squares Q as it comes out, smallest
+    eigenvalue zeroed), kept to show how far from the cylinder it can start.
 
     Returns (B, info) with ``info["lambda"]`` the resolved ``Q + lam a4 a4^T`` parameter and
     ``info["ok"]`` False if the quadric could not be made a cylinder (then the caller falls back).
@@ -137,9 +146,9 @@ def cylinder_start(Mhat: np.ndarray, a4: np.ndarray) -> tuple[np.ndarray, dict]:
     q = Mhat.shape[1]
     r = q - 1
     Q0 = fit_unit_quadric(Mhat)
-    info = {"ok": False}
+    info = {"ok": False, "resolved": bool(resolve)}
     try:
-        t = float(a4 @ np.linalg.solve(Q0, a4))
+        t = float(a4 @ np.linalg.solve(Q0, a4)) if resolve else np.inf
     except np.linalg.LinAlgError:
         t = np.inf
     if np.isfinite(t) and abs(t) > 1e-300:
@@ -212,17 +221,18 @@ def refine_gradient_descent(x0, Mhat, r, max_iter: int = 20000, tol: float = 1e-
             break
         prev = cost
     res = _residuals(x, Mhat, r)
-    return x, {"iterations": it, "converged": converged, "cost": float(res @ res / n)}
+    return x, {"iterations": it, "converged": converged, "cost": float(np.mean(res**2))}
 
 
 def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
               drop_nonfinite: bool = False, refine: str | None = "lsq",
-              gd_max_iter: int = 20000) -> Calibration:
+              gd_max_iter: int = 20000, start: str = "resolved") -> Calibration:
     """The paper's rank-(r+1) plane + cylinder method; see the module docstring.
 
     Parameters
     ----------
     refine : "lsq" (scipy least_squares, default), "gd" (plain gradient descent), or None
+    start : "resolved" (quadric freedom fixed by the determinant lemma, default) or "naive"
     """
     dof, r, Z, nbad = _prepare(Z, dof, drop_nonfinite, 1)
     q = r + 1
@@ -231,7 +241,9 @@ def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | No
     Vq, sq = V[:, :q], s[:q]
     Mhat = (Z @ Vq) / np.sqrt(sq)
     a4, *_ = np.linalg.lstsq(Mhat, np.ones(len(Z)), rcond=None)
-    B, start = cylinder_start(Mhat, a4)
+    if start not in ("resolved", "naive"):
+        raise CalibrationError(f"start must be 'resolved' or 'naive', got {start!r}")
+    B, start = cylinder_start(Mhat, a4, resolve=(start == "resolved"))
     if not start["ok"]:
         warn("the quadric start is not a cylinder (poor excitation?); starting from a plane-"
              "coordinate ellipsoid fit instead")

@@ -92,13 +92,33 @@ def _sqrt_sym(E):
     return (V * np.sqrt(np.clip(w, 1e-300, None))) @ V.T
 
 
-def _normal_equations(Y, c, W, idx):
-    """Accumulate J^T J, J^T e, e^T e and n for the Sampson residuals at (c, W)."""
+def _prior(W, idx, weight):
+    """Isotropy prior residuals ``weight * (W - mean(diag W) I)`` (upper triangle) and Jacobian."""
+    r = W.shape[0]
+    wbar = np.trace(W) / r
+    res = np.array([W[j, k] - (wbar if j == k else 0.0) for j, k in idx]) * weight
+    J = np.zeros((len(idx), r + len(idx)))
+    for a, (j, k) in enumerate(idx):
+        J[a, r + a] = weight
+        if j == k:
+            for b, (jj, kk) in enumerate(idx):
+                if jj == kk:
+                    J[a, r + b] -= weight / r
+    return res, J
+
+
+def _normal_equations(Y, c, W, idx, prior_weight=0.0):
+    """Accumulate J^T J, J^T e, e^T e for the Sampson residuals (plus the prior) at (c, W)."""
     r = Y.shape[1]
     npar = r + len(idx)
     JTJ = np.zeros((npar, npar))
     JTe = np.zeros(npar)
     ee = 0.0
+    if prior_weight > 0:
+        pr, PJ = _prior(W, idx, prior_weight)
+        JTJ += PJ.T @ PJ
+        JTe += PJ.T @ pr
+        ee += float(pr @ pr)
     for i in range(0, len(Y), CHUNK_ROWS):
         dlt = Y[i : i + CHUNK_ROWS] - c
         v = dlt @ W  # W symmetric
@@ -122,8 +142,11 @@ def _normal_equations(Y, c, W, idx):
     return JTJ, JTe, ee
 
 
-def _cost(Y, c, W):
+def _cost(Y, c, W, idx=None, prior_weight=0.0):
     ee = 0.0
+    if prior_weight > 0:
+        pr, _ = _prior(W, idx, prior_weight)
+        ee += float(pr @ pr)
     for i in range(0, len(Y), CHUNK_ROWS):
         v = (Y[i : i + CHUNK_ROWS] - c) @ W
         rho = np.sqrt(np.einsum("ij,ij->i", v, v))
@@ -134,9 +157,15 @@ def _cost(Y, c, W):
     return ee
 
 
-def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 50,
-                  tol: float = 1e-12) -> EllipsoidFit:
+def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
+                  tol: float = 1e-12, isotropy_prior: float | None = 0.1) -> EllipsoidFit:
     """Fit an ellipse (r=2) or ellipsoid (r=3) to points Y of shape (n, r).
+
+    ``isotropy_prior`` is the prior spread tau of W around a multiple of the identity, relative to
+    its mean diagonal: the refinement minimises ``sum d_i^2 + (sigma / tau)^2 |W - wbar I|^2 / wbar^2``
+    with sigma the current residual rms (a maximum a posteriori fit). With good coverage the data
+    outweigh it by ~n; with partial coverage it keeps the ill-determined shape, and so the offset,
+    bounded; with noise-free data (sigma = 0) it vanishes. None disables it.
 
     Returns an :class:`EllipsoidFit`; ``info["start"]`` is ``"algebraic"`` or
     ``"sphere (hyperboloid rejected)"``.
@@ -147,7 +176,7 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 50,
     scale = float(np.sqrt(np.mean(np.sum((Y - mu) ** 2, axis=1)))) or 1.0
     Yn = (Y - mu) / scale
     start, gap = _algebraic(Yn)
-    info = {"algebraic_eigen_gap": gap}
+    info = {"algebraic_eigen_gap": min(gap, 1e300)}
     if start is None:
         warn("the unconstrained quadric fit is a hyperboloid (partial coverage?); using a "
              "constrained ellipsoid fit, the offset is unreliable")
@@ -158,15 +187,26 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 50,
         info["start"] = "algebraic"
     W = _sqrt_sym(E)
     idx = _sym_index(r)
+    npar = r + len(idx)
     lam = 1e-3
     it = 0
     converged = not refine
-    JTJ = None
+    pw = 0.0
+
+    def prior_weight(W, data_cost):
+        if not isotropy_prior:
+            return 0.0
+        sigma = np.sqrt(data_cost / max(n - npar, 1))
+        return float(sigma / (isotropy_prior * np.trace(W) / r))
+
     if refine:
-        cost = _cost(Yn, c, W)
         for it in range(1, max_iter + 1):
-            JTJ, JTe, _ = _normal_equations(Yn, c, W, idx)
+            data_cost = _cost(Yn, c, W)
+            pw = prior_weight(W, data_cost)
+            cost = _cost(Yn, c, W, idx, pw)
+            JTJ, JTe, _ = _normal_equations(Yn, c, W, idx, pw)
             step_ok = False
+            rel = 0.0
             for _ in range(20):
                 Aug = JTJ + lam * np.diag(np.diag(JTJ) + 1e-12)
                 try:
@@ -183,24 +223,22 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 50,
                 if np.linalg.eigvalsh(W_new)[0] <= 0:
                     lam *= 10
                     continue
-                new_cost = _cost(Yn, c_new, W_new)
+                new_cost = _cost(Yn, c_new, W_new, idx, pw)
                 if new_cost <= cost:
                     step_ok = True
                     rel = (cost - new_cost) / max(cost, 1e-300)
-                    c, W, cost = c_new, W_new, new_cost
+                    c, W = c_new, W_new
                     lam = max(lam / 10, 1e-12)
                     break
                 lam *= 10
             if not step_ok or rel < tol or np.max(np.abs(delta)) < 1e-13:
                 converged = True
                 break
-        JTJ, _, _ = _normal_equations(Yn, c, W, idx)
-        info["residual_rms"] = float(np.sqrt(cost / n)) * scale
-    npar = r + len(idx)
-    if JTJ is None:
-        JTJ, _, _ = _normal_equations(Yn, c, W, idx)
-        cost = _cost(Yn, c, W)
-    sigma2 = cost / max(n - npar, 1)
+    data_cost = _cost(Yn, c, W)
+    JTJ, _, _ = _normal_equations(Yn, c, W, idx, pw)
+    info["residual_rms"] = float(np.sqrt(data_cost / n)) * scale
+    info["prior_weight"] = pw
+    sigma2 = data_cost / max(n - npar, 1)
     try:
         cov = np.linalg.inv(JTJ) * sigma2
         stderr = np.sqrt(np.clip(np.diag(cov)[:r], 0, None)) * scale
