@@ -285,6 +285,7 @@ def save(data: Dataset, path) -> str:
                     _write_entry(zf, key, arrays[key])
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -293,6 +294,12 @@ def save(data: Dataset, path) -> str:
             pass
         raise
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def _write_entry(zf: zipfile.ZipFile, key: str, array: np.ndarray) -> None:
