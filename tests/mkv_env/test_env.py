@@ -223,18 +223,27 @@ def test_soak_200k_random_steps(env_id):
 
 
 def test_memory_is_flat_over_1000_resets():
-    psutil = pytest.importorskip("psutil")
-    proc = psutil.Process()
+    """Each reset rebuilds the pymunk space; the old one must be freed, nothing may pile up."""
+    import weakref
+
+    import pymunk
+
+    from mkv_env.world import World
+
     env = gym.make("MKVJam-v0")
     env.reset(seed=0)
-    for _ in range(200):  # warm up allocator pools and caches
+    for _ in range(50):
         env.reset()
         env.step(np.array([FWD, OFF]))
     gc.collect()
-    base = proc.memory_info().rss
+    base_objects = len(gc.get_objects())
+    worlds, spaces = weakref.WeakSet(), weakref.WeakSet()
     for _ in range(1000):
         env.reset()
+        worlds.add(env.unwrapped.world)
+        spaces.add(env.unwrapped.world.space)
         env.step(np.array([FWD, OFF]))
     gc.collect()
-    grown = proc.memory_info().rss - base
-    assert grown < 4_000_000  # bytes; one leaked space per reset would be tens of MB
+    assert len(worlds) == 1 and len(spaces) == 1
+    assert all(isinstance(s, pymunk.Space) for s in spaces) and isinstance(next(iter(worlds)), World)
+    assert len(gc.get_objects()) < base_objects * 1.01 + 100
