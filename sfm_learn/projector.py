@@ -106,18 +106,6 @@ def _as_2d_float(a, name):
     return arr
 
 
-def _column_means(a):
-    """Column means; exactly the common value for a constant column.
-
-    Summation round-off would otherwise leave a constant column with centred values of about
-    ``n * eps * |value|``, which standardisation would blow up into a unit-variance noise column.
-    """
-    mean = a.mean(axis=0)
-    constant = (a == a[0]).all(axis=0)
-    mean[constant] = a[0, constant]
-    return mean
-
-
 def _centred_r_factor(known, missing, mean):
     """Upper-triangular ``R`` (p x p) with ``R^T R = (X - mean)^T (X - mean)``, X = [known, missing].
 
@@ -142,6 +130,24 @@ def _centred_r_factor(known, missing, mean):
             raise RuntimeError(f"LAPACK dgeqrf failed with info={info}")
         r = np.triu(qr[:p])
     return r
+
+
+def _make_constant_columns_exact(known, missing, mean, r):
+    """For columns that are exactly constant: mean = that value, and a zero column of ``r``.
+
+    Summation round-off leaves a constant column's computed mean off by up to about
+    ``n * eps * |value|``; its centred values would then be that tiny offset, which standardisation
+    would blow up into a unit-variance noise column. Only columns whose spread is already below
+    1e-6 of their magnitude are checked exactly, so this costs nothing on ordinary data.
+    Modifies ``mean`` and ``r`` in place.
+    """
+    n, n_known = known.shape
+    spread = np.sqrt(np.einsum("ij,ij->j", r, r) / n)
+    for j in np.nonzero(spread <= 1e-6 * np.abs(mean))[0]:
+        col = known[:, j] if j < n_known else missing[:, j - n_known]
+        if (col == col[0]).all():
+            mean[j] = col[0]
+            r[:, j] = 0.0
 
 
 def _merge_r_factors(w_a, mean_a, r_a, w_b, mean_b, r_b):
@@ -379,8 +385,9 @@ class EigenspaceProjector:
 
     def _accumulate(self, known, missing, forgetting):
         n = known.shape[0]
-        batch_mean = np.concatenate([_column_means(known), _column_means(missing)])
+        batch_mean = np.concatenate([known.mean(axis=0), missing.mean(axis=0)])
         batch_r = _centred_r_factor(known, missing, batch_mean)
+        _make_constant_columns_exact(known, missing, batch_mean, batch_r)
         if self._weight == 0.0:
             self._weight, self._mean, self._r = float(n), batch_mean, batch_r
         else:
