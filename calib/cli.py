@@ -1,0 +1,156 @@
+"""Command line: ``calib fit``, ``calib apply``, ``calib trials`` (DESIGN.md section 6).
+
+Bad input ends the command with exit status 2 and one line on stderr, ``calib: error: ...``.
+Calibration warnings (poor excitation, hyperboloid, mirror ambiguity) are printed as one line
+each, ``calib: warning: ...``, and do not change the exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+
+import numpy as np
+
+from .result import CalibrationError, CalibrationWarning
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line instead of usage + message
+        raise CalibrationError(f"{self.prog}: {message}")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="calib", description="Least-squares and shape-from-motion calibration.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    f = sub.add_parser("fit", help="calibrate from raw readings of a load moved over orientations")
+    f.add_argument("raw", metavar="RAW.csv")
+    f.add_argument("--dof", type=int, choices=(2, 3, 6), required=True)
+    f.add_argument("--bias", action="store_true", help="estimate the sensor offsets too")
+    f.add_argument("--known", metavar="KNOWN.csv",
+                   help="known loads: channel columns plus Fx,Fy[,Fz][,Tx,Ty,Tz]")
+    f.add_argument("--method", choices=("paper", "centered"), default="centered",
+                   help="bias route (default centered; paper needs p >= r+1 channels)")
+    f.add_argument("--magnitude", type=float,
+                   help="load magnitude, sets the scale when no known loads are given")
+    f.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop rows containing NaN/inf instead of failing (count reported)")
+    f.add_argument("--out", metavar="CAL.json", required=True)
+
+    a = sub.add_parser("apply", help="convert raw readings to loads")
+    a.add_argument("cal", metavar="CAL.json")
+    a.add_argument("raw", metavar="RAW.csv")
+    a.add_argument("--drop-nonfinite", action="store_true")
+    a.add_argument("--out", metavar="LOADS.csv", required=True)
+
+    t = sub.add_parser("trials", help="the paper's Trials 1-4, Table 1 and figures")
+    t.add_argument("--out", metavar="DIR", default="calib_trials")
+    t.add_argument("--seeds", type=int, default=200, help="seeds per trial (default 200)")
+    t.add_argument("--no-plots", action="store_true")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``calib`` console script; returns the exit status."""
+    try:
+        args = _parser().parse_args(argv)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", CalibrationWarning)
+            if args.command == "fit":
+                msg = _fit(args)
+            elif args.command == "apply":
+                msg = _apply(args)
+            else:
+                msg = _trials(args)
+        for w in caught:
+            if issubclass(w.category, CalibrationWarning):
+                print(f"calib: warning: {w.message}", file=sys.stderr)
+        print(msg)
+        return 0
+    except CalibrationError as e:
+        print(f"calib: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"calib: error: {e.filename or ''}: {e.strerror}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("calib: interrupted", file=sys.stderr)
+        return 130
+
+
+def _fit(args) -> str:
+    from .bias import fit_bias
+    from .ft6 import fit_ft6
+    from .io import read_csv, save_calibration, split_known
+    from .sfm import fit_sfm
+
+    channels, Z = read_csv(args.raw)
+    known_Z = known_M = None
+    if args.known:
+        kh, kd = read_csv(args.known)
+        known_Z, known_M = split_known(kh, kd, channels, args.dof)
+    if args.magnitude is not None and not (np.isfinite(args.magnitude) and args.magnitude > 0):
+        raise CalibrationError(f"--magnitude must be a positive number, got {args.magnitude}")
+    if args.dof == 6:
+        if known_Z is None:
+            raise CalibrationError("--dof 6 needs --known with at least 6 known loads (see docs)")
+        cal = fit_ft6(Z, known_Z, known_M, bias=args.bias, method=args.method,
+                      drop_nonfinite=args.drop_nonfinite)
+    elif args.bias:
+        cal = fit_bias(Z, args.dof, method=args.method, known_Z=known_Z, known_M=known_M,
+                       magnitude=args.magnitude, drop_nonfinite=args.drop_nonfinite)
+    else:
+        cal = fit_sfm(Z, args.dof, known_Z=known_Z, known_M=known_M, magnitude=args.magnitude,
+                      drop_nonfinite=args.drop_nonfinite)
+    save_calibration(args.out, cal, channels)
+    d = cal.diagnostics
+    dropped = d.get("n_dropped_nonfinite", 0)
+    cov = d.get("coverage") or {}
+    note = f", dropped {dropped} non-finite row(s)" if dropped else ""
+    return (f"wrote {args.out}: {cal.method}, dof {cal.dof}, {cal.n_channels} channels, "
+            f"{d.get('n_samples')} samples{note}; rank gap {d.get('rank_gap', float('nan')):.3g}, "
+            f"coverage isotropy {cov.get('isotropy', float('nan')):.2f}")
+
+
+def _apply(args) -> str:
+    from ._validate import check_matrix
+    from .io import load_calibration, load_columns, read_csv, write_csv
+
+    cal, cal_channels = load_calibration(args.cal)
+    header, Z = read_csv(args.raw)
+    if cal_channels:
+        missing = [c for c in cal_channels if c not in header]
+        if missing:
+            raise CalibrationError(f"{args.raw} lacks calibrated channel(s) {missing}")
+        Z = Z[:, [header.index(c) for c in cal_channels]]
+    elif Z.shape[1] != cal.n_channels:
+        raise CalibrationError(
+            f"{args.raw} has {Z.shape[1]} columns, calibration expects {cal.n_channels}"
+        )
+    Z, dropped = check_matrix(Z, args.raw, args.drop_nonfinite)
+    loads = cal.apply(Z)
+    write_csv(args.out, load_columns(cal.dof), loads)
+    note = f" (dropped {dropped} non-finite row(s))" if dropped else ""
+    return f"wrote {args.out}: {len(loads)} rows of {','.join(load_columns(cal.dof))}{note}"
+
+
+def _trials(args) -> str:
+    from .trials import trial_summary, write_report
+
+    if args.seeds < 1:
+        raise CalibrationError(f"--seeds must be >= 1, got {args.seeds}")
+    res = write_report(args.out, seeds=args.seeds, plots=not args.no_plots,
+                       progress=not args.quiet)
+    parts = []
+    for t in (2, 3, 4):
+        s = trial_summary(res["trials"][t], t)
+        parts.append(f"T{t} offset err {s['centered']['median']:.3g} vs paper "
+                     f"{s['paper_reported']:.3g}")
+    return f"wrote {args.out}/trials.md; " + "; ".join(parts)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
