@@ -45,10 +45,10 @@ class Renderer:
         pg = self.pg
         world = env.world
         lay = world.layout
-        scale = (SIZE_PX - 20) / max(lay.width_m, lay.height_m)
+        scale = (SIZE_PX - 34) / max(lay.width_m, lay.height_m)  # 24 px band for the text
 
         def px(x, y):
-            return (10 + x * scale, SIZE_PX - 10 - y * scale)
+            return (17 + x * scale, SIZE_PX - 10 - y * scale)
 
         surf = self.surface
         surf.fill((255, 255, 255))
