@@ -7,7 +7,8 @@ exactly (bit for bit):
 
 - :meth:`FeatureBuilder.transform`: a whole recording at once, given observations, the actions
   taken and episode-start flags;
-- :meth:`FeatureBuilder.reset` / :meth:`FeatureBuilder.step`: one observation at a time, at run time.
+- :meth:`FeatureBuilder.reset` / :meth:`FeatureBuilder.step`: one observation at a time, at run
+  time.
 
 Feature layout, in this order (each block only when enabled):
 
@@ -22,8 +23,8 @@ previous command       ``"<act>[t-1]"`` (signed) or    the action taken at ``t-1
 =====================  ==============================  ==========================================
 
 Episode starts reset everything: history before the first step of an episode is padded with that
-first observation (``history_pad="edge"``, no fake jump) or zeros (``"zero"``); a trace starts at the
-episode's first observation; the previous command at an episode's first step is "none": 0 in
+first observation (``history_pad="edge"``, no fake jump) or zeros (``"zero"``); a trace starts at
+the episode's first observation; the previous command at an episode's first step is "none": 0 in
 signed mode (the centre "off" value of a 3-valued command) and all zeros in one-hot mode.
 """
 
@@ -53,7 +54,8 @@ class FeatureSpec:
     Parameters
     ----------
     obs_names : sequence of str
-        Names of the raw observation channels, in observation order (``env.unwrapped.sensor_names``).
+        Names of the raw observation channels, in observation order
+        (``env.unwrapped.sensor_names``).
     channels : sequence of str or None
         Channels used as the current observation; ``None`` = all, ``()`` = none.
     history : int
@@ -139,7 +141,7 @@ class FeatureSpec:
         if self.prev_action == "signed":
             names += [f"{a}[t-1]" for a in self.action_names]
         elif self.prev_action == "onehot":
-            for a, n in zip(self.action_names, self.action_nvec):
+            for a, n in zip(self.action_names, self.action_nvec, strict=True):
                 names += [f"{a}[t-1]={i}" for i in range(n)]
         return names
 
@@ -202,6 +204,9 @@ class FeatureBuilder:
         self._trace = spec._index(spec.trace_channels)
         self._decays = np.array(spec.trace_decays, dtype=np.float64)
         self._one_minus = 1.0 - self._decays
+        # per trace entry (decay-major, channel-minor), shared by both paths
+        self._d_rep = np.repeat(self._decays, len(self._trace))
+        self._om_rep = np.repeat(self._one_minus, len(self._trace))
         self._n_obs = len(spec.obs_names)
         self._n_act = len(spec.action_nvec)
         self._centre = (np.array(spec.action_nvec, dtype=np.float64) - 1.0) / 2.0
@@ -322,9 +327,8 @@ class FeatureBuilder:
         """Exponential moving averages, one block per decay: (T, n_decays * n_channels)."""
         # One recurrence over time for all decays and channels at once, written with exactly the
         # same floating-point operations as step(), which is what makes both paths bit-identical.
-        t_len, n_ch = x.shape
-        d = np.repeat(self._decays, n_ch)
-        om = np.repeat(self._one_minus, n_ch)
+        t_len = x.shape[0]
+        d, om = self._d_rep, self._om_rep
         xs = np.tile(x, (1, self._decays.size))
         out = np.empty_like(xs)
         tr = xs[0] if t_len else None
@@ -369,9 +373,7 @@ class FeatureBuilder:
             if first:
                 self._tr = xs.copy()
             else:
-                d = np.repeat(self._decays, len(self._trace))
-                om = np.repeat(self._one_minus, len(self._trace))
-                self._tr = d * self._tr + om * xs
+                self._tr = self._d_rep * self._tr + self._om_rep * xs
             parts.append(self._tr)
         if spec.prev_action != "none":
             valid = not first and prev_action is not None

@@ -107,7 +107,9 @@ def _as_2d_float(a, name):
 
 
 def _centred_r_factor(known, missing, mean):
-    """Upper-triangular ``R`` (p x p) with ``R^T R = (X - mean)^T (X - mean)``, X = [known, missing].
+    """Upper-triangular ``R`` (p x p) with ``R^T R = (X - mean)^T (X - mean)``.
+
+    ``X`` is ``[known, missing]`` side by side (never built as one array).
 
     Chunked Householder QR: each step factors the previous ``R`` stacked on the next chunk of
     centred rows, so memory stays at one chunk and the full matrix is never concatenated.
@@ -168,7 +170,7 @@ def _merge_r_factors(w_a, mean_a, r_a, w_b, mean_b, r_b):
 
 
 class EigenspaceProjector:
-    """Reconstruct the missing (actuator) columns from the known (sensor) columns by eigenspace projection.
+    """Reconstruct missing (actuator) columns from known (sensor) columns by eigenspace projection.
 
     Parameters
     ----------
@@ -286,8 +288,8 @@ class EigenspaceProjector:
         return self
 
     def __repr__(self):
-        defaults = {k: v.default for k, v in inspect.signature(type(self).__init__).parameters.items()
-                    if k != "self"}
+        params = inspect.signature(type(self).__init__).parameters
+        defaults = {k: v.default for k, v in params.items() if k != "self"}
         changed = [f"{k}={getattr(self, k)!r}" for k in self._param_names()
                    if getattr(self, k) != defaults[k]]
         return f"EigenspaceProjector({', '.join(changed)})"
@@ -460,7 +462,8 @@ class EigenspaceProjector:
         if self.solver == "ridge":
             gram = v_k.T @ v_k + self.alpha * np.eye(n)
             return v_m @ np.linalg.lstsq(gram, v_k.T, rcond=None)[0]
-        # ppca: W = V diag(sqrt(ev - sigma^2)); E[x_m | x_k] = W_m (W_k^T W_k + sigma^2 I)^-1 W_k^T x_k
+        # ppca: W = V diag(sqrt(ev - sigma^2));
+        # E[x_m | x_k] = W_m (W_k^T W_k + sigma^2 I)^-1 W_k^T x_k
         d = np.sqrt(np.maximum(kept_ev - noise_var, 0.0))
         w_k, w_m = v_k * d, v_m * d
         if noise_var == 0.0:

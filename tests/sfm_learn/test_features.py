@@ -1,4 +1,4 @@
-"""Behaviour of FeatureSpec / FeatureBuilder: layout, episode resets, batch == online, serialisation."""
+"""FeatureSpec / FeatureBuilder: layout, episode resets, batch == online, serialisation."""
 
 import json
 
@@ -12,7 +12,7 @@ from sfm_learn.features import FeatureBuilder, FeatureSpec
 OBS = ["drive_current", "steer_current", "bump_fl", "bump_fr", "heading"]
 
 
-def recording(t_len, n_obs=len(OBS), nvec=(3, 3), p_start=0.1, seed=0):
+def recording(t_len, n_obs=5, nvec=(3, 3), p_start=0.1, seed=0):
     rng = np.random.default_rng(seed)
     obs = rng.standard_normal((t_len, n_obs)).astype(np.float32)
     actions = np.stack([rng.integers(0, n, t_len) for n in nvec], axis=1)

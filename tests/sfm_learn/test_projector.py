@@ -225,7 +225,7 @@ def test_ridge_tends_to_lstsq_as_alpha_goes_to_zero():
     ref = EigenspaceProjector(solver="lstsq").fit(known, missing).reconstruct(known)
     errors = [np.abs(EigenspaceProjector(solver="ridge", alpha=a).fit(known, missing)
                      .reconstruct(known) - ref).max() for a in (1.0, 1e-2, 1e-4, 1e-8)]
-    assert all(e2 < e1 for e1, e2 in zip(errors, errors[1:]))
+    assert all(e2 < e1 for e1, e2 in zip(errors, errors[1:], strict=False))
     assert errors[-1] < 1e-6 * np.abs(ref).max()
     assert errors[0] > 1e-3 * np.abs(ref).max()  # a real penalty does change the answer
 
@@ -284,7 +284,7 @@ def test_partial_fit_over_batches_equals_fit(seed, cuts, solver):
     batch = EigenspaceProjector(solver=solver).fit(known, missing)
     inc = EigenspaceProjector(solver=solver)
     bounds = [0, *sorted(cuts), len(known)]
-    for lo, hi in zip(bounds, bounds[1:]):
+    for lo, hi in zip(bounds, bounds[1:], strict=False):
         inc.partial_fit(known[lo:hi], missing[lo:hi])
     _assert_same_model(batch, inc)
     out = batch.reconstruct(known)
@@ -315,9 +315,9 @@ def test_fit_restarts_the_statistics():
 
 
 def test_forgetting_equals_a_weighted_batch_fit():
-    rng = np.random.default_rng(0)
     lam = 0.7
-    batches = [low_rank_data(3, n_samples=n, noise=0.05, seed=i) for i, n in enumerate([50, 80, 30])]
+    batches = [low_rank_data(3, n_samples=n, noise=0.05, seed=i)
+               for i, n in enumerate([50, 80, 30])]
     proj = EigenspaceProjector(forgetting=lam)
     for k, m in batches:
         proj.partial_fit(k, m)
@@ -331,7 +331,6 @@ def test_forgetting_equals_a_weighted_batch_fit():
     np.testing.assert_allclose(proj.mean_, mean, rtol=1e-10)
     np.testing.assert_allclose(proj.scale_, std, rtol=1e-10)
     np.testing.assert_allclose(proj.singular_values_, s, rtol=1e-9)
-    del rng
 
 
 def test_forgetting_tracks_a_changed_structure_faster():
