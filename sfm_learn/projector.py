@@ -236,7 +236,7 @@ class EigenspaceProjector:
     n_known_, n_missing_, n_features_in_ : int
         Column counts; ``n_features_in_ = n_known_ + n_missing_``.
     n_samples_seen_ : float
-        Effective (forgetting-weighted) number of samples; an integer count when
+        Effective (forgetting-weighted) number of samples; equals the row count when
         ``forgetting == 1``.
     n_rows_seen_ : int
         Number of rows passed to ``fit``/``partial_fit`` since the last ``fit``.
