@@ -44,8 +44,17 @@ def make_env(env_id: str, env_kwargs: dict | None = None, **extra) -> gym.Env:
         raise ValueError(f"bad arguments for env {env_id!r}: {e}") from None
 
 
+_CHUNK_ROWS = 8192
+# Columns of the float64 scalar buffer, one row per step (ints and bools are exact in float64).
+_SCALARS = ("rewards", "terminated", "truncated", "stuck", "bumped", "collision", "in_jam",
+            "distance_m", "jams", "escapes", "collisions", "x", "y", "heading", "escaped")
+
+
 class EpisodeRecorder:
     """Accumulates steps of consecutive episodes; :meth:`to_dataset` stacks them.
+
+    Steps go into preallocated numpy chunks (three row writes per step, no per-step Python
+    objects kept alive, so the garbage collector has nothing to walk as recordings grow).
 
     Args:
         sensor_names: channel names of the observation.
@@ -53,13 +62,9 @@ class EpisodeRecorder:
 
     def __init__(self, sensor_names: Sequence[str]):
         self.sensor_names = list(sensor_names)
-        self._obs: list[np.ndarray] = []
-        self._act: list = []
-        self._rew: list[float] = []
-        self._term: list[bool] = []
-        self._trunc: list[bool] = []
-        self._info: dict[str, list] = {k: [] for k in ds.INFO_FIELDS}
-        self._escaped: list[bool] = []
+        self._c = len(self.sensor_names)
+        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._j = _CHUNK_ROWS  # row in the current chunk; full -> allocate on next add
         self._seeds: list[int] = []
         self._lengths: list[int] = []
         self._final: list[np.ndarray] = []
@@ -73,46 +78,63 @@ class EpisodeRecorder:
         if self.has_escaped is None:
             self.has_escaped = "escaped" in info
 
+    def _new_chunk(self) -> None:
+        self._chunks.append((np.empty((_CHUNK_ROWS, self._c), dtype=np.float32),
+                             np.empty((_CHUNK_ROWS, 2), dtype=np.int64),
+                             np.empty((_CHUNK_ROWS, len(_SCALARS)), dtype=np.float64)))
+        self._j = 0
+        self._obs_buf, self._act_buf, self._scal_buf = self._chunks[-1]
+
     def add(self, obs, action, reward, terminated, truncated, info: dict) -> None:
-        self._obs.append(obs)
-        self._act.append(action)
-        self._rew.append(reward)
-        self._term.append(terminated)
-        self._trunc.append(truncated)
-        for k, lst in self._info.items():
-            lst.append(info[k])
-        if self.has_escaped:
-            self._escaped.append(info["escaped"])
+        if self._j == _CHUNK_ROWS:
+            self._new_chunk()
+        j = self._j
+        self._obs_buf[j] = obs
+        self._act_buf[j] = action
+        x, y, heading = info["pose"]
+        self._scal_buf[j] = (
+            reward, terminated, truncated, info["stuck"], info["bumped"], info["collision"],
+            info["in_jam"], info["distance_m"], info["jams"], info["escapes"],
+            info["collisions"], x, y, heading, info.get("escaped", False),
+        )
+        self._j = j + 1
         self._lengths[-1] += 1
 
     def end(self, final_obs) -> None:
         self._final.append(np.asarray(final_obs, dtype=np.float32))
 
     def to_dataset(self, metadata: dict) -> ds.Dataset:
-        c = len(self.sensor_names)
-        n = len(self._act)
+        c = self._c
         lengths = np.asarray(self._lengths, dtype=np.int64)
+        n = int(lengths.sum())
+        if self._chunks:
+            obs = np.concatenate([ch[0] for ch in self._chunks])[:n]
+            act = np.concatenate([ch[1] for ch in self._chunks])[:n]
+            scal = np.concatenate([ch[2] for ch in self._chunks])[:n]
+        else:
+            obs = np.zeros((0, c), np.float32)
+            act = np.zeros((0, 2), np.int64)
+            scal = np.zeros((0, len(_SCALARS)))
+        col = {name: scal[:, i] for i, name in enumerate(_SCALARS)}
         arrays = {
-            "observations": np.asarray(self._obs, dtype=np.float32).reshape(n, c),
-            "actions": np.asarray(self._act, dtype=np.int64).reshape(n, 2),
-            "rewards": np.asarray(self._rew, dtype=np.float64),
-            "terminated": np.asarray(self._term, dtype=bool),
-            "truncated": np.asarray(self._trunc, dtype=bool),
+            "observations": np.ascontiguousarray(obs),
+            "actions": np.ascontiguousarray(act),
+            "rewards": col["rewards"].copy(),
+            "distance_m": col["distance_m"].copy(),
+            "pose": np.ascontiguousarray(scal[:, 11:14]),
             "episode": np.repeat(np.arange(len(lengths), dtype=np.int32), lengths),
             "step": (np.concatenate([np.arange(k, dtype=np.int32) for k in lengths])
                      if len(lengths) else np.zeros(0, dtype=np.int32)),
-            "pose": np.asarray(self._info["pose"], dtype=np.float64).reshape(n, 3),
-            "distance_m": np.asarray(self._info["distance_m"], dtype=np.float64),
             "episode_seeds": np.asarray(self._seeds, dtype=np.int64),
             "episode_lengths": lengths,
             "final_observations": np.asarray(self._final, dtype=np.float32).reshape(-1, c),
         }
-        for k in _BOOL_INFO:
-            arrays[k] = np.asarray(self._info[k], dtype=bool)
+        for k in ("terminated", "truncated") + _BOOL_INFO:
+            arrays[k] = col[k] != 0
         for k in _INT_INFO:
-            arrays[k] = np.asarray(self._info[k], dtype=np.int32)
+            arrays[k] = col[k].astype(np.int32)
         if self.has_escaped:
-            arrays["escaped"] = np.asarray(self._escaped, dtype=bool)
+            arrays["escaped"] = col["escaped"] != 0
         scen = self._scenarios if any(s is not None for s in self._scenarios) else None
         meta = dict(metadata, sensor_names=self.sensor_names, has_escaped=bool(self.has_escaped),
                     episode_scenarios=scen)
