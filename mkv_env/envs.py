@@ -73,8 +73,9 @@ class MKVEnv(gym.Env):
     Every step: ``stuck``, ``bumped`` (any bump switch), ``collision`` (new contact this step),
     ``distance_m`` (cumulative), ``jams``, ``escapes``, ``collisions`` (counts), ``in_jam``,
     ``pose`` (x [m], y [m], heading [rad]). A jam begins after ``jam_steps`` stuck steps; it is
-    escaped once the robot, not stuck, is ``escape_distance_m`` from where it began. No wall-clock
-    values.
+    escaped once the robot is free: not stuck, ``escape_distance_m`` from where the jam began, and
+    no obstacle within ``free_clearance_m`` (0.22 m) of its centre (so backing part-way out of a
+    dead end does not count). No wall-clock values.
 
     ## Arguments
     ```python
@@ -194,7 +195,7 @@ class MKVEnv(gym.Env):
         obs = self.sensors.read(self.world)
         pose = self._pose()
         progress, stuck, collision, escaped = self.tracker.update(
-            pose, drive, self.world.contacts[0])
+            pose, drive, self.world.contacts[0], self.world.is_clear)
         reward = self._reward(progress, stuck, collision, escaped)
         terminated = self._terminated(escaped)
         self.trail.append(pose[:2])
@@ -297,8 +298,8 @@ class MKVJamEnv(MKVEnv):
     ``info["scenario"]`` names it.
 
     ## Episode End
-    Terminated with ``info["escaped"] = True`` once the robot, not stuck, is
-    ``escape_distance_m`` (0.3 m) from its start; truncated after ``max_episode_steps``
+    Terminated with ``info["escaped"] = True`` once the robot is free: not stuck,
+    ``escape_distance_m`` (0.3 m) from its start and clear of obstacles by 0.22 m; truncated after ``max_episode_steps``
     (300 steps = 30 s by default).
 
     ## Arguments
@@ -326,8 +327,10 @@ class MKVJamEnv(MKVEnv):
     def _build_world(self) -> World:
         rng = self.np_random
         W = self.arena_size_m
+        # the kind is drawn once, only its geometry is retried: kinds that need more attempts
+        # to jam must not come up less often
+        kind = self.scenarios[int(rng.integers(len(self.scenarios)))]
         for _ in range(50):
-            kind = self.scenarios[int(rng.integers(len(self.scenarios)))]
             walls, boxes, cylinders, reserved, pose = build_scenario(kind, rng, W, W)
             layout = generate_layout(rng, W, W, self.n_clutter, self.n_patches,
                                      self.patch_friction, reserved=reserved)

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import math
 
+FREE_CLEARANCE_M = 0.22
+"""Obstacle-free radius around the robot's centre that counts as free [m] (circumradius 0.19 m)."""
+
 
 class MotionTracker:
     """Per-step motion measures of the robot, from its true pose.
@@ -35,8 +38,12 @@ class MotionTracker:
         self.collisions = 0
         self._events = contact_events
 
-    def update(self, pose, drive_cmd: int, contact_events: int):
-        """Advance one step. Returns (progress_m, stuck, new_collision, escaped_now)."""
+    def update(self, pose, drive_cmd: int, contact_events: int, is_clear=None):
+        """Advance one step. Returns (progress_m, stuck, new_collision, escaped_now).
+
+        ``is_clear(x, y, radius)`` tells whether no obstacle lies within ``radius`` of (x, y); a
+        jam is escaped only where it is true for FREE_CLEARANCE_M.
+        """
         x, y, heading = pose
         dx, dy = x - self.x, y - self.y
         step = math.hypot(dx, dy)
@@ -52,7 +59,9 @@ class MotionTracker:
         self._events = contact_events
         escaped_now = False
         if self.in_jam:
-            if not stuck and math.hypot(x - self.jam_x, y - self.jam_y) >= self.escape_distance_m:
+            if (not stuck
+                    and math.hypot(x - self.jam_x, y - self.jam_y) >= self.escape_distance_m
+                    and (is_clear is None or is_clear(x, y, FREE_CLEARANCE_M))):
                 self.in_jam = False
                 self.escapes += 1
                 escaped_now = True
