@@ -43,8 +43,9 @@ def check_samples(Z: np.ndarray, n_params: int, name: str = "Z") -> None:
         raise CalibrationError(
             f"{name} has {n} samples, at least {n_params} are needed for this fit"
         )
-    spread = Z.max(axis=0) - Z.min(axis=0)
-    scale = np.maximum(np.abs(Z).max(axis=0), 1e-300)
+    hi, lo = Z.max(axis=0), Z.min(axis=0)
+    spread = hi - lo
+    scale = np.maximum(np.maximum(np.abs(hi), np.abs(lo)), 1e-300)
     const = np.flatnonzero(spread <= 1e-12 * scale)
     if len(const):
         raise CalibrationError(

@@ -30,7 +30,7 @@ from .result import (
     excitation_is_poor,
     warn,
 )
-from .sfm import finish_frame, fit_unit_quadric, principal, rank_gap
+from .sfm import CHUNK_ROWS, finish_frame, fit_unit_quadric, principal, rank_gap
 
 METHODS = ("centered", "paper")
 
@@ -74,8 +74,9 @@ def _prepare(Z, dof, drop_nonfinite, extra_rank):
 
 
 def _finish(Z, C_unit, offset, dof, method, s, r, nbad, extra, known_Z, known_M, magnitude,
-            offset_stderr=None):
-    U = (Z - offset) @ C_unit.T
+            offset_stderr=None, U=None):
+    if U is None:
+        U = (Z - offset) @ C_unit.T
     mags = np.linalg.norm(U, axis=1)
     cov = coverage_diagnostics(U)
     diag = {
@@ -121,13 +122,27 @@ def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float |
     s, V = principal(Z, center=mu)
     check_rank(s, r, "the centred data")
     Vr = V[:, :r]
-    Y = (Z - mu) @ Vr
+    Y = _project(Z, mu, Vr)
     fit = fit_ellipsoid(Y, refine=refine, isotropy_prior=isotropy_prior)
     offset = mu + Vr @ fit.centre
     C_unit = fit.W @ Vr.T
     stderr = np.sqrt((Vr**2) @ fit.centre_stderr**2)
+    # C_unit only sees the span of Vr, so the unit loads follow from Y without another n x p pass
+    Y -= fit.centre
+    U = Y @ fit.W.T
+    del Y
     return _finish(Z, C_unit, offset, dof, "centered", s, r, nbad, {"ellipsoid": fit.info},
-                   known_Z, known_M, magnitude, offset_stderr=stderr)
+                   known_Z, known_M, magnitude, offset_stderr=stderr, U=U)
+
+
+def _project(Z: np.ndarray, mu: np.ndarray, Vr: np.ndarray) -> np.ndarray:
+    """``(Z - mu) @ Vr`` of shape (n, r), computed in row chunks (no n x p temporary)."""
+    n = len(Z)
+    Y = np.empty((n, Vr.shape[1]))
+    for i in range(0, n, CHUNK_ROWS):
+        Y[i : i + CHUNK_ROWS] = Z[i : i + CHUNK_ROWS] @ Vr
+    Y -= mu @ Vr
+    return Y
 
 
 # ------------------------------------------------------------------------------------ paper

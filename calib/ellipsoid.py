@@ -21,6 +21,10 @@ import numpy as np
 from .result import warn
 
 CHUNK_ROWS = 1 << 17
+#: Above this many points the refinement converges on a strided subsample of this size first.
+SUBSAMPLE_ROWS = 50_000
+#: Full-data Gauss-Newton (LM) steps after the subsample has converged.
+FULL_DATA_STEPS = 1
 
 
 @dataclass
@@ -108,7 +112,7 @@ def _prior(W, idx, weight):
 
 
 def _normal_equations(Y, c, W, idx, prior_weight=0.0):
-    """Accumulate J^T J, J^T e, e^T e for the Sampson residuals (plus the prior) at (c, W)."""
+    """J^T J and J^T e of the Sampson residuals plus the prior, and the data cost e^T e, at (c, W)."""
     r = Y.shape[1]
     npar = r + len(idx)
     JTJ = np.zeros((npar, npar))
@@ -118,7 +122,6 @@ def _normal_equations(Y, c, W, idx, prior_weight=0.0):
         pr, PJ = _prior(W, idx, prior_weight)
         JTJ += PJ.T @ PJ
         JTe += PJ.T @ pr
-        ee += float(pr @ pr)
     for i in range(0, len(Y), CHUNK_ROWS):
         dlt = Y[i : i + CHUNK_ROWS] - c
         v = dlt @ W  # W symmetric
@@ -157,6 +160,61 @@ def _cost(Y, c, W, idx=None, prior_weight=0.0):
     return ee
 
 
+def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
+    """Levenberg-Marquardt iterations.
+
+    Returns (c, W, prior_weight, iterations, converged, JTJ, data_cost); JTJ is the last normal
+    matrix evaluated (at the final or the previous iterate) and data_cost the final data cost.
+    """
+    n, r = Yn.shape
+    lam = 1e-3
+    pw = 0.0
+    converged = False
+    it = 0
+    data_cost = None
+    for it in range(1, max_iter + 1):
+        if data_cost is not None:
+            sigma2 = data_cost / max(n - npar, 1)
+        elif sigma2 is None:  # first pass: the prior weight needs sigma before the normal eqs.
+            sigma2 = _cost(Yn, c, W) / max(n - npar, 1)
+        # prior weight sigma / (tau * wbar), frozen within an iteration
+        pw = float(np.sqrt(sigma2) / (tau * np.trace(W) / r)) if tau else 0.0
+        pr, _ = _prior(W, idx, pw) if pw > 0 else (np.zeros(0), None)
+        JTJ, JTe, data_cost = _normal_equations(Yn, c, W, idx, pw)
+        cost = data_cost + float(pr @ pr)
+        step_ok = False
+        rel = 0.0
+        for _ in range(20):
+            try:
+                delta = -np.linalg.solve(JTJ + lam * np.diag(np.diag(JTJ) + 1e-12), JTe)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            c_new = c + delta[:r]
+            W_new = W.copy()
+            for col, (j, k) in enumerate(idx):
+                W_new[j, k] += delta[r + col]
+                if j != k:
+                    W_new[k, j] += delta[r + col]
+            if np.linalg.eigvalsh(W_new)[0] <= 0:
+                lam *= 10
+                continue
+            new_data = _cost(Yn, c_new, W_new)
+            prn, _ = _prior(W_new, idx, pw) if pw > 0 else (np.zeros(0), None)
+            new_cost = new_data + float(prn @ prn)
+            if new_cost <= cost:
+                step_ok = True
+                rel = (cost - new_cost) / max(cost, 1e-300)
+                c, W, data_cost = c_new, W_new, new_data
+                lam = max(lam / 10, 1e-12)
+                break
+            lam *= 10
+        if not step_ok or rel < tol or np.max(np.abs(delta)) < 1e-13:
+            converged = True
+            break
+    return c, W, pw, it, converged, JTJ, data_cost
+
+
 def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
                   tol: float = 1e-12, isotropy_prior: float | None = 0.1) -> EllipsoidFit:
     """Fit an ellipse (r=2) or ellipsoid (r=3) to points Y of shape (n, r).
@@ -175,7 +233,9 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
     mu = Y.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((Y - mu) ** 2, axis=1)))) or 1.0
     Yn = (Y - mu) / scale
-    start, gap = _algebraic(Yn)
+    # the algebraic fit is only a start: for large n an evenly strided subsample is enough
+    step = int(np.ceil(n / SUBSAMPLE_ROWS)) if refine and n > SUBSAMPLE_ROWS else 1
+    start, gap = _algebraic(Yn[::step])
     info = {"algebraic_eigen_gap": min(gap, 1e300)}
     if start is None:
         warn("the unconstrained quadric fit is a hyperboloid (partial coverage?); using a "
@@ -188,54 +248,24 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
     W = _sqrt_sym(E)
     idx = _sym_index(r)
     npar = r + len(idx)
-    lam = 1e-3
-    it = 0
-    converged = not refine
-    pw = 0.0
-
-    def prior_weight(W, data_cost):
-        if not isotropy_prior:
-            return 0.0
-        sigma = np.sqrt(data_cost / max(n - npar, 1))
-        return float(sigma / (isotropy_prior * np.trace(W) / r))
-
     if refine:
-        for it in range(1, max_iter + 1):
-            data_cost = _cost(Yn, c, W)
-            pw = prior_weight(W, data_cost)
-            cost = _cost(Yn, c, W, idx, pw)
-            JTJ, JTe, _ = _normal_equations(Yn, c, W, idx, pw)
-            step_ok = False
-            rel = 0.0
-            for _ in range(20):
-                Aug = JTJ + lam * np.diag(np.diag(JTJ) + 1e-12)
-                try:
-                    delta = -np.linalg.solve(Aug, JTe)
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
-                c_new = c + delta[:r]
-                W_new = W.copy()
-                for col, (j, k) in enumerate(idx):
-                    W_new[j, k] += delta[r + col]
-                    if j != k:
-                        W_new[k, j] += delta[r + col]
-                if np.linalg.eigvalsh(W_new)[0] <= 0:
-                    lam *= 10
-                    continue
-                new_cost = _cost(Yn, c_new, W_new, idx, pw)
-                if new_cost <= cost:
-                    step_ok = True
-                    rel = (cost - new_cost) / max(cost, 1e-300)
-                    c, W = c_new, W_new
-                    lam = max(lam / 10, 1e-12)
-                    break
-                lam *= 10
-            if not step_ok or rel < tol or np.max(np.abs(delta)) < 1e-13:
-                converged = True
-                break
-    data_cost = _cost(Yn, c, W)
-    JTJ, _, _ = _normal_equations(Yn, c, W, idx, pw)
+        if n > SUBSAMPLE_ROWS:
+            # converge on an evenly strided subsample, then polish with full-data Gauss-Newton
+            # steps: one Newton step from a root-n consistent start is already efficient
+            sub = Yn[::step]
+            c, W, pw, it, converged, _, sub_cost = _lm(sub, c, W, idx, npar, isotropy_prior,
+                                                       max_iter, tol)
+            c, W, pw, it2, _, JTJ, data_cost = _lm(Yn, c, W, idx, npar, isotropy_prior,
+                                                   FULL_DATA_STEPS, 0.0,
+                                                   sigma2=sub_cost / max(len(sub) - npar, 1))
+            it += it2
+        else:
+            c, W, pw, it, converged, JTJ, data_cost = _lm(Yn, c, W, idx, npar, isotropy_prior,
+                                                          max_iter, tol)
+    else:
+        it, converged, pw = 0, True, 0.0
+        data_cost = _cost(Yn, c, W)
+        JTJ, _, _ = _normal_equations(Yn, c, W, idx, pw)
     info["residual_rms"] = float(np.sqrt(data_cost / n)) * scale
     info["prior_weight"] = pw
     sigma2 = data_cost / max(n - npar, 1)

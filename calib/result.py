@@ -133,6 +133,8 @@ def _jsonable(x):
 #: the force directions inside a cap narrower than COVERAGE_MIN_CAP_DEG, offsets are unreliable.
 COVERAGE_MIN_ISOTROPY = 0.35
 COVERAGE_MIN_CAP_DEG = 100.0
+#: Coverage statistics use at most this many (evenly strided) samples.
+COVERAGE_MAX_ROWS = 100_000
 
 
 def coverage_diagnostics(U: np.ndarray) -> dict:
@@ -150,13 +152,16 @@ def coverage_diagnostics(U: np.ndarray) -> dict:
         0 when all directions lie in a plane);
         ``mean_direction_norm``: ``|mean(u)|`` (0 for a full sphere, 1 for a single direction);
         ``cap_half_angle_deg``: largest angle between a direction and the mean direction;
-        ``covered_fraction``: fraction of 2r equal axis-aligned... (r=3: 20 icosahedron cells,
-        r=2: 12 arcs) that contain at least one direction.
+        ``covered_fraction``: fraction of equal cells of the sphere (r=3: the 20 faces of an
+        icosahedron) or circle (r=2: 12 arcs) that contain at least one direction.
     """
     U = np.asarray(U, dtype=float)
+    if len(U) > COVERAGE_MAX_ROWS:  # direction statistics: an evenly strided subsample suffices
+        U = U[:: int(np.ceil(len(U) / COVERAGE_MAX_ROWS))]
     r = U.shape[1]
-    norms = np.linalg.norm(U, axis=1)
-    u = U[norms > 0] / norms[norms > 0, None]
+    norms = np.sqrt(np.einsum("ij,ij->i", U, U))
+    good = norms > 0
+    u = (U / norms[:, None]) if good.all() else U[good] / norms[good, None]
     if len(u) == 0:
         return {"isotropy": 0.0, "mean_direction_norm": 1.0, "cap_half_angle_deg": 0.0,
                 "covered_fraction": 0.0}
@@ -171,8 +176,10 @@ def coverage_diagnostics(U: np.ndarray) -> dict:
         cap = 180.0
     cells = _cell_centres(r)
     if cells is not None:
-        hit = np.unique(np.argmax(u @ cells.T, axis=1))
-        frac = len(hit) / len(cells)
+        hit = np.zeros(len(cells), dtype=bool)
+        for i in range(0, len(u), 1 << 16):
+            hit[np.argmax(u[i : i + (1 << 16)] @ cells.T, axis=1)] = True
+        frac = hit.sum() / len(cells)
     else:
         frac = float("nan")
     return {"isotropy": iso, "mean_direction_norm": mnorm, "cap_half_angle_deg": cap,
