@@ -33,6 +33,8 @@ from .result import (
 from .sfm import CHUNK_ROWS, finish_frame, fit_unit_quadric, principal, rank_gap
 
 METHODS = ("centered", "paper")
+#: The paper route's refinement uses at most this many (evenly strided) rows.
+PAPER_REFINE_MAX_ROWS = 50_000
 
 
 def fit_bias(Z, dof: int = 3, method: str = "centered", known_Z=None, known_M=None,
@@ -264,17 +266,19 @@ def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | No
              "coordinate ellipsoid fit instead")
         B = _plane_start(Mhat, a4)
     x0 = np.concatenate([B.ravel(), a4])
-    cost0 = float(np.mean(_residuals(x0, Mhat, r) ** 2))
-    extra = {"paper_start": start, "start_cost": cost0}
+    # the dense (2n x 16) Jacobian is too big for millions of rows: refine on a strided subsample
+    Mfit = Mhat[:: int(np.ceil(len(Mhat) / PAPER_REFINE_MAX_ROWS))]
+    cost0 = float(np.mean(_residuals(x0, Mfit, r) ** 2))
+    extra = {"paper_start": start, "start_cost": cost0, "refine_rows": len(Mfit)}
     if refine == "lsq":
-        sol = least_squares(_residuals, x0, jac=_jacobian, args=(Mhat, r), method="lm",
+        sol = least_squares(_residuals, x0, jac=_jacobian, args=(Mfit, r), method="lm",
                             xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=2000)
         x = sol.x
         extra["refinement"] = {"solver": "scipy least_squares (lm)", "nfev": int(sol.nfev),
                                "converged": bool(sol.status > 0),
                                "cost": float(np.mean(sol.fun**2))}
     elif refine == "gd":
-        x, info = refine_gradient_descent(x0, Mhat, r, max_iter=gd_max_iter)
+        x, info = refine_gradient_descent(x0, Mfit, r, max_iter=gd_max_iter)
         extra["refinement"] = {"solver": "gradient descent", **info}
     elif refine is None:
         x = x0

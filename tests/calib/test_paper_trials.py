@@ -56,3 +56,19 @@ def test_smoothed_std():
     x = np.array([0.0, 1.0] * 50)
     assert smoothed_std(x, 2) == pytest.approx(0.0)
     assert smoothed_std(x, 1) == pytest.approx(0.5)
+
+
+def test_ft6_sfm_beats_least_squares_with_same_known_loads():
+    from calib.trials import ft6_comparison
+
+    r = ft6_comparison(range(20))
+    assert r["sfm"] < 0.6 * r["ls_same"], r
+
+
+def test_table1_sfm_steadier_than_least_squares():
+    from calib.trials import table1
+
+    t = table1(range(10))
+    for load, d in t.items():
+        assert d["sfm"]["smooth"] < d["ls"]["smooth"]
+        assert d["sfm"]["error_pct"] < 1.0
