@@ -70,13 +70,16 @@ def main(argv=None):
     mem_svd = peak_extra_bytes(svd)
     err = float(np.mean(np.abs(cal.offset - z0)))
     print(f"data: {Z.shape[0]:,} x {Z.shape[1]} float64 ({Z.nbytes / 1e6:.0f} MB), Trial 3 noise")
-    print(f"calib fit_bias({args.method}): {t_sfm:.3f} s (best of {args.repeat}); "
-          f"target < 1 s: {'met' if t_sfm < 1 else 'MISSED'}")
-    print(f"numpy thin SVD:           {t_svd:.3f} s; ratio calib / numpy SVD = "
-          f"{t_sfm / t_svd:.2f}")
-    print(f"peak extra memory: calib {mem_sfm / 1e6:.1f} MB = {mem_sfm / Z.nbytes:.2f}x input "
-          f"(target <= 3x: {'met' if mem_sfm <= 3 * Z.nbytes else 'MISSED'}); "
-          f"numpy SVD {mem_svd / 1e6:.1f} MB = {mem_svd / Z.nbytes:.2f}x")
+    print(
+        f"calib fit_bias({args.method}): {t_sfm:.3f} s (best of {args.repeat}); "
+        f"target < 1 s: {'met' if t_sfm < 1 else 'MISSED'}"
+    )
+    print(f"numpy thin SVD:           {t_svd:.3f} s; ratio calib / numpy SVD = {t_sfm / t_svd:.2f}")
+    print(
+        f"peak extra memory: calib {mem_sfm / 1e6:.1f} MB = {mem_sfm / Z.nbytes:.2f}x input "
+        f"(target <= 3x: {'met' if mem_sfm <= 3 * Z.nbytes else 'MISSED'}); "
+        f"numpy SVD {mem_svd / 1e6:.1f} MB = {mem_svd / Z.nbytes:.2f}x"
+    )
     print(f"offset error (mean abs, counts): {err:.4f}")
     return {"t_sfm": t_sfm, "t_svd": t_svd, "mem_ratio": mem_sfm / Z.nbytes, "offset_err": err}
 

@@ -20,6 +20,13 @@ from .sfm import fit_sfm
 __version__ = "0.1.0"
 
 __all__ = [
-    "Calibration", "CalibrationError", "CalibrationWarning", "fit_bias", "fit_centered",
-    "fit_paper", "fit_ft6", "fit_least_squares", "fit_sfm",
+    "Calibration",
+    "CalibrationError",
+    "CalibrationWarning",
+    "fit_bias",
+    "fit_centered",
+    "fit_paper",
+    "fit_ft6",
+    "fit_least_squares",
+    "fit_sfm",
 ]

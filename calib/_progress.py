@@ -9,8 +9,9 @@ import time
 class Progress:
     """``with Progress(total, "label") as bar: bar.update()``; draws ``label [####....] k/total``."""
 
-    def __init__(self, total: int, label: str = "", enabled: bool = True, stream=None,
-                 width: int = 30):
+    def __init__(
+        self, total: int, label: str = "", enabled: bool = True, stream=None, width: int = 30
+    ):
         self.total = max(int(total), 1)
         self.label = label
         self.enabled = enabled

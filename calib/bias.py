@@ -4,7 +4,8 @@ Two routes, both returning a :class:`calib.result.Calibration` with the offset f
 
 ``method="paper"`` (section 7.1): rank r+1 SVD of the raw data, ``M^ = U* Sigma*^1/2``. The last
 column of ``A^-1`` satisfies the plane ``m^T a4 = 1`` (linear least squares); the first r columns
-``B^T`` the cylinder ``m^T B^T B m = 1`` (18). Start: the linear quadric ``m^T Q m = 1`` (19). On the
+``B^T`` the cylinder ``m^T B^T B m = 1`` (18). Start: the linear quadric ``m^T Q m = 1`` (19). On
+the
 plane that fit is not unique (``Q + lam a4 a4^T``, rescaled, fits the same points), so the
 free ``lam`` is fixed where Q becomes singular: by the matrix determinant lemma
 ``lam = -1 / (a4^T Q^-1 a4)``. Zeroing the smallest singular value of that Q gives B. Refinement:
@@ -37,8 +38,16 @@ METHODS = ("centered", "paper")
 PAPER_REFINE_MAX_ROWS = 50_000
 
 
-def fit_bias(Z, dof: int = 3, method: str = "centered", known_Z=None, known_M=None,
-             magnitude: float | None = None, drop_nonfinite: bool = False, **kwargs) -> Calibration:
+def fit_bias(
+    Z,
+    dof: int = 3,
+    method: str = "centered",
+    known_Z=None,
+    known_M=None,
+    magnitude: float | None = None,
+    drop_nonfinite: bool = False,
+    **kwargs,
+) -> Calibration:
     """Shape from motion with bias; dispatches to :func:`fit_centered` or :func:`fit_paper`.
 
     Parameters
@@ -75,8 +84,22 @@ def _prepare(Z, dof, drop_nonfinite, extra_rank):
     return dof, r, Z, nbad
 
 
-def _finish(Z, C_unit, offset, dof, method, s, r, nbad, extra, known_Z, known_M, magnitude,
-            offset_stderr=None, U=None):
+def _finish(
+    Z,
+    C_unit,
+    offset,
+    dof,
+    method,
+    s,
+    r,
+    nbad,
+    extra,
+    known_Z,
+    known_M,
+    magnitude,
+    offset_stderr=None,
+    U=None,
+):
     if U is None:
         U = (Z - offset) @ C_unit.T
     mags = np.linalg.norm(U, axis=1)
@@ -98,8 +121,10 @@ def _finish(Z, C_unit, offset, dof, method, s, r, nbad, extra, known_Z, known_M,
     poor = excitation_is_poor(cov)
     diag["excitation_poor"] = bool(poor)
     if poor:
-        warn(f"poor excitation (isotropy {cov['isotropy']:.2f}, directions within "
-             f"{cov['cap_half_angle_deg']:.0f} deg of their mean): the offset is unreliable")
+        warn(
+            f"poor excitation (isotropy {cov['isotropy']:.2f}, directions within "
+            f"{cov['cap_half_angle_deg']:.0f} deg of their mean): the offset is unreliable"
+        )
     cal = Calibration(C=C_unit, offset=offset, dof=dof, method=method, diagnostics=diag)
     return finish_frame(cal, known_Z, known_M, magnitude)
 
@@ -107,9 +132,16 @@ def _finish(Z, C_unit, offset, dof, method, s, r, nbad, extra, known_Z, known_M,
 # --------------------------------------------------------------------------------- centered
 
 
-def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
-                 drop_nonfinite: bool = False, refine: bool = True,
-                 isotropy_prior: float | None = 0.1) -> Calibration:
+def fit_centered(
+    Z,
+    dof: int = 3,
+    known_Z=None,
+    known_M=None,
+    magnitude: float | None = None,
+    drop_nonfinite: bool = False,
+    refine: bool = True,
+    isotropy_prior: float | None = 0.1,
+) -> Calibration:
     """Mean removal, rank-r PCA, ellipsoid fit; see the module docstring. Works for p >= r.
 
     ``refine`` runs the approximate maximum-likelihood refinement; ``isotropy_prior`` is the prior
@@ -133,8 +165,22 @@ def fit_centered(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float |
     Y -= fit.centre
     U = Y @ fit.W.T
     del Y
-    return _finish(Z, C_unit, offset, dof, "centered", s, r, nbad, {"ellipsoid": fit.info},
-                   known_Z, known_M, magnitude, offset_stderr=stderr, U=U)
+    return _finish(
+        Z,
+        C_unit,
+        offset,
+        dof,
+        "centered",
+        s,
+        r,
+        nbad,
+        {"ellipsoid": fit.info},
+        known_Z,
+        known_M,
+        magnitude,
+        offset_stderr=stderr,
+        U=U,
+    )
 
 
 def _project(Z: np.ndarray, mu: np.ndarray, Vr: np.ndarray) -> np.ndarray:
@@ -150,8 +196,9 @@ def _project(Z: np.ndarray, mu: np.ndarray, Vr: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------ paper
 
 
-def cylinder_start(Mhat: np.ndarray, a4: np.ndarray, resolve: bool = True
-                   ) -> tuple[np.ndarray, dict]:
+def cylinder_start(
+    Mhat: np.ndarray, a4: np.ndarray, resolve: bool = True
+) -> tuple[np.ndarray, dict]:
     """Paper's start for B (r, r+1): linear quadric, freedom resolved, smallest singular value zeroed.
 
     ``resolve=False`` is the literal paper recipe (least-squares Q as it comes out, smallest
@@ -241,9 +288,17 @@ def refine_gradient_descent(x0, Mhat, r, max_iter: int = 20000, tol: float = 1e-
     return x, {"iterations": it, "converged": converged, "cost": float(np.mean(res**2))}
 
 
-def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
-              drop_nonfinite: bool = False, refine: str | None = "lsq",
-              gd_max_iter: int = 20000, start: str = "resolved") -> Calibration:
+def fit_paper(
+    Z,
+    dof: int = 3,
+    known_Z=None,
+    known_M=None,
+    magnitude: float | None = None,
+    drop_nonfinite: bool = False,
+    refine: str | None = "lsq",
+    gd_max_iter: int = 20000,
+    start: str = "resolved",
+) -> Calibration:
     """The paper's rank-(r+1) plane + cylinder method; see the module docstring.
 
     Parameters
@@ -262,8 +317,10 @@ def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | No
         raise CalibrationError(f"start must be 'resolved' or 'naive', got {start!r}")
     B, start = cylinder_start(Mhat, a4, resolve=(start == "resolved"))
     if not start["ok"]:
-        warn("the quadric start is not a cylinder (poor excitation?); starting from a plane-"
-             "coordinate ellipsoid fit instead")
+        warn(
+            "the quadric start is not a cylinder (poor excitation?); starting from a plane-"
+            "coordinate ellipsoid fit instead"
+        )
         B = _plane_start(Mhat, a4)
     x0 = np.concatenate([B.ravel(), a4])
     # the dense (2n x 16) Jacobian is too big for millions of rows: refine on a strided subsample
@@ -271,12 +328,24 @@ def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | No
     cost0 = float(np.mean(_residuals(x0, Mfit, r) ** 2))
     extra = {"paper_start": start, "start_cost": cost0, "refine_rows": len(Mfit)}
     if refine == "lsq":
-        sol = least_squares(_residuals, x0, jac=_jacobian, args=(Mfit, r), method="lm",
-                            xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=2000)
+        sol = least_squares(
+            _residuals,
+            x0,
+            jac=_jacobian,
+            args=(Mfit, r),
+            method="lm",
+            xtol=1e-14,
+            ftol=1e-14,
+            gtol=1e-14,
+            max_nfev=2000,
+        )
         x = sol.x
-        extra["refinement"] = {"solver": "scipy least_squares (lm)", "nfev": int(sol.nfev),
-                               "converged": bool(sol.status > 0),
-                               "cost": float(np.mean(sol.fun**2))}
+        extra["refinement"] = {
+            "solver": "scipy least_squares (lm)",
+            "nfev": int(sol.nfev),
+            "converged": bool(sol.status > 0),
+            "cost": float(np.mean(sol.fun**2)),
+        }
     elif refine == "gd":
         x, info = refine_gradient_descent(x0, Mfit, r, max_iter=gd_max_iter)
         extra["refinement"] = {"solver": "gradient descent", **info}
@@ -289,11 +358,12 @@ def fit_paper(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | No
     Ainv = np.column_stack([B.T, a4])
     cond_A = float(np.linalg.cond(Ainv))
     if not np.isfinite(cond_A) or cond_A > 1e12:
-        raise CalibrationError("the plane and cylinder are degenerate (A^-1 singular); "
-                               "excitation is too poor for the paper method")
+        raise CalibrationError(
+            "the plane and cylinder are degenerate (A^-1 singular); "
+            "excitation is too poor for the paper method"
+        )
     S_aug = np.linalg.solve(Ainv, np.sqrt(sq)[:, None] * Vq.T)
     S_unit, offset = S_aug[:r], S_aug[r]
     C_unit = np.linalg.pinv(S_unit.T)
     extra["condition_number_Ainv"] = cond_A
     return _finish(Z, C_unit, offset, dof, "paper", s, r, nbad, extra, known_Z, known_M, magnitude)
-

@@ -29,14 +29,27 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("raw", metavar="RAW.csv")
     f.add_argument("--dof", type=int, choices=(2, 3, 6), required=True)
     f.add_argument("--bias", action="store_true", help="estimate the sensor offsets too")
-    f.add_argument("--known", metavar="KNOWN.csv",
-                   help="known loads: channel columns plus Fx,Fy[,Fz][,Tx,Ty,Tz]")
-    f.add_argument("--method", choices=("paper", "centered"), default="centered",
-                   help="bias route (default centered; paper needs p >= r+1 channels)")
-    f.add_argument("--magnitude", type=float,
-                   help="load magnitude, sets the scale when no known loads are given")
-    f.add_argument("--drop-nonfinite", action="store_true",
-                   help="drop rows containing NaN/inf instead of failing (count reported)")
+    f.add_argument(
+        "--known",
+        metavar="KNOWN.csv",
+        help="known loads: channel columns plus Fx,Fy[,Fz][,Tx,Ty,Tz]",
+    )
+    f.add_argument(
+        "--method",
+        choices=("paper", "centered"),
+        default="centered",
+        help="bias route (default centered; paper needs p >= r+1 channels)",
+    )
+    f.add_argument(
+        "--magnitude",
+        type=float,
+        help="load magnitude, sets the scale when no known loads are given",
+    )
+    f.add_argument(
+        "--drop-nonfinite",
+        action="store_true",
+        help="drop rows containing NaN/inf instead of failing (count reported)",
+    )
     f.add_argument("--out", metavar="CAL.json", required=True)
 
     a = sub.add_parser("apply", help="convert raw readings to loads")
@@ -97,22 +110,43 @@ def _fit(args) -> str:
     if args.dof == 6:
         if known_Z is None:
             raise CalibrationError("--dof 6 needs --known with at least 6 known loads (see docs)")
-        cal = fit_ft6(Z, known_Z, known_M, bias=args.bias, method=args.method,
-                      drop_nonfinite=args.drop_nonfinite)
+        cal = fit_ft6(
+            Z,
+            known_Z,
+            known_M,
+            bias=args.bias,
+            method=args.method,
+            drop_nonfinite=args.drop_nonfinite,
+        )
     elif args.bias:
-        cal = fit_bias(Z, args.dof, method=args.method, known_Z=known_Z, known_M=known_M,
-                       magnitude=args.magnitude, drop_nonfinite=args.drop_nonfinite)
+        cal = fit_bias(
+            Z,
+            args.dof,
+            method=args.method,
+            known_Z=known_Z,
+            known_M=known_M,
+            magnitude=args.magnitude,
+            drop_nonfinite=args.drop_nonfinite,
+        )
     else:
-        cal = fit_sfm(Z, args.dof, known_Z=known_Z, known_M=known_M, magnitude=args.magnitude,
-                      drop_nonfinite=args.drop_nonfinite)
+        cal = fit_sfm(
+            Z,
+            args.dof,
+            known_Z=known_Z,
+            known_M=known_M,
+            magnitude=args.magnitude,
+            drop_nonfinite=args.drop_nonfinite,
+        )
     save_calibration(args.out, cal, channels)
     d = cal.diagnostics
     dropped = d.get("n_dropped_nonfinite", 0)
     cov = d.get("coverage") or {}
     note = f", dropped {dropped} non-finite row(s)" if dropped else ""
-    return (f"wrote {args.out}: {cal.method}, dof {cal.dof}, {cal.n_channels} channels, "
-            f"{d.get('n_samples')} samples{note}; rank gap {d.get('rank_gap', float('nan')):.3g}, "
-            f"coverage isotropy {cov.get('isotropy', float('nan')):.2f}")
+    return (
+        f"wrote {args.out}: {cal.method}, dof {cal.dof}, {cal.n_channels} channels, "
+        f"{d.get('n_samples')} samples{note}; rank gap {d.get('rank_gap', float('nan')):.3g}, "
+        f"coverage isotropy {cov.get('isotropy', float('nan')):.2f}"
+    )
 
 
 def _apply(args) -> str:
@@ -142,13 +176,13 @@ def _trials(args) -> str:
 
     if args.seeds < 1:
         raise CalibrationError(f"--seeds must be >= 1, got {args.seeds}")
-    res = write_report(args.out, seeds=args.seeds, plots=not args.no_plots,
-                       progress=not args.quiet)
+    res = write_report(args.out, seeds=args.seeds, plots=not args.no_plots, progress=not args.quiet)
     parts = []
     for t in (2, 3, 4):
         s = trial_summary(res["trials"][t], t)
-        parts.append(f"T{t} offset err {s['centered']['median']:.3g} vs paper "
-                     f"{s['paper_reported']:.3g}")
+        parts.append(
+            f"T{t} offset err {s['centered']['median']:.3g} vs paper {s['paper_reported']:.3g}"
+        )
     return f"wrote {args.out}/trials.md; " + "; ".join(parts)
 
 

@@ -7,8 +7,10 @@
    into ellipsoids.
 2. Refinement (approximate maximum likelihood): Levenberg-Marquardt on the first-order geometric
    (Sampson) distance ``d_i = (rho_i - 1) rho_i / |W^T v_i|`` with ``v_i = W (y_i - c)``,
-   ``rho_i = |v_i|``; the weights are refreshed every iteration (IRLS). Parametrising W as a symmetric
-   matrix removes the rotation gauge, and steps that leave the PD cone are rejected, so the result is
+   ``rho_i = |v_i|``; the weights are refreshed every iteration (IRLS). Parametrising W as a
+   symmetric
+   matrix removes the rotation gauge, and steps that leave the PD cone are rejected, so the result
+   is
    always an ellipsoid. Normal equations are accumulated in row chunks, so memory stays O(chunk).
 """
 
@@ -215,8 +217,13 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
     return c, W, pw, it, converged, JTJ, data_cost
 
 
-def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
-                  tol: float = 1e-12, isotropy_prior: float | None = 0.1) -> EllipsoidFit:
+def fit_ellipsoid(
+    Y: np.ndarray,
+    refine: bool = True,
+    max_iter: int = 200,
+    tol: float = 1e-12,
+    isotropy_prior: float | None = 0.1,
+) -> EllipsoidFit:
     """Fit an ellipse (r=2) or ellipsoid (r=3) to points Y of shape (n, r).
 
     ``isotropy_prior`` is the prior spread tau of W around a multiple of the identity, relative to
@@ -238,8 +245,10 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
     start, gap = _algebraic(Yn[::step])
     info = {"algebraic_eigen_gap": min(gap, 1e300)}
     if start is None:
-        warn("the unconstrained quadric fit is a hyperboloid (partial coverage?); using a "
-             "constrained ellipsoid fit, the offset is unreliable")
+        warn(
+            "the unconstrained quadric fit is a hyperboloid (partial coverage?); using a "
+            "constrained ellipsoid fit, the offset is unreliable"
+        )
         c, E = _sphere(Yn)
         info["start"] = "sphere (hyperboloid rejected)"
     else:
@@ -253,15 +262,25 @@ def fit_ellipsoid(Y: np.ndarray, refine: bool = True, max_iter: int = 200,
             # converge on an evenly strided subsample, then polish with full-data Gauss-Newton
             # steps: one Newton step from a root-n consistent start is already efficient
             sub = Yn[::step]
-            c, W, pw, it, converged, _, sub_cost = _lm(sub, c, W, idx, npar, isotropy_prior,
-                                                       max_iter, tol)
-            c, W, pw, it2, _, JTJ, data_cost = _lm(Yn, c, W, idx, npar, isotropy_prior,
-                                                   FULL_DATA_STEPS, 0.0,
-                                                   sigma2=sub_cost / max(len(sub) - npar, 1))
+            c, W, pw, it, converged, _, sub_cost = _lm(
+                sub, c, W, idx, npar, isotropy_prior, max_iter, tol
+            )
+            c, W, pw, it2, _, JTJ, data_cost = _lm(
+                Yn,
+                c,
+                W,
+                idx,
+                npar,
+                isotropy_prior,
+                FULL_DATA_STEPS,
+                0.0,
+                sigma2=sub_cost / max(len(sub) - npar, 1),
+            )
             it += it2
         else:
-            c, W, pw, it, converged, JTJ, data_cost = _lm(Yn, c, W, idx, npar, isotropy_prior,
-                                                          max_iter, tol)
+            c, W, pw, it, converged, JTJ, data_cost = _lm(
+                Yn, c, W, idx, npar, isotropy_prior, max_iter, tol
+            )
     else:
         it, converged, pw = 0, True, 0.0
         data_cost = _cost(Yn, c, W)

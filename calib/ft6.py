@@ -44,8 +44,15 @@ def _structured_H(theta, lever_arm=None):
     return np.vstack([sR, skew(r) @ sR])
 
 
-def fit_ft6(Z, known_Z, known_M, bias: bool = True, method: str = "centered",
-            lever_arm=None, drop_nonfinite: bool = False) -> Calibration:
+def fit_ft6(
+    Z,
+    known_Z,
+    known_M,
+    bias: bool = True,
+    method: str = "centered",
+    lever_arm=None,
+    drop_nonfinite: bool = False,
+) -> Calibration:
     """Calibrate a 6-DOF sensor from proof-mass rotation data and >= 6 known loads.
 
     Parameters

@@ -32,7 +32,7 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
     if M.shape[0] != Z.shape[0]:
         raise CalibrationError(f"Z has {Z.shape[0]} rows but the known loads have {M.shape[0]}")
     both, nbad = check_matrix(np.hstack([Z, M]), "known data", drop_nonfinite)
-    Z, M = both[:, : Z.shape[1]], both[:, Z.shape[1]:]
+    Z, M = both[:, : Z.shape[1]], both[:, Z.shape[1] :]
     dof = check_dof(M.shape[1])
     n, p = Z.shape
     need = dof + (1 if bias else 0)

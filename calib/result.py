@@ -41,7 +41,8 @@ class Calibration:
     method : str
         Which estimator produced it (``"least_squares"``, ``"sfm"``, ``"paper"``, ``"centered"``, ...).
     diagnostics : dict
-        JSON-serialisable numbers: singular values, rank gap, excitation coverage, condition numbers,
+        JSON-serialisable numbers: singular values, rank gap, excitation coverage, condition
+        numbers,
         residuals. See :func:`coverage_diagnostics` and the fitting functions for the keys.
     """
 
@@ -129,7 +130,8 @@ def _jsonable(x):
 
 # ----------------------------------------------------------------------------------- diagnostics
 
-#: Below this coverage isotropy (smallest eigenvalue of r * mean(u u^T); 1 = uniform sphere), or with
+# : Below this coverage isotropy (smallest eigenvalue of r * mean(u u^T); 1 = uniform sphere), or
+# with
 #: the force directions inside a cap narrower than COVERAGE_MIN_CAP_DEG, offsets are unreliable.
 COVERAGE_MIN_ISOTROPY = 0.35
 COVERAGE_MIN_CAP_DEG = 100.0
@@ -148,7 +150,8 @@ def coverage_diagnostics(U: np.ndarray) -> dict:
     Returns
     -------
     dict with
-        ``isotropy``: smallest eigenvalue of ``r * mean(u u^T)`` for unit ``u`` (1 for uniform cover,
+        ``isotropy``: smallest eigenvalue of ``r * mean(u u^T)`` for unit ``u`` (1 for uniform
+        cover,
         0 when all directions lie in a plane);
         ``mean_direction_norm``: ``|mean(u)|`` (0 for a full sphere, 1 for a single direction);
         ``cap_half_angle_deg``: largest angle between a direction and the mean direction;
@@ -163,8 +166,12 @@ def coverage_diagnostics(U: np.ndarray) -> dict:
     good = norms > 0
     u = (U / norms[:, None]) if good.all() else U[good] / norms[good, None]
     if len(u) == 0:
-        return {"isotropy": 0.0, "mean_direction_norm": 1.0, "cap_half_angle_deg": 0.0,
-                "covered_fraction": 0.0}
+        return {
+            "isotropy": 0.0,
+            "mean_direction_norm": 1.0,
+            "cap_half_angle_deg": 0.0,
+            "covered_fraction": 0.0,
+        }
     second = r * (u.T @ u) / len(u)
     iso = float(np.linalg.eigvalsh(second)[0])
     mean = u.mean(axis=0)
@@ -182,8 +189,12 @@ def coverage_diagnostics(U: np.ndarray) -> dict:
         frac = hit.sum() / len(cells)
     else:
         frac = float("nan")
-    return {"isotropy": iso, "mean_direction_norm": mnorm, "cap_half_angle_deg": cap,
-            "covered_fraction": float(frac)}
+    return {
+        "isotropy": iso,
+        "mean_direction_norm": mnorm,
+        "cap_half_angle_deg": cap,
+        "covered_fraction": float(frac),
+    }
 
 
 def _cell_centres(r: int) -> np.ndarray | None:
@@ -192,7 +203,7 @@ def _cell_centres(r: int) -> np.ndarray | None:
         return np.column_stack([np.cos(a), np.sin(a)])
     if r == 3:
         # face centres of an icosahedron = vertices of a dodecahedron: 20 equal-area cells
-        phi = (1 + 5 ** 0.5) / 2
+        phi = (1 + 5**0.5) / 2
         v = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
         for a in (-1, 1):
             for b in (-1, 1):
@@ -214,5 +225,8 @@ def magnitude_stats(loads: np.ndarray) -> dict:
     mag = np.linalg.norm(np.asarray(loads)[:, :3], axis=1)
     mean = float(mag.mean())
     std = float(mag.std())
-    return {"magnitude_mean": mean, "magnitude_std": std,
-            "magnitude_cv": std / mean if mean > 0 else float("nan")}
+    return {
+        "magnitude_mean": mean,
+        "magnitude_std": std,
+        "magnitude_cv": std / mean if mean > 0 else float("nan"),
+    }

@@ -108,8 +108,14 @@ def sqrt_psd(Q: np.ndarray) -> tuple[np.ndarray, bool]:
     return (V * np.sqrt(w)) @ V.T, ok
 
 
-def fit_sfm(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None = None,
-            drop_nonfinite: bool = False) -> Calibration:
+def fit_sfm(
+    Z,
+    dof: int = 3,
+    known_Z=None,
+    known_M=None,
+    magnitude: float | None = None,
+    drop_nonfinite: bool = False,
+) -> Calibration:
     """Shape from motion without bias.
 
     Parameters
@@ -156,10 +162,13 @@ def fit_sfm(Z, dof: int = 3, known_Z=None, known_M=None, magnitude: float | None
         "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
     }
     if excitation_is_poor(cov):
-        warn(f"poor excitation (isotropy {cov['isotropy']:.2f}, cap {cov['cap_half_angle_deg']:.0f}"
-             " deg): the shape is unreliable")
-    cal = Calibration(C=C_unit, offset=np.zeros(Z.shape[1]), dof=dof, method="sfm",
-                      diagnostics=diag)
+        warn(
+            f"poor excitation (isotropy {cov['isotropy']:.2f}, cap {cov['cap_half_angle_deg']:.0f}"
+            " deg): the shape is unreliable"
+        )
+    cal = Calibration(
+        C=C_unit, offset=np.zeros(Z.shape[1]), dof=dof, method="sfm", diagnostics=diag
+    )
     return finish_frame(cal, known_Z, known_M, magnitude)
 
 
@@ -204,11 +213,17 @@ def align_to_known(C_unit: np.ndarray, offset: np.ndarray, known_Z, known_M):
     D = np.eye(r)
     if ambiguous:
         D[-1, -1] = np.sign(np.linalg.det(P @ Qt)) or 1.0
-        warn(f"{len(Zk)} known pair(s) fix the frame only up to a mirror image; proper rotation "
-             "assumed (add a pair off their plane to resolve)")
+        warn(
+            f"{len(Zk)} known pair(s) fix the frame only up to a mirror image; proper rotation "
+            "assumed (add a pair off their plane to resolve)"
+        )
     R = (P @ D @ Qt).T
     scale = float(np.trace(np.diag(sig) @ D) / np.sum(Uk**2))
     res = Fk - scale * Uk @ R.T
-    info = {"n_pairs": len(Zk), "scale": scale, "residual_rms": float(np.sqrt(np.mean(res**2))),
-            "mirror_ambiguous": bool(ambiguous)}
+    info = {
+        "n_pairs": len(Zk),
+        "scale": scale,
+        "residual_rms": float(np.sqrt(np.mean(res**2))),
+        "mirror_ambiguous": bool(ambiguous),
+    }
     return R, scale, info

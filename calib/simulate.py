@@ -9,7 +9,8 @@ The paper's section 8 set-up is :func:`paper_trial`: the 3 x 8 calibration matri
 there, 176 samples, uniform noise, constant offsets, Trials 1-4.
 
 Scale: the paper's ``C`` maps raw counts to unit force, so its shape matrix, given by
-``S^T = C^+`` (eq. 5 read backwards), has entries +-16.67 (x and y channels) and 12.5 (z channels). A unit force therefore produces at most 16.67 counts, while the
+``S^T = C^+`` (eq. 5 read backwards), has entries +-16.67 (x and y channels) and 12.5 (z channels).
+A unit force therefore produces at most 16.67 counts, while the
 paper states that "the maximum signal for all illustrated trials was about 150". We read this as a
 force of magnitude ``PAPER_FORCE_MAGNITUDE = 9`` (9 * 16.67 = 150.0 counts peak), which also makes
 the quoted noise percentages right: peak noise 3 = 2 %, 15 = 10 %, 25 = 16.7 % ("about 17 %") of 150.
@@ -107,8 +108,9 @@ class SensorData:
         return np.linalg.pinv(self.S.T)
 
 
-def sample_directions(n: int, r: int, rng, cap_half_angle_deg: float | None = None,
-                      axis=None) -> np.ndarray:
+def sample_directions(
+    n: int, r: int, rng, cap_half_angle_deg: float | None = None, axis=None
+) -> np.ndarray:
     """Unit vectors, shape (n, r), uniform over the circle (r=2) / sphere (r=3) or a cap of them.
 
     ``cap_half_angle_deg`` limits directions to within that angle of ``axis`` (default: last axis,
@@ -172,9 +174,18 @@ def random_shape(dof: int, p: int, rng, condition: float = 5.0) -> np.ndarray:
     return (U * s) @ V.T
 
 
-def simulate(S, n: int, rng=None, magnitude: float = 1.0, cap_half_angle_deg: float | None = None,
-             noise=0.0, noise_kind: str = "uniform", offset=None, lever_arm=None,
-             axis=None) -> SensorData:
+def simulate(
+    S,
+    n: int,
+    rng=None,
+    magnitude: float = 1.0,
+    cap_half_angle_deg: float | None = None,
+    noise=0.0,
+    noise_kind: str = "uniform",
+    offset=None,
+    lever_arm=None,
+    axis=None,
+) -> SensorData:
     """Simulate ``n`` readings of a constant-magnitude load moved over orientations.
 
     Parameters
@@ -225,8 +236,13 @@ def make_noise(shape, level, kind: str, rng) -> np.ndarray:
     raise CalibrationError(f"noise_kind must be 'uniform' or 'gaussian', got {kind!r}")
 
 
-def paper_trial(trial: int, rng=None, n: int = PAPER_N_SAMPLES,
-                cap_half_angle_deg: float | None = None, noise_scale: float = 1.0) -> SensorData:
+def paper_trial(
+    trial: int,
+    rng=None,
+    n: int = PAPER_N_SAMPLES,
+    cap_half_angle_deg: float | None = None,
+    noise_scale: float = 1.0,
+) -> SensorData:
     """The paper's section 8 Trial ``trial`` (1-4): 176 samples, uniform noise, its offsets.
 
     ``noise_scale`` multiplies the trial's peak noise (for noise sweeps).
@@ -235,7 +251,12 @@ def paper_trial(trial: int, rng=None, n: int = PAPER_N_SAMPLES,
         raise CalibrationError(f"trial must be one of {sorted(PAPER_TRIALS)}, got {trial}")
     t = PAPER_TRIALS[trial]
     return simulate(
-        paper_shape_matrix(), n, rng=rng, magnitude=PAPER_FORCE_MAGNITUDE,
-        cap_half_angle_deg=cap_half_angle_deg, noise=np.asarray(t["peak_noise"]) * noise_scale,
-        noise_kind="uniform", offset=t["offset"],
+        paper_shape_matrix(),
+        n,
+        rng=rng,
+        magnitude=PAPER_FORCE_MAGNITUDE,
+        cap_half_angle_deg=cap_half_angle_deg,
+        noise=np.asarray(t["peak_noise"]) * noise_scale,
+        noise_kind="uniform",
+        offset=t["offset"],
     )

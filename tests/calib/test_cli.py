@@ -30,19 +30,40 @@ def raw3(tmp_path):
 
 @pytest.mark.parametrize("method", ["centered", "paper"])
 def test_fit_apply_round_trip_3dof(tmp_path, capsys, raw3, method):
-    code, out, err = run(["fit", tmp_path / "raw.csv", "--dof", 3, "--bias", "--method", method,
-                          "--known", tmp_path / "known.csv", "--out", tmp_path / "cal.json"], capsys)
+    code, out, err = run(
+        [
+            "fit",
+            tmp_path / "raw.csv",
+            "--dof",
+            3,
+            "--bias",
+            "--method",
+            method,
+            "--known",
+            tmp_path / "known.csv",
+            "--out",
+            tmp_path / "cal.json",
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "wrote" in out and err == ""
     cal = json.loads((tmp_path / "cal.json").read_text())
     assert np.array(cal["C"]).shape == (3, 8) and len(cal["offset"]) == 8 and cal["dof"] == 3
     diag = cal["diagnostics"]
-    for key in ("singular_values", "rank_gap", "coverage", "condition_number_C",
-                "residual_magnitude_rms"):
+    for key in (
+        "singular_values",
+        "rank_gap",
+        "coverage",
+        "condition_number_C",
+        "residual_magnitude_rms",
+    ):
         assert key in diag
     assert np.mean(np.abs(np.array(cal["offset"]) - raw3.offset)) < 0.5
-    code, out, err = run(["apply", tmp_path / "cal.json", tmp_path / "raw.csv",
-                          "--out", tmp_path / "loads.csv"], capsys)
+    code, out, err = run(
+        ["apply", tmp_path / "cal.json", tmp_path / "raw.csv", "--out", tmp_path / "loads.csv"],
+        capsys,
+    )
     assert code == 0, err
     header, loads = read_csv(tmp_path / "loads.csv")
     assert header == ["Fx", "Fy", "Fz"] and loads.shape == (176, 3)
@@ -59,11 +80,25 @@ def test_fit_6dof_with_known_loads(tmp_path, capsys):
     cols = CH + ["Fx", "Fy", "Fz", "Tx", "Ty", "Tz"]
     write_csv(tmp_path / "raw.csv", CH, d.Z)
     write_csv(tmp_path / "known.csv", cols, np.hstack([Mk @ S + z0, Mk]))
-    code, out, err = run(["fit", tmp_path / "raw.csv", "--dof", 6, "--bias", "--known",
-                          tmp_path / "known.csv", "--out", tmp_path / "cal.json"], capsys)
+    code, out, err = run(
+        [
+            "fit",
+            tmp_path / "raw.csv",
+            "--dof",
+            6,
+            "--bias",
+            "--known",
+            tmp_path / "known.csv",
+            "--out",
+            tmp_path / "cal.json",
+        ],
+        capsys,
+    )
     assert code == 0, err
-    code, _, err = run(["apply", tmp_path / "cal.json", tmp_path / "raw.csv", "--out",
-                        tmp_path / "loads.csv"], capsys)
+    code, _, err = run(
+        ["apply", tmp_path / "cal.json", tmp_path / "raw.csv", "--out", tmp_path / "loads.csv"],
+        capsys,
+    )
     header, loads = read_csv(tmp_path / "loads.csv")
     assert header == ["Fx", "Fy", "Fz", "Tx", "Ty", "Tz"]
     assert np.allclose(loads, d.loads, atol=1e-8)
@@ -73,12 +108,24 @@ def test_drop_nonfinite_opt_in(tmp_path, capsys, raw3):
     Z = raw3.Z.copy()
     Z[5, 1] = np.nan
     write_csv(tmp_path / "bad.csv", CH, Z)
-    code, _, err = run(["fit", tmp_path / "bad.csv", "--dof", 3, "--bias", "--out",
-                        tmp_path / "c.json"], capsys)
+    code, _, err = run(
+        ["fit", tmp_path / "bad.csv", "--dof", 3, "--bias", "--out", tmp_path / "c.json"], capsys
+    )
     assert code == 2 and err.count("\n") == 1 and "NaN/inf" in err and "--drop-nonfinite" in err
     assert not (tmp_path / "c.json").exists()
-    code, out, err = run(["fit", tmp_path / "bad.csv", "--dof", 3, "--bias", "--drop-nonfinite",
-                          "--out", tmp_path / "c.json"], capsys)
+    code, out, err = run(
+        [
+            "fit",
+            tmp_path / "bad.csv",
+            "--dof",
+            3,
+            "--bias",
+            "--drop-nonfinite",
+            "--out",
+            tmp_path / "c.json",
+        ],
+        capsys,
+    )
     assert code == 0 and "dropped 1 non-finite row(s)" in out
 
 
@@ -91,9 +138,11 @@ def bad_cases(tmp_path, raw3):
     (tmp_path / "ragged.csv").write_text(",".join(CH) + "\n1,2,3\n")
     write_csv(tmp_path / "three.csv", CH[:3], raw3.Z[:, :3])
     t = np.linspace(0, 6, 100)
-    write_csv(tmp_path / "planar.csv", CH,
-              9 * np.column_stack([np.cos(t), np.sin(t), np.cos(t)]) / np.sqrt(2) @ raw3.S
-              + raw3.offset)
+    write_csv(
+        tmp_path / "planar.csv",
+        CH,
+        9 * np.column_stack([np.cos(t), np.sin(t), np.cos(t)]) / np.sqrt(2) @ raw3.S + raw3.offset,
+    )
     (tmp_path / "cal_bad.json").write_text("{not json")
     out = tmp_path / "o.json"
     return [
@@ -102,14 +151,40 @@ def bad_cases(tmp_path, raw3):
         (["fit", tmp_path / "const.csv", "--dof", 3, "--bias", "--out", out], "constant"),
         (["fit", tmp_path / "text.csv", "--dof", 3, "--out", out], "non-numeric"),
         (["fit", tmp_path / "ragged.csv", "--dof", 3, "--out", out], "3 fields"),
-        (["fit", tmp_path / "three.csv", "--dof", 3, "--bias", "--method", "paper", "--out", out],
-         "p >= r+1"),
+        (
+            [
+                "fit",
+                tmp_path / "three.csv",
+                "--dof",
+                3,
+                "--bias",
+                "--method",
+                "paper",
+                "--out",
+                out,
+            ],
+            "p >= r+1",
+        ),
         (["fit", tmp_path / "planar.csv", "--dof", 3, "--bias", "--out", out], "rank-deficient"),
         (["fit", tmp_path / "raw.csv", "--dof", 5, "--out", out], "invalid choice"),
         (["fit", tmp_path / "raw.csv", "--dof", 6, "--out", out], "needs --known"),
-        (["fit", tmp_path / "raw.csv", "--dof", 3, "--known", tmp_path / "few.csv", "--out", out],
-         "lacks column"),
-        (["apply", tmp_path / "cal_bad.json", tmp_path / "raw.csv", "--out", out], "not valid JSON"),
+        (
+            [
+                "fit",
+                tmp_path / "raw.csv",
+                "--dof",
+                3,
+                "--known",
+                tmp_path / "few.csv",
+                "--out",
+                out,
+            ],
+            "lacks column",
+        ),
+        (
+            ["apply", tmp_path / "cal_bad.json", tmp_path / "raw.csv", "--out", out],
+            "not valid JSON",
+        ),
         (["trials", "--seeds", 0, "--out", tmp_path / "tr"], "--seeds must be >= 1"),
         ([], "required"),
     ]
@@ -127,8 +202,9 @@ def test_every_bad_input_is_one_line(tmp_path, capsys, raw3):
 def test_apply_checks_channel_names(tmp_path, capsys, raw3):
     run(["fit", tmp_path / "raw.csv", "--dof", 3, "--bias", "--out", tmp_path / "c.json"], capsys)
     write_csv(tmp_path / "other.csv", [f"h{i}" for i in range(8)], raw3.Z)
-    code, _, err = run(["apply", tmp_path / "c.json", tmp_path / "other.csv", "--out",
-                        tmp_path / "l.csv"], capsys)
+    code, _, err = run(
+        ["apply", tmp_path / "c.json", tmp_path / "other.csv", "--out", tmp_path / "l.csv"], capsys
+    )
     assert code == 2 and "lacks calibrated channel(s)" in err
     # reordered columns are matched by name
     write_csv(tmp_path / "rev.csv", CH[::-1], raw3.Z[:, ::-1])
@@ -140,8 +216,9 @@ def test_apply_checks_channel_names(tmp_path, capsys, raw3):
 def test_partial_coverage_warns_on_one_line(tmp_path, capsys):
     d = paper_trial(2, rng=0, cap_half_angle_deg=60)
     write_csv(tmp_path / "cap.csv", CH, d.Z)
-    code, out, err = run(["fit", tmp_path / "cap.csv", "--dof", 3, "--bias", "--out",
-                          tmp_path / "c.json"], capsys)
+    code, out, err = run(
+        ["fit", tmp_path / "cap.csv", "--dof", 3, "--bias", "--out", tmp_path / "c.json"], capsys
+    )
     assert code == 0
     assert "calib: warning: poor excitation" in err
     assert all(line.startswith("calib: warning:") for line in err.strip().splitlines())

@@ -62,11 +62,14 @@ def noisy3(seed=0, n=100, p=8):
     return simulate(S, n, rng, magnitude=5, offset=rng.normal(size=p), noise=0.01)
 
 
-@pytest.mark.parametrize("fit", [
-    lambda Z: fit_bias(Z, 3, method="centered"),
-    lambda Z: fit_bias(Z, 3, method="paper"),
-    lambda Z: fit_sfm(Z, 3),
-])
+@pytest.mark.parametrize(
+    "fit",
+    [
+        lambda Z: fit_bias(Z, 3, method="centered"),
+        lambda Z: fit_bias(Z, 3, method="paper"),
+        lambda Z: fit_sfm(Z, 3),
+    ],
+)
 def test_nan_rows_error_or_explicit_drop(fit):
     d = noisy3()
     Z = d.Z.copy()

@@ -69,6 +69,6 @@ def test_table1_sfm_steadier_than_least_squares():
     from calib.trials import table1
 
     t = table1(range(10))
-    for load, d in t.items():
+    for _load, d in t.items():
         assert d["sfm"]["smooth"] < d["ls"]["smooth"]
         assert d["sfm"]["error_pct"] < 1.0

@@ -58,8 +58,11 @@ def test_channel_permutation_equivariance(seed, method, perm):
     a = fit_bias(d.Z, 3, method=method)
     b = fit_bias(d.Z[:, perm], 3, method=method)
     assert np.allclose(b.offset, a.offset[perm], atol=1e-6)
-    assert np.allclose(np.linalg.norm(b.apply(d.Z[:, perm]), axis=1),
-                       np.linalg.norm(a.apply(d.Z), axis=1), atol=1e-6)
+    assert np.allclose(
+        np.linalg.norm(b.apply(d.Z[:, perm]), axis=1),
+        np.linalg.norm(a.apply(d.Z), axis=1),
+        atol=1e-6,
+    )
 
 
 @SET
