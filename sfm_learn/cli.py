@@ -16,7 +16,8 @@ work may use :func:`progress_for`), then add one :class:`Command` line to :data:
 ``"module:function"`` strings. The module is imported only when the parser is built, so it must
 import torch/matplotlib/pygame inside functions, never at module level.
 
-Adding a policy spec prefix (``sfm:``, ``ppo:``, ``bc:``): add a line to :data:`POLICY_LOADERS`
+Adding a policy spec prefix (``sfm:``, ``ppo:``, ``bc:``): add a line to
+``sfm_learn.POLICY_LOADERS``
 naming ``loader(arg, env, seed) -> policy`` as ``"module:function"``; it is imported only when a
 spec with that prefix is used.
 """
@@ -35,6 +36,7 @@ from dataclasses import dataclass
 from mkv_env.dataset import DatasetError
 from mkv_env.policies import PolicySpecError, make_policy, register_policy_loader
 from mkv_env.script import ScriptError
+from sfm_learn import POLICY_LOADERS
 
 DEFAULT_ENV = "MKV-v0"
 EXIT_USAGE = 2
@@ -54,11 +56,6 @@ class Command:
     help: str
     add_arguments: Callable | str
     run: Callable | str
-
-
-#: Policy-spec prefixes provided by sfm_learn: prefix -> "module:function" (lazily imported).
-#: e.g. "sfm": "sfm_learn.policy:load_spec" once that module exists.
-POLICY_LOADERS: dict[str, str] = {}
 
 
 def _register_policy_loaders() -> None:
@@ -195,32 +192,6 @@ def run_record(args) -> int:
     return 0
 
 
-# ---------------------------------------------------------------------- eval
-def add_eval_arguments(p: argparse.ArgumentParser) -> None:
-    _add_env_args(p, required=True)
-    p.add_argument("--policy", required=True, metavar="SPEC")
-    p.add_argument("--episodes", type=_positive_int, required=True, metavar="N")
-    p.add_argument("--seed", type=_seed, default=0, metavar="S")
-    p.add_argument("--json", metavar="OUT.json", help="also write the metrics as JSON")
-    _add_quiet(p)
-
-
-def run_eval(args) -> int:
-    from sfm_learn.evaluation import evaluate, format_table
-
-    if args.json:
-        check_output_path(args.json, "JSON output")
-    check_env_and_policy(args.env, args.env_kwargs, args.policy)
-    with progress_for(args, args.episodes, f"eval {args.policy}") as bar:
-        result = evaluate(args.env, args.policy, args.episodes, args.seed, args.env_kwargs,
-                          on_episode=lambda i, n: bar.update(1))
-    print(format_table([result]))
-    if args.json:
-        atomic_write_text(args.json, result.to_json())
-        print(f"wrote {args.json}")
-    return 0
-
-
 # ---------------------------------------------------------------------- play
 def add_play_arguments(p: argparse.ArgumentParser) -> None:
     _add_env_args(p)
@@ -333,14 +304,20 @@ def _write_gif(frames, path: str, fps: int) -> str:
 COMMANDS: list[Command] = [
     Command("record", "record a policy's episodes into a dataset file",
             add_record_arguments, run_record),
-    Command("eval", "evaluate a policy on seeded episodes", add_eval_arguments, run_eval),
+    Command("eval", "evaluate policies on the same seeded episodes",
+            "sfm_learn.eval_cli:add_arguments", "sfm_learn.eval_cli:run"),
     Command("play", "render an episode of a policy (window, or frames headless)",
             add_play_arguments, run_play),
-    # Later issues add, e.g.:
-    # Command("fit", "fit a shape-from-motion policy", "sfm_learn.fit_cli:add_arguments",
-    #         "sfm_learn.fit_cli:run"),
-    # Command("compare", ...), Command("train-ppo", ...), Command("train-bc", ...),
-    # Command("demo", ...), Command("bench", ...)
+    Command("fit", "fit a shape-from-motion (eigenspace) policy to a dataset",
+            "sfm_learn.sfm_cli:add_fit_arguments", "sfm_learn.sfm_cli:run_fit"),
+    Command("compare", "teacher vs SfM commands on held-out runs (the paper's Figure 3)",
+            "sfm_learn.sfm_cli:add_compare_arguments", "sfm_learn.sfm_cli:run_compare"),
+    Command("train-ppo", "train an SB3 PPO policy on the env reward",
+            "sfm_learn.ppo:add_arguments", "sfm_learn.ppo:run"),
+    Command("train-bc", "behaviour-clone an SB3 policy from a dataset",
+            "sfm_learn.bc:add_arguments", "sfm_learn.bc:run"),
+    Command("demo", "the main job end to end on defaults; writes DIR/report.md",
+            "sfm_learn.demo:add_arguments", "sfm_learn.demo:run"),
 ]
 
 

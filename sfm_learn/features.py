@@ -382,3 +382,16 @@ class FeatureBuilder:
             parts.append(self._encode_actions(act, np.array([valid]))[0])
         self._started = True
         return np.concatenate(parts) if parts else np.empty(0)
+
+
+def default_feature_spec(obs_names, action_nvec=(3, 3), action_names=("drive", "steer")):
+    """The feature set the ``mkv fit`` / ``mkv train-bc`` defaults use (see docs/sfm.md for the
+    feature-set study that chose it): every channel now, decaying traces of all channels, and the
+    previous command (signed).
+    """
+    return FeatureSpec(obs_names=tuple(obs_names), trace_decays=(0.5, 0.8),
+                       prev_action="signed", action_nvec=tuple(int(n) for n in action_nvec),
+                       action_names=tuple(action_names))
+
+
+__all__ = [*__all__, "default_feature_spec"]
