@@ -48,10 +48,13 @@ def test_eval_table_and_json(capsys, tmp_path):
     assert code == 0, err
     assert "escape rate" in text and "teacher" in text
     doc = json.loads(out.read_text())
-    assert set(doc) == {"env", "policy", "episodes", "seed", "metrics"}
+    assert set(doc) == {"env", "policy", "episodes", "seed", "metrics", "metrics_ci"}
     assert set(doc["metrics"]) == {"escape_rate", "mean_escape_time_s", "distance_m",
                                    "stuck_fraction", "collisions_per_min", "mean_return"}
+    assert set(doc["metrics_ci"]) == set(doc["metrics"])
     assert doc["episodes"] == 3 and doc["seed"] == 0 and 0 <= doc["metrics"]["escape_rate"] <= 1
+    low, high = doc["metrics_ci"]["escape_rate"]
+    assert low <= doc["metrics"]["escape_rate"] <= high
 
 
 def test_eval_on_wander_env_has_null_escape_metrics(capsys, tmp_path):
@@ -60,9 +63,11 @@ def test_eval_on_wander_env_has_null_escape_metrics(capsys, tmp_path):
                        '{"max_episode_steps": 30}', "--policy", "random", "--episodes", "2",
                        "--json", str(out))
     assert code == 0, err
-    m = json.loads(out.read_text())["metrics"]
+    doc = json.loads(out.read_text())
+    m, ci = doc["metrics"], doc["metrics_ci"]
     assert m["escape_rate"] is None and m["mean_escape_time_s"] is None
-    assert m["distance_m"] is not None
+    assert ci["escape_rate"] is None and ci["mean_escape_time_s"] is None
+    assert m["distance_m"] is not None and ci["distance_m"][0] <= m["distance_m"]
 
 
 def test_eval_script_policy(capsys, tmp_path):
