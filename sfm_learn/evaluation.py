@@ -234,6 +234,38 @@ def bootstrap_ci(records: Sequence[EpisodeRecord], level: float = CI_LEVEL,
     return out
 
 
+def paired_difference_ci(a: Sequence[EpisodeRecord], b: Sequence[EpisodeRecord], key: str,
+                         level: float = CI_LEVEL,
+                         n_boot: int = N_BOOT) -> tuple[float, list[float]] | None:
+    """Metric ``key`` of ``a`` minus that of ``b`` with a paired percentile-bootstrap interval.
+
+    ``a`` and ``b`` must be records of the same seeds (two policies evaluated on the same
+    episodes); each resample draws the same episodes for both, so the interval reflects only how
+    the policies differ, not how hard the drawn episodes were. An interval that excludes 0 is the
+    usual reading of "a significant difference" at that level. Resamples where either metric is
+    undefined are dropped; ``None`` if the difference itself is undefined.
+    """
+    if [r.seed for r in a] != [r.seed for r in b]:
+        raise ValueError("a paired comparison needs records of the same seeds, in order")
+    if key not in METRIC_KEYS:
+        raise ValueError(f"unknown metric {key!r}; known: {', '.join(METRIC_KEYS)}")
+    ma, mb = aggregate(a)[key], aggregate(b)[key]
+    if ma is None or mb is None:
+        return None
+    n = len(a)
+    block = max(1, 2_000_000 // n)
+    idx = bootstrap_indices(n, n_boot)
+    diffs = np.concatenate([resampled_metrics(a, idx[i:i + block])[key]
+                            - resampled_metrics(b, idx[i:i + block])[key]
+                            for i in range(0, n_boot, block)])
+    diffs = diffs[np.isfinite(diffs)]
+    d = float(ma - mb)
+    if diffs.size == 0:
+        return d, [d, d]
+    low, high = (float(v) for v in np.quantile(diffs, [(1 - level) / 2, (1 + level) / 2]))
+    return d, [min(low, d), max(high, d)]
+
+
 # ---------------------------------------------------------------------- results
 @dataclass
 class Evaluation:

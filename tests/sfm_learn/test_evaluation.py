@@ -26,6 +26,7 @@ from sfm_learn.evaluation import (
     format_cell,
     format_markdown,
     format_table,
+    paired_difference_ci,
     plan_units,
     plot_evaluations,
     resampled_metrics,
@@ -214,6 +215,22 @@ def test_ci_shrinks_with_more_episodes(sim_seed, n):
     for key in ("escape_rate", "distance_m", "mean_return"):
         assert big[key][1] - big[key][0] < small[key][1] - small[key][0], key
         assert big[key][0] <= metrics[key] <= big[key][1]
+
+
+def test_paired_difference():
+    rng = np.random.default_rng(6)
+    a = random_records(rng, 40, p_escape=0.9)
+    b = [rec(seed=r.seed, steps=r.steps, escaped=False, distance_m=r.distance_m - 1.0)
+         for r in a]
+    d, (low, high) = paired_difference_ci(a, a, "distance_m")
+    assert d == 0.0 and low == high == 0.0
+    d, (low, high) = paired_difference_ci(a, b, "distance_m")
+    assert d == pytest.approx(1.0) and low == pytest.approx(1.0) and high == pytest.approx(1.0)
+    d, (low, high) = paired_difference_ci(a, b, "escape_rate")
+    assert 0 < low <= d <= high <= 1
+    assert paired_difference_ci(a, b, "mean_escape_time_s") is None  # b never escapes
+    with pytest.raises(ValueError, match="same seeds"):
+        paired_difference_ci(a, b[::-1], "distance_m")
 
 
 # ---------------------------------------------------------------------- several policies, workers
