@@ -73,9 +73,12 @@ class MKVEnv(gym.Env):
     Every step: ``stuck``, ``bumped`` (any bump switch), ``collision`` (new contact this step),
     ``distance_m`` (cumulative), ``jams``, ``escapes``, ``collisions`` (counts), ``in_jam``,
     ``pose`` (x [m], y [m], heading [rad]). A jam begins after ``jam_steps`` stuck steps; it is
-    escaped once the robot is free: not stuck, ``escape_distance_m`` from where the jam began, and
-    no obstacle within ``free_clearance_m`` (0.22 m) of its centre (so backing part-way out of a
-    dead end does not count). No wall-clock values.
+    escaped once the robot is free: not stuck, ``escape_distance_m`` from where the jam began, no
+    obstacle within ``free_clearance_m`` (0.22 m) of its centre (so backing part-way out of a
+    dead end does not count), and driving on: its last ``escape_forward_m`` (0.15 m) of travel
+    went forward without a stop or reversal (so backing out and reversing forever does not count:
+    with it, constant reverse escapes 0 of 100 ``MKVJam-v0`` episodes; without it, 94%).
+    No wall-clock values.
 
     ## Arguments
     ```python
@@ -91,7 +94,8 @@ class MKVEnv(gym.Env):
     * ``sensor_params``: per-channel overrides, ``{"compass": {"bias": 0.1, "quantum": 0}}``.
     * ``robot_params``: overrides of :class:`mkv_env.params.RobotParams` fields.
     * ``control_period_s`` (0.1), ``substeps`` (4): control period and physics substeps.
-    * ``stuck_speed_mps``, ``jam_steps``, ``escape_distance_m``: the stuck/jam/escape measures.
+    * ``stuck_speed_mps``, ``jam_steps``, ``escape_distance_m``, ``escape_forward_m``: the
+      stuck/jam/escape measures.
     * ``progress_reward``, ``stuck_penalty``, ``collision_penalty``: reward weights.
     * ``render_mode``: ``"rgb_array"`` or ``"human"`` (pygame, imported lazily).
 
@@ -116,6 +120,7 @@ class MKVEnv(gym.Env):
         stuck_speed_mps: float = 0.02,
         jam_steps: int = 3,
         escape_distance_m: float = 0.3,
+        escape_forward_m: float = 0.15,
         progress_reward: float = 10.0,
         stuck_penalty: float = 0.1,
         collision_penalty: float = 0.05,
@@ -141,6 +146,8 @@ class MKVEnv(gym.Env):
         for name, v in (("stuck_speed_mps", stuck_speed_mps),
                         ("escape_distance_m", escape_distance_m)):
             _check(_num(v) and v > 0, f"{name} must be a positive number, got {v!r}")
+        _check(_num(escape_forward_m) and escape_forward_m >= 0,
+               f"escape_forward_m must be a number >= 0, got {escape_forward_m!r}")
         _check(_int(jam_steps) and jam_steps >= 1,
                f"jam_steps must be a positive integer, got {jam_steps!r}")
         for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
@@ -168,7 +175,7 @@ class MKVEnv(gym.Env):
         )
         self.action_space = spaces.MultiDiscrete([3, 3])
         self.tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
-                                     escape_distance_m)
+                                     escape_distance_m, float(escape_forward_m))
         self.world: World | None = None
         self.trail: list[tuple[float, float]] = []
         self._renderer = None
@@ -299,7 +306,9 @@ class MKVJamEnv(MKVEnv):
 
     ## Episode End
     Terminated with ``info["escaped"] = True`` once the robot is free: not stuck,
-    ``escape_distance_m`` (0.3 m) from its start and clear of obstacles by 0.22 m; truncated after ``max_episode_steps``
+    ``escape_distance_m`` (0.3 m) from its start, clear of obstacles by 0.22 m, and driving on (the
+    last ``escape_forward_m`` = 0.15 m travelled forward without a stop or reversal); truncated
+    after ``max_episode_steps``
     (300 steps = 30 s by default).
 
     ## Arguments

@@ -93,6 +93,6 @@ class SensorSuite:
         return np.array(
             [min(max(round(x * iq) * q, lo), hi)
              for x, iq, q, lo, hi in zip(truth, self._inv_q_l, self._q_l, self._low_l,
-                                         self._high_l)],
+                                         self._high_l, strict=False)],
             dtype=np.float32,
         )

@@ -19,13 +19,18 @@ class MotionTracker:
         stuck_speed_mps: below this speed a robot commanded to drive counts as stuck.
         jam_steps: consecutive stuck steps that make a jam.
         escape_distance_m: distance from where a jam began that counts as free (when not stuck).
+        escape_forward_m: forward travel, uninterrupted by reversing or stopping, that the robot
+            must have just made when it is free: an escape means driving on, not only backing
+            out (without it, a robot that reverses forever "escapes" most jams).
     """
 
-    def __init__(self, period_s, stuck_speed_mps, jam_steps, escape_distance_m):
+    def __init__(self, period_s, stuck_speed_mps, jam_steps, escape_distance_m,
+                 escape_forward_m=0.0):
         self.period_s = period_s
         self.stuck_speed_mps = stuck_speed_mps
         self.jam_steps = jam_steps
         self.escape_distance_m = escape_distance_m
+        self.escape_forward_m = escape_forward_m
 
     def reset(self, pose, jammed: bool = False, contact_events: int = 0) -> None:
         self.x, self.y, self.heading = pose
@@ -36,6 +41,7 @@ class MotionTracker:
         self.in_jam = jammed
         self.jam_x, self.jam_y = self.x, self.y
         self.collisions = 0
+        self.forward_run_m = 0.0
         self._events = contact_events
 
     def update(self, pose, drive_cmd: int, contact_events: int, is_clear=None):
@@ -57,9 +63,12 @@ class MotionTracker:
         if new_collision:
             self.collisions += 1
         self._events = contact_events
+        # forward travel since the robot last reversed or stood still (1 mm/step counts as moving)
+        self.forward_run_m = self.forward_run_m + progress if progress > 1e-3 else 0.0
         escaped_now = False
         if self.in_jam:
             if (not stuck
+                    and self.forward_run_m >= self.escape_forward_m
                     and math.hypot(x - self.jam_x, y - self.jam_y) >= self.escape_distance_m
                     and (is_clear is None or is_clear(x, y, FREE_CLEARANCE_M))):
                 self.in_jam = False

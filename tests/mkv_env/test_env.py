@@ -112,11 +112,27 @@ def test_jam_env_starts_stuck_and_terminates_with_escaped():
 
     env = gym.make("MKVJam-v0", scenarios=("wall",))
     env.reset(seed=3)
-    for _ in range(60):  # back straight off the wall
+    for _ in range(60):  # back straight off the wall: free, but not escaped until driving on
         obs, r, term, trunc, info = env.step(np.array([0, OFF]))
+        assert not term
+    for _ in range(40):  # a three-point turn: forward steering hard away from the wall
+        obs, r, term, trunc, info = env.step(np.array([FWD, 2]))
         if term:
             break
     assert term and info["escaped"] and info["escapes"] == 1 and r > 4.0
+
+
+def test_escape_requires_driving_on():
+    """Reversing forever frees the robot but is not an escape; the same path counts when the
+    forward-travel requirement is switched off."""
+    for forward_m, escaped in ((0.15, False), (0.0, True)):
+        env = gym.make("MKVJam-v0", scenarios=("wall",), escape_forward_m=forward_m)
+        env.reset(seed=3)
+        for _ in range(60):
+            *_, term, trunc, info = env.step(np.array([0, OFF]))
+            if term:
+                break
+        assert info["escaped"] is escaped
 
 
 def test_reward_is_forward_progress_minus_penalties():
@@ -155,6 +171,7 @@ def test_invalid_actions_raise_a_clear_error(bad):
     (dict(robot_params={"wheels": 4}), "robot_params"),
     (dict(render_mode="ascii"), "render_mode"),
     (dict(escape_distance_m=0), "escape_distance_m"),
+    (dict(escape_forward_m=-1), "escape_forward_m"),
 ])
 @pytest.mark.filterwarnings("ignore:.*render_mode")
 def test_bad_kwargs_give_clear_errors(kwargs, match):
@@ -245,5 +262,6 @@ def test_memory_is_flat_over_1000_resets():
         env.step(np.array([FWD, OFF]))
     gc.collect()
     assert len(worlds) == 1 and len(spaces) == 1
-    assert all(isinstance(s, pymunk.Space) for s in spaces) and isinstance(next(iter(worlds)), World)
+    assert all(isinstance(s, pymunk.Space) for s in spaces)
+    assert isinstance(next(iter(worlds)), World)
     assert len(gc.get_objects()) < base_objects * 1.01 + 100

@@ -35,7 +35,7 @@ def test_reverse_is_symmetric_to_forward():
     rev = open_floor()
     a = run(fwd, (FWD, OFF), 15)
     b = run(rev, (REV, OFF), 15)
-    for (oa, *_, ia), (ob, *_, ib) in zip(a, b):
+    for (oa, *_, ia), (ob, *_, ib) in zip(a, b, strict=True):
         assert np.allclose(ia["pose"][0] - 2.0, -(ib["pose"][0] - 2.0), atol=1e-9)
         for name in ("drive_ticks", "drive_current"):
             assert abs(ch(fwd, oa, name) + ch(rev, ob, name)) <= 1.0 + 1e-6

@@ -1,0 +1,176 @@
+"""Plots of the shape-from-motion side: Figure 3, the singular-value spectrum, learning cost.
+
+The only module of the SfM side that draws with matplotlib (imported inside each function, so the
+package works without the ``plots`` extra until a plot is asked for). Every function writes a PNG
+atomically and returns its path.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+__all__ = ["plot_figure3", "plot_spectrum", "plot_learning_cost", "MatplotlibMissing"]
+
+_COMMAND_TICKS = {
+    "drive": ("reverse", "off", "forward"),
+    "steer": ("left", "off", "right"),
+}
+
+
+class MatplotlibMissing(ImportError):
+    """Plotting was asked for but matplotlib is not installed."""
+
+
+def _pyplot():
+    try:
+        import matplotlib
+
+        if not os.environ.get("MPLBACKEND"):
+            matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise MatplotlibMissing("plots need matplotlib (pip install 'mkv-sfm[plots]')") from None
+    return plt
+
+
+def _save(fig, path) -> str:
+    plt = _pyplot()
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=directory)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+        mask = os.umask(0o022)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    finally:
+        plt.close(fig)
+    return path
+
+
+def plot_figure3(time_s, teacher, policy, path, *, title=None, metrics=None, bumps=None) -> str:
+    """The paper's Figure 3: teacher vs SfM commands over time, one panel per command.
+
+    Args:
+        time_s: (n,) times [s].
+        teacher, policy: (n, 2) action indices [drive, steer] (0 = reverse/left, 1 = off,
+            2 = forward/right).
+        path: output PNG.
+        title: figure title.
+        metrics: optional agreement dict (:func:`sfm_learn.compare.agreement`) for the panel
+            titles.
+        bumps: optional (n,) booleans, marked as ticks on the drive panel (context).
+    """
+    plt = _pyplot()
+    t = np.asarray(time_s, dtype=float)
+    teacher = np.asarray(teacher)
+    policy = np.asarray(policy)
+    fig, axes = plt.subplots(2, 1, figsize=(11, 5.2), sharex=True)
+    for j, (ax, name) in enumerate(zip(axes, ("drive", "steer"), strict=True)):
+        ta, pa = teacher[:, j] - 1, policy[:, j] - 1
+        ax.step(t, ta + 0.06, where="post", color="0.2", lw=2.2, label="teacher")
+        ax.step(t, pa - 0.06, where="post", color="tab:orange", lw=1.4, label="SfM policy")
+        if name == "drive":
+            differ = ta != pa
+        else:
+            differ = (ta != 0) != (pa != 0)  # timing: steer vs no steer
+        ax.fill_between(t, -1.35, 1.35, where=differ, step="post", color="tab:red", alpha=0.12,
+                        lw=0, label="disagree" if name == "drive" else "disagree (timing)")
+        ax.set_yticks([-1, 0, 1], _COMMAND_TICKS[name])
+        ax.set_ylim(-1.4, 1.4)
+        label = f"{name} command"
+        if metrics is not None:
+            if name == "drive":
+                label += f"  (agreement {metrics['drive']:.0%})"
+            else:
+                d = metrics.get("steer_direction")
+                label += (f"  (timing agreement {metrics['steer_timing']:.0%}, direction "
+                          + ("n/a" if d is None else f"{d:.0%}") + ")")
+        ax.set_title(label, loc="left", fontsize=10)
+        ax.grid(axis="x", alpha=0.3)
+        if name == "drive" and bumps is not None and np.any(bumps):
+            bt = t[np.asarray(bumps, dtype=bool)]
+            ax.plot(bt, np.full(bt.shape, 1.28), "|", color="tab:blue", ms=7, label="bump")
+    axes[0].legend(loc="lower right", fontsize=8, ncol=4, framealpha=0.9)
+    axes[1].set_xlabel("time [s]")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_spectrum(singular_values, rank, path, *, floor=None, title=None) -> str:
+    """Singular values (log scale) with the chosen rank and the rank floor marked, and the
+    adjacent ratios ``s_i / s_{i+1}`` the rank rule compares."""
+    plt = _pyplot()
+    s = np.asarray(singular_values, dtype=float)
+    idx = np.arange(1, s.size + 1)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    ax.semilogy(idx, np.maximum(s, 1e-300), "o-", ms=4, color="tab:blue")
+    ax.semilogy(idx[:rank], np.maximum(s[:rank], 1e-300), "o", ms=6, color="tab:orange",
+                label=f"kept: n = {rank}")
+    ax.axvline(rank + 0.5, color="tab:orange", ls="--", lw=1)
+    if floor is not None and floor > 0:
+        ax.axhline(floor, color="0.5", ls=":", lw=1, label=f"floor {floor:.3g}")
+    ax.set_xlabel("index i")
+    ax.set_ylabel("singular value s_i (standardised data)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    if s.size > 1:
+        ratios = s[:-1] / np.maximum(s[1:], 1e-300)
+        ok = np.isfinite(ratios) & (s[1:] > (floor or 0))
+        ax2.bar(idx[:-1][ok], ratios[ok], color="tab:blue", width=0.7)
+        if 1 <= rank < s.size:
+            ax2.bar([rank], [ratios[rank - 1]], color="tab:orange", width=0.7,
+                    label=f"s_{rank} / s_{rank + 1}")
+            ax2.legend(fontsize=8)
+        ax2.set_xlabel("i")
+        ax2.set_ylabel("adjacent ratio s_i / s_(i+1) (above the floor)")
+        ax2.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_learning_cost(curve, points, path, *, metric="escape_rate", ylabel=None,
+                       title=None, reference=None) -> str:
+    """PPO's learning curve (score vs env steps) with other learners as points.
+
+    Args:
+        curve: list of dicts with ``env_steps`` and ``metric`` (PPO's periodic evaluations).
+        points: list of ``(label, steps, score)``, e.g. ``("SfM (teacher steps)", 12000, 0.96)``.
+        reference: optional ``(label, score)`` drawn as a horizontal line (the teacher).
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    xs = [c["env_steps"] for c in curve if c.get(metric) is not None]
+    ys = [c[metric] for c in curve if c.get(metric) is not None]
+    if xs:
+        ax.plot(xs, ys, "o-", ms=3, color="tab:blue", label="PPO (env steps)")
+    markers = iter(["s", "D", "^", "v", "P"])
+    colours = iter(["tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink"])
+    for label, steps, score in points:
+        if score is None:
+            continue
+        ax.plot([max(steps, 1)], [score], next(markers), ms=9, color=next(colours), label=label)
+    if reference is not None and reference[1] is not None:
+        ax.axhline(reference[1], color="0.4", ls="--", lw=1, label=reference[0])
+    ax.set_xscale("log")
+    ax.set_xlabel("training data: steps (log scale)")
+    ax.set_ylabel(ylabel or metric.replace("_", " "))
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

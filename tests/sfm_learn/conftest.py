@@ -1,0 +1,38 @@
+"""Shared recordings for the sfm_learn tests (recorded once per session; a few seconds)."""
+
+import os
+
+import pytest
+
+from mkv_env.dataset import save
+from mkv_env.recorder import record
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture(scope="session")
+def wander_train():
+    """20 teacher episodes of MKV-v0 (env seeds 0..19, 12,000 steps): the issue's budget."""
+    return record("MKV-v0", "teacher", 20, 0)
+
+
+@pytest.fixture(scope="session")
+def wander_held():
+    """Held-out teacher runs of MKV-v0 (env seeds 500..502)."""
+    return record("MKV-v0", "teacher", 3, 500)
+
+
+@pytest.fixture(scope="session")
+def small_train():
+    """A short recording for CLI and file tests (3 x 100 steps)."""
+    return record("MKV-v0", "teacher", 3, 0, {"max_episode_steps": 100})
+
+
+@pytest.fixture(scope="session")
+def data_files(tmp_path_factory, small_train, wander_held):
+    d = tmp_path_factory.mktemp("sfm_data")
+    train, held = d / "train.npz", d / "held.npz"
+    save(small_train, train)
+    save(wander_held, held)
+    return train, held
