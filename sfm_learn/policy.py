@@ -228,6 +228,9 @@ class SfMPolicy:
             raise PolicyFileError(f"policy file {path} does not exist")
         try:
             with zipfile.ZipFile(path) as zf:
+                if _META_MEMBER not in zf.namelist():
+                    raise PolicyFileError(f"{path} is not an SfM policy file (no {_META_MEMBER}; "
+                                          f"a dataset or another model?)")
                 meta = json.loads(zf.read(_META_MEMBER))
                 if meta.get("format") != FORMAT:
                     raise PolicyFileError(f"{path} is not an SfM policy file "
