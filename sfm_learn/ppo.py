@@ -1,13 +1,498 @@
-"""Placeholder: being written."""
+"""``mkv train-ppo`` and the ``ppo:PATH`` policy spec: Stable-Baselines3 PPO on the env reward.
+
+::
+
+    mkv train-ppo --env MKVJam-v0 --timesteps 100000 --out ppo.zip [--seed 0] [--n-envs 2]
+                  [--vec sync|async] [--eval-every STEPS] [--eval-episodes 10]
+                  [--eval-seed 10000] [--checkpoint-dir DIR] [--env-kwargs JSON] [--quiet]
+    mkv eval --env MKVJam-v0 --policy ppo:ppo.zip --episodes 50 --seed 1000
+
+Training: SB3 ``PPO("MlpPolicy")`` on ``n_envs`` copies of the env (``DummyVecEnv`` for
+``--vec sync``, ``SubprocVecEnv`` for ``async``; env ``i`` of the vector is reset first with seed
+``seed + i``), actions ``MultiDiscrete([3, 3])``. The policy sees the raw sensor observation
+with each channel mapped from its ``Box`` bounds to [-1, 1] (a fixed scaling stored in the file,
+no running statistics). Hyperparameters (:data:`DEFAULTS`, chosen for this small problem: 10
+inputs, 9 actions, episodes of 300-600 steps): rollouts of ``n_steps=512`` steps per env,
+minibatch 64, 4 epochs per rollout, Adam 3e-4, gamma 0.99, GAE lambda 0.95, clip 0.2, entropy
+coefficient 0.01 (keeps the 3x3 command distribution from collapsing early), tanh MLP 64x64 for
+both policy and value. A budget smaller than one rollout shrinks ``n_steps`` (and the minibatch)
+to fit, so tiny test budgets run as asked. SB3 always finishes a rollout, so the steps actually
+used are ``timesteps`` rounded up to a multiple of ``n_steps * n_envs``.
+
+Evaluation (the learning curve): before training and then at the first rollout boundary at or
+after every ``--eval-every`` env steps (default: a tenth of the budget), and once at the end, the
+current policy runs ``--eval-episodes`` episodes on the fixed seeds ``eval_seed + i`` with
+deterministic (argmax) actions through :func:`sfm_learn.evaluation.evaluate`, the same runner and
+metrics as ``mkv eval``. Each point holds ``env_steps`` (steps trained on, exactly), ``wall_s``
+(training wall time so far, evaluation and checkpoint time excluded), ``mean_return``,
+``escape_rate`` (``null`` on envs without escapes, e.g. ``MKV-v0``) and ``distance_m``. With
+``--checkpoint-dir``, every evaluation also writes ``DIR/ppo_<steps>.zip`` (a full, loadable file).
+
+File format: SB3's own model zip (``PPO.load(path)`` works on it) plus one extra member
+``mkv_meta.json`` (:func:`read_metadata`): ``format`` (``"mkv-ppo"``), ``env_id``,
+``env_kwargs``, ``sensor_names``, ``action_nvec``, ``obs_scaling`` (``centre``, ``half``),
+``seed``, ``n_envs``, ``vec``, ``timesteps`` (env steps used), ``timesteps_requested``,
+``train_wall_s``, ``eval_wall_s``, ``hyperparameters``, ``eval`` (episodes, seed),
+``learning_curve``, ``final_eval``, ``package_version``, ``sb3_version``, ``torch_version``.
+The ``ppo:PATH`` loader rebuilds the policy network from ``policy.pth`` (weights only, no
+unpickling of ``data``), checks the env's sensor layout and returns an object with SB3 ``predict``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import io
+import math
+import os
+import time
+
+from sfm_learn.cli import (
+    CliError,
+    _add_env_args,
+    _add_quiet,
+    _positive_int,
+    _seed,
+    check_output_path,
+)
+
+FORMAT = "mkv-ppo"
+FORMAT_VERSION = 1
+
+#: PPO hyperparameters used unless overridden on the command line.
+DEFAULTS = {
+    "n_steps": 512,
+    "batch_size": 64,
+    "n_epochs": 4,
+    "learning_rate": 3e-4,
+    "gamma": 0.99,
+    "gae_lambda": 0.95,
+    "clip_range": 0.2,
+    "ent_coef": 0.01,
+    "vf_coef": 0.5,
+    "max_grad_norm": 0.5,
+    "net_arch": [64, 64],
+}
 
 
-def add_arguments(p):
-    pass
+# ---------------------------------------------------------------------- arguments
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
 
 
-def run(args):
-    raise NotImplementedError
+def _non_negative_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
 
 
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    _add_env_args(p, required=True)
+    p.add_argument(
+        "--timesteps",
+        type=_positive_int,
+        required=True,
+        metavar="T",
+        help="env steps to train on (rounded up to whole rollouts)",
+    )
+    p.add_argument("--out", required=True, metavar="PPO.zip")
+    p.add_argument(
+        "--seed",
+        type=_seed,
+        default=0,
+        metavar="S",
+        help="seeds torch, the policy and the envs (env i starts at S+i); default 0",
+    )
+    p.add_argument(
+        "--n-envs", type=_positive_int, default=2, metavar="N", help="parallel envs (default 2)"
+    )
+    p.add_argument(
+        "--vec",
+        choices=("sync", "async"),
+        default="sync",
+        help="sync: envs stepped in this process (default, fastest on 2 cores); "
+        "async: one subprocess per env",
+    )
+    p.add_argument(
+        "--eval-every",
+        type=_positive_int,
+        default=None,
+        metavar="STEPS",
+        help="evaluate every STEPS env steps (default: a tenth of the budget)",
+    )
+    p.add_argument(
+        "--eval-episodes",
+        type=_positive_int,
+        default=10,
+        metavar="N",
+        help="episodes per evaluation (default 10)",
+    )
+    p.add_argument(
+        "--eval-seed",
+        type=_seed,
+        default=10_000,
+        metavar="S",
+        help="evaluation episode i uses env seed S+i (default 10000)",
+    )
+    p.add_argument(
+        "--checkpoint-dir",
+        default=None,
+        metavar="DIR",
+        help="also write DIR/ppo_<steps>.zip at every evaluation",
+    )
+    g = p.add_argument_group("PPO hyperparameters")
+    g.add_argument(
+        "--n-steps",
+        type=_positive_int,
+        default=DEFAULTS["n_steps"],
+        metavar="N",
+        help=f"rollout steps per env (default {DEFAULTS['n_steps']})",
+    )
+    g.add_argument(
+        "--batch-size",
+        type=_positive_int,
+        default=DEFAULTS["batch_size"],
+        metavar="B",
+        help=f"minibatch size (default {DEFAULTS['batch_size']})",
+    )
+    g.add_argument(
+        "--n-epochs",
+        type=_positive_int,
+        default=DEFAULTS["n_epochs"],
+        metavar="K",
+        help=f"epochs per rollout (default {DEFAULTS['n_epochs']})",
+    )
+    g.add_argument(
+        "--lr",
+        type=_positive_float,
+        default=DEFAULTS["learning_rate"],
+        metavar="LR",
+        help=f"Adam learning rate (default {DEFAULTS['learning_rate']})",
+    )
+    g.add_argument(
+        "--ent-coef",
+        type=_non_negative_float,
+        default=DEFAULTS["ent_coef"],
+        metavar="C",
+        help=f"entropy coefficient (default {DEFAULTS['ent_coef']})",
+    )
+    _add_quiet(p)
+
+
+# ---------------------------------------------------------------------- training
+def _check_env(env_id: str, env_kwargs: dict):
+    """Make the env once (fail fast, one line) and return its sensor names, action nvec, bounds."""
+    from mkv_env.recorder import make_env
+
+    try:
+        env = make_env(env_id, env_kwargs)
+    except ValueError as e:
+        raise CliError(str(e).splitlines()[0]) from None
+    try:
+        space = env.action_space
+        if not hasattr(space, "nvec"):
+            raise CliError(f"env {env_id!r} has action space {space}, expected MultiDiscrete")
+        names = list(getattr(env.unwrapped, "sensor_names", []))
+        if not names:
+            raise CliError(f"env {env_id!r} does not name its sensor channels")
+        obs = env.observation_space
+        return names, [int(v) for v in space.nvec], obs.low, obs.high
+    finally:
+        env.close()
+
+
+def _evaluate(env_id, env_kwargs, policy, episodes, seed) -> dict:
+    from sfm_learn.evaluation import evaluate
+
+    m = evaluate(env_id, policy, episodes, seed, env_kwargs).metrics
+    return {
+        "mean_return": m["mean_return"],
+        "escape_rate": m["escape_rate"],
+        "distance_m": m["distance_m"],
+    }
+
+
+def _fmt_point(pt: dict) -> str:
+    text = f"steps {pt['env_steps']}: return {pt['mean_return']:.2f}"
+    if pt.get("escape_rate") is not None:
+        text += f", escape rate {pt['escape_rate']:.2f}"
+    return text + f", distance {pt['distance_m']:.2f} m"
+
+
+def train(
+    env_id: str,
+    timesteps: int,
+    *,
+    seed: int = 0,
+    n_envs: int = 2,
+    vec: str = "sync",
+    env_kwargs: dict | None = None,
+    eval_every: int | None = None,
+    eval_episodes: int = 10,
+    eval_seed: int = 10_000,
+    checkpoint_dir: str | None = None,
+    hyperparameters: dict | None = None,
+    progress=None,
+    log=None,
+):
+    """Train PPO; returns ``(model, meta)``. ``progress`` has ``update(n)``; ``log(line)`` gets
+    one line per evaluation. Writes checkpoints (atomically) when ``checkpoint_dir`` is given."""
+    from sfm_learn import _sb3
+
+    torch = _sb3.import_torch()
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    env_kwargs = dict(env_kwargs or {})
+    sensor_names, nvec, low, high = _check_env(env_id, env_kwargs)
+    centre, half = _sb3.box_scaling(low, high)
+    hp = dict(DEFAULTS)
+    hp.update(hyperparameters or {})
+    per_rollout = n_envs * hp["n_steps"]
+    if timesteps < per_rollout:  # tiny budgets: shrink the rollout (and minibatch) to fit
+        hp["n_steps"] = max(2, math.ceil(timesteps / n_envs))
+        per_rollout = n_envs * hp["n_steps"]
+    hp["batch_size"] = max(2, min(hp["batch_size"], per_rollout))
+    planned = math.ceil(timesteps / per_rollout) * per_rollout
+    eval_every = eval_every or max(1, timesteps // 10)
+
+    fns = [functools.partial(_sb3.make_scaled_env, env_id, env_kwargs) for _ in range(n_envs)]
+    venv = SubprocVecEnv(fns) if vec == "async" else DummyVecEnv(fns)
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "env_id": env_id,
+        "env_kwargs": env_kwargs,
+        "sensor_names": sensor_names,
+        "action_nvec": nvec,
+        "obs_scaling": {"centre": centre.tolist(), "half": half.tolist()},
+        "seed": int(seed),
+        "n_envs": int(n_envs),
+        "vec": vec,
+        "timesteps_requested": int(timesteps),
+        "timesteps": 0,
+        "hyperparameters": hp,
+        "activation": "tanh",
+        "eval": {
+            "episodes": int(eval_episodes),
+            "seed": int(eval_seed),
+            "every": int(eval_every),
+            "deterministic": True,
+        },
+        "learning_curve": [],
+        "final_eval": None,
+        "train_wall_s": 0.0,
+        "eval_wall_s": 0.0,
+        **_sb3.versions(),
+    }
+    state = {"excluded": 0.0, "next_eval": 0, "start": 0.0}
+
+    def policy_view(model):
+        return _sb3.ActorPolicy(model.policy, nvec, transform=lambda o: (o - centre) / half)
+
+    def do_eval(model):
+        t0 = time.perf_counter()
+        steps = int(model.num_timesteps)
+        wall = t0 - state["start"] - state["excluded"]
+        point = {
+            "env_steps": steps,
+            "wall_s": round(wall, 3),
+            **_evaluate(env_id, env_kwargs, policy_view(model), eval_episodes, eval_seed),
+        }
+        meta["learning_curve"].append(point)
+        if log is not None:
+            log(_fmt_point(point))
+        if checkpoint_dir:
+            meta["timesteps"], meta["train_wall_s"] = steps, round(wall, 3)
+            save(model, meta, os.path.join(checkpoint_dir, f"ppo_{steps:08d}.zip"))
+        state["excluded"] += time.perf_counter() - t0
+        meta["eval_wall_s"] = round(state["excluded"], 3)
+        while state["next_eval"] <= steps:
+            state["next_eval"] += eval_every
+
+    class _Callback(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            # parameters here are exactly those trained on num_timesteps env steps
+            if self.model.num_timesteps >= state["next_eval"]:
+                do_eval(self.model)
+                self.model.policy.set_training_mode(False)
+
+        def _on_step(self) -> bool:
+            if progress is not None:
+                progress.update(n_envs)
+            return True
+
+    try:
+        model = PPO(
+            "MlpPolicy",
+            venv,
+            seed=int(seed),
+            device="cpu",
+            verbose=0,
+            n_steps=hp["n_steps"],
+            batch_size=hp["batch_size"],
+            n_epochs=hp["n_epochs"],
+            learning_rate=hp["learning_rate"],
+            gamma=hp["gamma"],
+            gae_lambda=hp["gae_lambda"],
+            clip_range=hp["clip_range"],
+            ent_coef=hp["ent_coef"],
+            vf_coef=hp["vf_coef"],
+            max_grad_norm=hp["max_grad_norm"],
+            policy_kwargs={"net_arch": list(hp["net_arch"]), "activation_fn": torch.nn.Tanh},
+        )
+        state["start"] = time.perf_counter()
+        model.learn(total_timesteps=int(timesteps), callback=_Callback())
+        if (
+            not meta["learning_curve"]
+            or meta["learning_curve"][-1]["env_steps"] != model.num_timesteps
+        ):
+            do_eval(model)
+        total = time.perf_counter() - state["start"]
+    finally:
+        venv.close()
+    meta["timesteps"] = int(model.num_timesteps)
+    meta["timesteps_planned"] = int(planned)
+    meta["train_wall_s"] = round(total - state["excluded"], 3)
+    meta["eval_wall_s"] = round(state["excluded"], 3)
+    meta["final_eval"] = meta["learning_curve"][-1]
+    return model, meta
+
+
+def save(model, meta: dict, path: str) -> None:
+    """SB3's model zip plus ``mkv_meta.json``, written atomically."""
+    from sfm_learn import _sb3
+
+    buf = io.BytesIO()
+    model.save(buf)
+    _sb3.atomic_write_bytes(
+        path, _sb3.add_member(buf.getvalue(), _sb3.META_MEMBER, _sb3.meta_bytes(meta))
+    )
+
+
+def read_metadata(path: str) -> dict:
+    """The ``mkv_meta.json`` of a ``mkv train-ppo`` zip (raises PolicySpecError, one line)."""
+    from sfm_learn import _sb3
+
+    return _sb3.read_policy_zip(os.fspath(path), FORMAT)[0]
+
+
+# ---------------------------------------------------------------------- command
+def run(args) -> int:
+    from mkv_env.progress import Progress
+
+    check_output_path(args.out)
+    if args.checkpoint_dir:
+        d = args.checkpoint_dir
+        if os.path.exists(d) and not os.path.isdir(d):
+            raise CliError(f"checkpoint directory {d} exists and is not a directory")
+        parent = os.path.dirname(os.path.abspath(d))
+        if not os.path.isdir(parent):
+            raise CliError(f"checkpoint directory parent {parent} does not exist")
+        os.makedirs(d, exist_ok=True)
+    _check_env(args.env, args.env_kwargs)  # one-line error before torch is imported
+    hp = {
+        "n_steps": args.n_steps,
+        "batch_size": args.batch_size,
+        "n_epochs": args.n_epochs,
+        "learning_rate": args.lr,
+        "ent_coef": args.ent_coef,
+    }
+    # progress total: the budget rounded up to whole rollouts, as train() will use it
+    per_rollout = args.n_envs * (
+        args.n_steps
+        if args.timesteps >= args.n_envs * args.n_steps
+        else max(2, math.ceil(args.timesteps / args.n_envs))
+    )
+    total = math.ceil(args.timesteps / per_rollout) * per_rollout
+    with Progress(
+        total, f"train-ppo {args.env}", enabled=False if args.quiet else None, unit="step"
+    ) as bar:
+        log = None if args.quiet else bar.write
+        model, meta = train(
+            args.env,
+            args.timesteps,
+            seed=args.seed,
+            n_envs=args.n_envs,
+            vec=args.vec,
+            env_kwargs=args.env_kwargs,
+            eval_every=args.eval_every,
+            eval_episodes=args.eval_episodes,
+            eval_seed=args.eval_seed,
+            checkpoint_dir=args.checkpoint_dir,
+            hyperparameters=hp,
+            progress=bar,
+            log=log,
+        )
+    save(model, meta, args.out)
+    rate = meta["timesteps"] / meta["train_wall_s"] if meta["train_wall_s"] > 0 else float("nan")
+    print(
+        f"{meta['timesteps']} env steps in {meta['train_wall_s']:.1f} s "
+        f"({rate:.0f} steps/s; evaluation {meta['eval_wall_s']:.1f} s more)"
+    )
+    first, last = meta["learning_curve"][0], meta["final_eval"]
+    print(
+        f"eval on {args.eval_episodes} episodes (seeds {args.eval_seed}..): "
+        f"before {_fmt_point(first)}"
+    )
+    print(f"                                   final  {_fmt_point(last)}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------------- ppo:PATH
 def load_spec(arg, env, seed):
-    raise NotImplementedError
+    """``ppo:PATH`` -> a policy with SB3 ``predict`` (deterministic = argmax actions)."""
+    import numpy as np
+
+    from mkv_env.policies import PolicySpecError
+    from sfm_learn import _sb3
+
+    path = arg.strip()
+    meta, files = _sb3.read_policy_zip(path, FORMAT, ("policy.pth",))
+    _sb3.check_env(meta, env, path)
+    torch = _sb3.import_torch()
+    import gymnasium as gym
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    try:
+        centre = np.asarray(meta["obs_scaling"]["centre"], dtype=np.float64)
+        half = np.asarray(meta["obs_scaling"]["half"], dtype=np.float64)
+        n = len(meta["sensor_names"])
+        if centre.shape != (n,) or half.shape != (n,):
+            raise ValueError("obs_scaling does not match the sensor names")
+        acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
+        policy = ActorCriticPolicy(
+            gym.spaces.Box(-np.inf, np.inf, (n,), np.float32),
+            gym.spaces.MultiDiscrete(meta["action_nvec"]),
+            lambda _: 0.0,
+            net_arch=list(meta["hyperparameters"]["net_arch"]),
+            activation_fn=acts[meta.get("activation", "tanh")],
+        )
+        state = torch.load(io.BytesIO(files["policy.pth"]), map_location="cpu", weights_only=True)
+        policy.load_state_dict(state)
+    except PolicySpecError:
+        raise
+    except Exception as e:  # corrupt weights or metadata: one line
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise PolicySpecError(f"{path}: cannot rebuild the PPO policy ({reason})") from None
+    out = _sb3.ActorPolicy(
+        policy, meta["action_nvec"], transform=lambda o: (o - centre) / half, seed=seed
+    )
+    out.spec = f"ppo:{path}"
+    out.metadata = meta
+    return out
+
+
+__all__ = ["DEFAULTS", "add_arguments", "load_spec", "read_metadata", "run", "save", "train"]
