@@ -20,13 +20,10 @@ $(STAMP): $(BIN)/python pyproject.toml
 install: $(STAMP)
 
 # The end-to-end job as far as it exists: teacher data, evaluation on seeded jams, calib trials.
-# (`mkv demo`, with SfM/BC/PPO and the report, replaces this once issue 6 lands.)
+# The main job on defaults: teacher data, SfM fit + Figure 3, BC, PPO, evaluation, calib trials;
+# writes demo_out/report.md (about 10 minutes on 2 cores).
 demo: $(STAMP)
-	mkdir -p demo_out
-	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv record --env MKV-v0 --policy teacher --episodes 20 --seed 0 --out demo_out/teacher.npz
-	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv eval --env MKVJam-v0 --policy teacher --episodes 50 --seed 1000 --json demo_out/eval_teacher.json
-	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv eval --env MKVJam-v0 --policy random --episodes 50 --seed 1000 --json demo_out/eval_random.json
-	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/calib trials --out demo_out/calib
+	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv demo --out demo_out
 
 test: $(STAMP)
 	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/python -m pytest -q tests
