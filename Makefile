@@ -19,7 +19,6 @@ $(STAMP): $(BIN)/python pyproject.toml
 
 install: $(STAMP)
 
-# The end-to-end job as far as it exists: teacher data, evaluation on seeded jams, calib trials.
 # The main job on defaults: teacher data, SfM fit + Figure 3, BC, PPO, evaluation, calib trials;
 # writes demo_out/report.md (about 10 minutes on 2 cores).
 demo: $(STAMP)
