@@ -442,11 +442,10 @@ def run(args) -> int:
         f"({rate:.0f} steps/s; evaluation {meta['eval_wall_s']:.1f} s more)"
     )
     first, last = meta["learning_curve"][0], meta["final_eval"]
-    print(
-        f"eval on {args.eval_episodes} episodes (seeds {args.eval_seed}..): "
-        f"before {_fmt_point(first)}"
-    )
-    print(f"                                   final  {_fmt_point(last)}")
+    seeds = f"{args.eval_seed}..{args.eval_seed + args.eval_episodes - 1}"
+    print(f"evaluation, {args.eval_episodes} episodes on seeds {seeds}, deterministic actions:")
+    print(f"  before training {_fmt_point(first)}")
+    print(f"  after training  {_fmt_point(last)}")
     print(f"wrote {args.out}")
     return 0
 
