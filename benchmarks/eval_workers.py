@@ -1,0 +1,118 @@
+"""Evaluation worker processes: episodes per second of ``evaluate_many`` with 1 and 2 workers.
+
+The scripted teacher on ``MKVJam-v0`` (``--jam-episodes``, short jam episodes) and on ``MKV-v0``
+(``--episodes``, 60 s episodes), each measured with ``workers=1`` (in this process) and
+``workers=2`` (worker processes, start-up and IPC included: the first 2-worker run also starts the
+forkserver, as a one-shot ``mkv eval`` does) in the same run, alternating. The records of the two
+must be identical. Target: 2 workers >= 1.7x the episodes per second of 1 on each env.
+
+``--start-methods`` also times a tiny 2-worker evaluation (pool start-up and tear-down) with each
+multiprocessing start method, each in a fresh interpreter (cold, as ``mkv eval`` is).
+
+On a shared machine other jobs' load distorts the ratio: the load average is printed before and
+after every run; ``--rounds`` (2) alternating rounds, the best time of each is kept.
+
+    python benchmarks/eval_workers.py [--jam-episodes 2400] [--episodes 300] [--rounds 2]
+                                      [--start-methods]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+
+from sfm_learn.evaluation import default_start_method, evaluate_many
+
+TARGET = 1.7
+
+_STARTUP_SNIPPET = """
+import sys, time
+t0 = time.perf_counter()
+from sfm_learn.evaluation import evaluate_many
+t1 = time.perf_counter()
+evaluate_many("MKV-v0", ["teacher"], 8, 0, {"max_episode_steps": 2}, workers=2,
+              start_method=sys.argv[1], n_boot=10)
+print(f"{time.perf_counter() - t1:.3f}")
+"""
+
+
+def timed(env_id: str, episodes: int, workers: int, start_method: str | None):
+    t0 = time.perf_counter()
+    ev = evaluate_many(env_id, ["teacher"], episodes, seed=0, workers=workers,
+                       start_method=start_method)[0]
+    return time.perf_counter() - t0, ev
+
+
+def startup_seconds(method: str) -> float:
+    """Seconds for a tiny 2-worker evaluation in a fresh interpreter (after imports)."""
+    out = subprocess.run([sys.executable, "-c", _STARTUP_SNIPPET, method], check=True,
+                         capture_output=True, text=True).stdout
+    return float(out.strip().splitlines()[-1])
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jam-episodes", type=int, default=2400, help="MKVJam-v0 episodes")
+    ap.add_argument("--episodes", type=int, default=300, help="MKV-v0 episodes")
+    ap.add_argument("--rounds", type=int, default=2, help="alternating rounds; best of each")
+    ap.add_argument("--start-method", default=None,
+                    help=f"multiprocessing start method (default {default_start_method()})")
+    ap.add_argument("--start-methods", action="store_true",
+                    help="also time pool start-up with fork, forkserver and spawn")
+    args = ap.parse_args(argv)
+
+    print(f"{os.cpu_count()} CPUs, load average before: {load()}; start method "
+          f"{args.start_method or default_start_method()}")
+    envs = (("MKVJam-v0", args.jam_episodes), ("MKV-v0", args.episodes))
+    best = {(env_id, w): float("inf") for env_id, _ in envs for w in (1, 2)}
+    steps = {}
+    ok = True
+    for r in range(args.rounds):  # alternate, so that other jobs' load hits both alike
+        for env_id, n in envs:
+            recs = {}
+            for w in (1, 2):
+                dt, ev = timed(env_id, n, w, args.start_method)
+                best[env_id, w] = min(best[env_id, w], dt)
+                recs[w] = ev.records
+                print(f"round {r + 1}: {env_id:<10} {w} worker{'s' * (w > 1)}: {dt:6.2f} s "
+                      f"({n / dt:6.1f} episodes/s), load average {load()}")
+            if recs[1] != recs[2]:
+                print(f"{env_id}: records differ between 1 and 2 workers")
+                ok = False
+            steps[env_id] = sum(x.steps for x in recs[1])
+    rows = [(env_id, n, steps[env_id], best[env_id, 1], best[env_id, 2]) for env_id, n in envs]
+    print(f"load average after: {load()}")
+    print()
+    print(f"{'env':<11}{'episodes':>9}{'steps':>9}{'1 worker':>10}{'ep/s':>8}"
+          f"{'2 workers':>11}{'ep/s':>8}{'ratio':>7}")
+    for env_id, n, n_steps, t1, t2 in rows:
+        ratio = t1 / t2
+        ok &= ratio >= TARGET
+        print(f"{env_id:<11}{n:>9}{n_steps:>9}{t1:>9.2f}s{n / t1:>8.1f}{t2:>10.2f}s{n / t2:>8.1f}"
+              f"{ratio:>7.2f}")
+    ratios = ", ".join(f"{r[0]} {r[3] / r[4]:.2f}x" for r in rows)
+    print(f"2 workers / 1 worker, episodes per second: {ratios}  (target >= {TARGET}: "
+          f"{'met' if ok else 'MISSED'})")
+
+    if args.start_methods:
+        print()
+        print("tiny 2-worker evaluation (8 two-step episodes) in a fresh interpreter, "
+              "after imports:")
+        import multiprocessing as mp
+
+        for method in mp.get_all_start_methods():
+            times = [startup_seconds(method) for _ in range(3)]
+            print(f"  {method:<11} best {min(times):.3f} s  (all: "
+                  + ", ".join(f"{t:.3f}" for t in times) + ")")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
