@@ -311,6 +311,7 @@ def train(
             **_evaluate(env_id, env_kwargs, policy_view(model), eval_episodes, eval_seed),
         }
         meta["learning_curve"].append(point)
+        meta["final_eval"] = point
         if log is not None:
             log(_fmt_point(point))
         if checkpoint_dir:
@@ -361,7 +362,10 @@ def train(
             do_eval(model)
         total = time.perf_counter() - state["start"]
     finally:
-        venv.close()
+        try:
+            venv.close()
+        except (EOFError, OSError):  # workers already gone (Ctrl-C reaches them too)
+            pass
     meta["timesteps"] = int(model.num_timesteps)
     meta["timesteps_planned"] = int(planned)
     meta["train_wall_s"] = round(total - state["excluded"], 3)
@@ -393,15 +397,16 @@ def run(args) -> int:
     from mkv_env.progress import Progress
 
     check_output_path(args.out)
-    if args.checkpoint_dir:
-        d = args.checkpoint_dir
+    d = args.checkpoint_dir
+    if d:
         if os.path.exists(d) and not os.path.isdir(d):
             raise CliError(f"checkpoint directory {d} exists and is not a directory")
         parent = os.path.dirname(os.path.abspath(d))
         if not os.path.isdir(parent):
             raise CliError(f"checkpoint directory parent {parent} does not exist")
-        os.makedirs(d, exist_ok=True)
     _check_env(args.env, args.env_kwargs)  # one-line error before torch is imported
+    if d:
+        os.makedirs(d, exist_ok=True)
     hp = {
         "n_steps": args.n_steps,
         "batch_size": args.batch_size,
