@@ -154,7 +154,12 @@ def test_same_seed_same_parameters():
     ],
 )
 def test_train_ppo_bad_input_is_one_line_exit_2(capsys, tmp_path, argv, message):
-    base = {"--env": "MKVJam-v0", "--timesteps": "64", "--out": str(tmp_path / "p.zip")}
+    base = {
+        "--env": "MKVJam-v0",
+        "--timesteps": "64",
+        "--out": str(tmp_path / "p.zip"),
+        "--checkpoint-dir": str(tmp_path / "ckpt"),  # not created on bad input
+    }
     extra = dict(zip(argv[::2], argv[1::2], strict=True))
     args = ["train-ppo"] + [x for k, v in {**base, **extra}.items() for x in (k, v)]
     code, out, err = run(capsys, *args)
