@@ -10,7 +10,9 @@ must be identical. Target: 2 workers >= 1.7x the episodes per second of 1 on eac
 multiprocessing start method, each in a fresh interpreter (cold, as ``mkv eval`` is).
 
 On a shared machine other jobs' load distorts the ratio: the load average is printed before and
-after every run; ``--rounds`` (2) alternating rounds, the best time of each is kept.
+after every run, and so is the CPU time of all processes (the 2-worker runs' extra CPU time is
+their real overhead: start-up, IPC, smaller units); ``--rounds`` (2) alternating rounds, the
+best time of each is kept.
 
     python benchmarks/eval_workers.py [--jam-episodes 2400] [--episodes 300] [--rounds 2]
                                       [--start-methods]
@@ -39,11 +41,30 @@ print(f"{time.perf_counter() - t1:.3f}")
 """
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process and every process it started (workers too: reaped by us with
+    ``fork``, by the forkserver, a child of ours, otherwise; the latter needs psutil)."""
+    t = os.times()
+    total = t.user + t.system + t.children_user + t.children_system
+    try:
+        import psutil
+    except ImportError:
+        return total
+    for child in psutil.Process().children():
+        try:
+            c = child.cpu_times()
+            total += c.user + c.system + c.children_user + c.children_system
+        except psutil.Error:
+            pass
+    return total
+
+
 def timed(env_id: str, episodes: int, workers: int, start_method: str | None):
-    t0 = time.perf_counter()
+    """Wall seconds, CPU seconds (all processes) and the evaluation."""
+    c0, t0 = cpu_seconds(), time.perf_counter()
     ev = evaluate_many(env_id, ["teacher"], episodes, seed=0, workers=workers,
                        start_method=start_method)[0]
-    return time.perf_counter() - t0, ev
+    return time.perf_counter() - t0, cpu_seconds() - c0, ev
 
 
 def startup_seconds(method: str) -> float:
@@ -72,17 +93,19 @@ def main(argv=None) -> int:
           f"{args.start_method or default_start_method()}")
     envs = (("MKVJam-v0", args.jam_episodes), ("MKV-v0", args.episodes))
     best = {(env_id, w): float("inf") for env_id, _ in envs for w in (1, 2)}
+    cpu = {}
     steps = {}
     ok = True
     for r in range(args.rounds):  # alternate, so that other jobs' load hits both alike
         for env_id, n in envs:
             recs = {}
             for w in (1, 2):
-                dt, ev = timed(env_id, n, w, args.start_method)
-                best[env_id, w] = min(best[env_id, w], dt)
+                dt, dc, ev = timed(env_id, n, w, args.start_method)
+                if dt < best[env_id, w]:
+                    best[env_id, w], cpu[env_id, w] = dt, dc
                 recs[w] = ev.records
                 print(f"round {r + 1}: {env_id:<10} {w} worker{'s' * (w > 1)}: {dt:6.2f} s "
-                      f"({n / dt:6.1f} episodes/s), load average {load()}")
+                      f"({n / dt:6.1f} episodes/s, {dc:6.2f} CPU s), load average {load()}")
             if recs[1] != recs[2]:
                 print(f"{env_id}: records differ between 1 and 2 workers")
                 ok = False
@@ -97,6 +120,10 @@ def main(argv=None) -> int:
         ok &= ratio >= TARGET
         print(f"{env_id:<11}{n:>9}{n_steps:>9}{t1:>9.2f}s{n / t1:>8.1f}{t2:>10.2f}s{n / t2:>8.1f}"
               f"{ratio:>7.2f}")
+    print("CPU seconds (all processes) of those runs, 1 worker vs 2 workers: "
+          + ", ".join(f"{e} {cpu[e, 1]:.2f} vs {cpu[e, 2]:.2f} "
+                      f"({100 * (cpu[e, 2] / cpu[e, 1] - 1):+.0f}%)" for e, _ in envs)
+          + "; with 2 idle cores the ratio would be about 2 x 1-worker CPU / 2-worker CPU.")
     ratios = ", ".join(f"{r[0]} {r[3] / r[4]:.2f}x" for r in rows)
     print(f"2 workers / 1 worker, episodes per second: {ratios}  (target >= {TARGET}: "
           f"{'met' if ok else 'MISSED'})")
