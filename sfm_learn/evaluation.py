@@ -38,6 +38,7 @@ import queue
 import re
 import signal
 import tempfile
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -402,10 +403,13 @@ def _portable_exception(e: BaseException) -> BaseException:
     return out
 
 
+_PROGRESS_INTERVAL_S = 0.1
+
+
 def _worker_main(task_q, result_q) -> None:
     """A worker process: run units from ``task_q`` until a ``None`` arrives; post
-    ``("episode", uid, i, n_steps)`` after every episode and ``("done", uid, records)`` or
-    ``("error", uid, exception)`` after every unit."""
+    ``("episodes", uid, [(i, n_steps), ...])`` as episodes finish (batched, at most every
+    0.1 s) and ``("done", uid, records)`` or ``("error", uid, exception)`` after every unit."""
     import multiprocessing as mp
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
@@ -417,17 +421,29 @@ def _worker_main(task_q, result_q) -> None:
         if task is None:
             return
         uid, env_id, env_kwargs, spec, eval_seed, first, count = task
+        pending: list[tuple[int, int]] = []
+        last = [time.monotonic()]
 
-        def progress(i, n, uid=uid):
-            result_q.put(("episode", uid, i, n))
-            if parent is not None and not parent.is_alive():
-                os._exit(1)  # orphaned: nobody will read our results
+        def flush(uid=uid, pending=pending):
+            if pending:
+                result_q.put(("episodes", uid, pending[:]))
+                pending.clear()
+
+        def progress(i, n, pending=pending, last=last, flush=flush):
+            pending.append((i, n))
+            now = time.monotonic()
+            if now - last[0] >= _PROGRESS_INTERVAL_S:
+                last[0] = now
+                flush()
+                if parent is not None and not parent.is_alive():
+                    os._exit(1)  # orphaned: nobody will read our results
 
         try:
             records = _run_unit(env_id, env_kwargs, spec, eval_seed, first, count, progress)
         except BaseException as e:  # noqa: BLE001  (sent to the parent, which raises it)
             result_q.put(("error", uid, _portable_exception(e)))
             return
+        flush()
         result_q.put(("done", uid, records))
 
 
@@ -466,8 +482,9 @@ def _run_parallel(env_id, env_kwargs, specs, seed, units, workers, start_method,
                     raise RuntimeError("evaluation workers exited with work left") from None
                 continue
             kind, uid = msg[0], msg[1]
-            if kind == "episode":
-                on_unit_episode(uid, msg[2], msg[3])
+            if kind == "episodes":
+                for i, n in msg[2]:
+                    on_unit_episode(uid, i, n)
             elif kind == "done":
                 results[uid] = msg[2]
             else:
