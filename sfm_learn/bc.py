@@ -34,6 +34,12 @@ At run time (``bc:PATH``) the feature builder runs online: it is reset at every 
 (``reset(seed)``, which the episode runners call, or ``episode_start=True``), fed each observation
 with the command the policy itself sent at the previous step, and the action is the argmax of
 each command's logits (``deterministic=False`` samples instead).
+
+Measured (one thread, shared 2-core machine): 30 epochs on 9,600 rows take about 2 s. Trained on
+20 teacher episodes of ``MKV-v0`` (held-out accuracy drive 0.995, steer 0.924 against
+majority-class 0.662 / 0.324), BC escapes 0.92 of 50 ``MKVJam-v0`` jams (seeds 1000..1049;
+teacher 1.00, random 0.04) and matches the teacher's 14.7 m per ``MKV-v0`` episode; with
+``--features raw`` it escapes 0.64.
 """
 
 from __future__ import annotations
