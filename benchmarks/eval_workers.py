@@ -9,10 +9,10 @@ must be identical. Target: 2 workers >= 1.7x the episodes per second of 1 on eac
 ``--start-methods`` also times a tiny 2-worker evaluation (pool start-up and tear-down) with each
 multiprocessing start method, each in a fresh interpreter (cold, as ``mkv eval`` is).
 
-On a shared machine other jobs' load distorts the ratio: the load average is printed before and
-after every run, and so is the CPU time of all processes (the 2-worker runs' extra CPU time is
-their real overhead: start-up, IPC, smaller units); ``--rounds`` (2) alternating rounds, the
-best time of each is kept.
+On a shared machine other jobs' load distorts the ratio: for every run the CPU time other jobs
+took meanwhile is printed (Linux ``/proc/stat``), and so is the CPU time of all our processes
+(the 2-worker runs' extra CPU time is their real overhead: start-up, IPC, smaller units).
+``--rounds`` (2) alternating rounds; the best time of each is kept.
 
     python benchmarks/eval_workers.py [--jam-episodes 2400] [--episodes 300] [--rounds 2]
                                       [--start-methods]
@@ -59,12 +59,27 @@ def cpu_seconds() -> float:
     return total
 
 
+def machine_busy_seconds() -> float:
+    """CPU seconds all processes on the machine have used since boot (Linux /proc/stat; NaN
+    elsewhere): compared with our own, it shows how much other jobs took during a run."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return float("nan")
+    user, nice, system, idle, iowait, irq, softirq, steal = (fields + [0] * 8)[:8]
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
 def timed(env_id: str, episodes: int, workers: int, start_method: str | None):
-    """Wall seconds, CPU seconds (all processes) and the evaluation."""
-    c0, t0 = cpu_seconds(), time.perf_counter()
+    """Wall seconds, our CPU seconds (all our processes), other jobs' CPU seconds, and the
+    evaluation."""
+    m0, c0, t0 = machine_busy_seconds(), cpu_seconds(), time.perf_counter()
     ev = evaluate_many(env_id, ["teacher"], episodes, seed=0, workers=workers,
                        start_method=start_method)[0]
-    return time.perf_counter() - t0, cpu_seconds() - c0, ev
+    wall, ours = time.perf_counter() - t0, cpu_seconds() - c0
+    others = max(0.0, machine_busy_seconds() - m0 - ours)
+    return wall, ours, others, ev
 
 
 def startup_seconds(method: str) -> float:
@@ -100,12 +115,13 @@ def main(argv=None) -> int:
         for env_id, n in envs:
             recs = {}
             for w in (1, 2):
-                dt, dc, ev = timed(env_id, n, w, args.start_method)
+                dt, dc, other, ev = timed(env_id, n, w, args.start_method)
                 if dt < best[env_id, w]:
                     best[env_id, w], cpu[env_id, w] = dt, dc
                 recs[w] = ev.records
                 print(f"round {r + 1}: {env_id:<10} {w} worker{'s' * (w > 1)}: {dt:6.2f} s "
-                      f"({n / dt:6.1f} episodes/s, {dc:6.2f} CPU s), load average {load()}")
+                      f"({n / dt:6.1f} episodes/s), CPU s: ours {dc:6.2f}, other jobs' "
+                      f"{other:6.2f} (= {other / dt:.2f} cores)")
             if recs[1] != recs[2]:
                 print(f"{env_id}: records differ between 1 and 2 workers")
                 ok = False
