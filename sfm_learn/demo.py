@@ -5,6 +5,7 @@ can be reproduced by hand):
 
 1. ``mkv record`` the scripted teacher: training runs and held-out runs on ``MKV-v0``;
 2. ``mkv fit`` the shape-from-motion policy; ``mkv compare`` on the held-out runs (Figure 3);
+   the feature-set study (:mod:`sfm_learn.study`) on the same data;
 3. ``mkv train-bc`` on the same training runs; ``mkv train-ppo`` on the ``MKV-v0`` reward;
 4. ``mkv eval`` teacher, random, SfM, BC and PPO on the same seeds of ``MKVJam-v0`` and ``MKV-v0``
    (worker processes, bootstrap confidence intervals, bar plots);
@@ -42,8 +43,8 @@ class Budget:
     held_seed: int = 500
     episode_steps: int | None = None  # None: the env's default (600 steps = 60 s)
     bc_epochs: int = 30
-    ppo_timesteps: int = 100_000
-    ppo_eval_episodes: int = 5
+    ppo_timesteps: int = 200_000
+    ppo_eval_episodes: int = 10
     jam_episodes: int = 100
     wander_episodes: int = 20
     eval_seed: int = 1000
@@ -144,7 +145,7 @@ def run(args) -> int:
         return os.path.join(out, *parts)
 
     t_start = time.perf_counter()
-    st = _Stages(total=10 - bool(args.skip_calib), quiet=args.quiet)
+    st = _Stages(total=11 - bool(args.skip_calib), quiet=args.quiet)
     env_kwargs = [] if b.episode_steps is None else [
         "--env-kwargs", json.dumps({"max_episode_steps": b.episode_steps})]
     train, held = p("data", "teacher_train.npz"), p("data", "teacher_held_out.npz")
@@ -161,6 +162,22 @@ def run(args) -> int:
     st.mkv("Figure 3: teacher vs SfM on the held-out runs", [
         "compare", held, sfm, "--plot", p("fig3.png"), "--spectrum", p("sfm_spectrum.png"),
         "--json", p("compare.json")])
+    study = []
+
+    def run_study():
+        from mkv_env.dataset import load
+        from sfm_learn.study import feature_study, study_markdown
+
+        rows = feature_study([load(train)], load(held), jam_episodes=b.jam_episodes,
+                             wander_episodes=b.wander_episodes, seed=b.eval_seed)
+        study.extend(rows)
+        text = study_markdown(rows)
+        atomic_write_text(p("feature_study.md"), text + "\n")
+        print(text)
+
+    st.call("which features the SfM policy needs (feature-set study)",
+            "python -c 'sfm_learn.study.feature_study(...)' (see scripts/sfm_feature_study.py)",
+            run_study)
     st.mkv("behaviour cloning on the same demonstrations", [
         "train-bc", train, "--out", bc, "--epochs", b.bc_epochs, "--seed", b.train_seed,
         "--held-out", "0"])
@@ -192,7 +209,7 @@ def run(args) -> int:
         from sfm_learn.report import write_report
 
         write_report(out, b, evals, calib, st.log, time.perf_counter() - t_start,
-                     quick=args.quick)
+                     quick=args.quick, study=study)
 
     st.call("learning-cost plot and report", "(mkv demo) report.md", write)
     print(f"\nwrote {p('report.md')} ({time.perf_counter() - t_start:.0f} s in all)")

@@ -162,11 +162,11 @@ def plot_learning_cost(curve, points, path, *, metric="escape_rate", ylabel=None
     for label, steps, score in points:
         if score is None:
             continue
-        ax.plot([max(steps, 1)], [score], next(markers), ms=9, color=next(colours), label=label)
+        ax.plot([steps], [score], next(markers), ms=9, color=next(colours), label=label)
     if reference is not None and reference[1] is not None:
         ax.axhline(reference[1], color="0.4", ls="--", lw=1, label=reference[0])
-    ax.set_xscale("log")
-    ax.set_xlabel("training data: steps (log scale)")
+    ax.set_xlim(left=0)
+    ax.set_xlabel("training data: steps (teacher steps for SfM/BC, env steps for PPO)")
     ax.set_ylabel(ylabel or metric.replace("_", " "))
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)

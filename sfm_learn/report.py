@@ -76,7 +76,7 @@ def _read_json(path):
 
 
 def write_report(out: str, budget, evals: dict, calib: dict | None, stages, total_wall_s: float,
-                 quick: bool = False) -> str:
+                 quick: bool = False, study=None) -> str:
     """Write ``out/report.md`` (and ``out/learning_cost.png``); returns the report path."""
     from sfm_learn import __version__, bc, ppo
     from sfm_learn.demo import environment_line
@@ -145,6 +145,30 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           "the recorded steering angle and current show its side; at the onsets, where the side "
           "is chosen (at random by the teacher), agreement is at chance, as in the paper "
           "(see docs/sfm.md).", ""]
+
+    # ------------------------------------------------------------ feature study
+    if study:
+        from sfm_learn.study import study_markdown
+
+        by = {name: r.mean(axis=0) for name, r in study}
+        L += ["## Which features the linear policy needs", "",
+              f"Each feature set fitted on the same {sfm.training['rows']} teacher steps; "
+              f"open-loop agreement on the held-out runs; closed loop on the evaluation seeds "
+              f"below (MKVJam-v0 {budget.jam_episodes} episodes, MKV-v0 "
+              f"{budget.wander_episodes}).", "", study_markdown(study), ""]
+        d = by.get("sensors + traces + prev (default)")
+        s0 = by.get("sensors only (paper)")
+        nc = by.get("default without currents")
+        ls = by.get("default, lstsq solver")
+        if d is not None and s0 is not None and nc is not None and ls is not None:
+            L += [f"The paper's plain sensor vector escapes {s0[4]:.2f} of the jams; decaying "
+                  f"traces and the previous command (the default) {d[4]:.2f}: a linear map of "
+                  f"the present sensors cannot hold a back-off for the second or so it takes. "
+                  f"Without the motor currents the default escapes {nc[4]:.2f} (the currents "
+                  f"are how the policy feels a stall), and with the paper's plain least-squares "
+                  f"projection instead of the probabilistic-PCA one {ls[4]:.2f} (the rank rule "
+                  f"keeps nearly every eigenvector here, where least squares is unstable). "
+                  f"Details: docs/sfm.md.", ""]
 
     # ------------------------------------------------------------ closed loop
     L += ["## Closed loop: every policy on the same seeds", "",
