@@ -74,3 +74,16 @@ def test_conclusions_say_when_a_baseline_beats_sfm_and_when_it_is_a_tie():
     assert "difference -3.000" in ppo[0]
     bc = [line for line in lines if "BC" in line]
     assert any(line.startswith("No clear difference between SfM and BC") for line in bc)
+
+
+def test_every_policy_kind_gives_the_same_numbers_for_any_worker_count(demo_dir):
+    from sfm_learn.evaluation import evaluate_many, evaluations_json
+
+    specs = [f"sfm:{demo_dir / 'policies' / 'sfm.npz'}", f"bc:{demo_dir / 'policies' / 'bc.zip'}",
+             f"ppo:{demo_dir / 'policies' / 'ppo.zip'}"]
+    one = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=1))
+    two = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=2))
+    assert one == two
+    doc = json.loads(one)
+    assert [set(d) for d in doc] == [{"env", "policy", "episodes", "seed", "metrics",
+                                      "metrics_ci"}] * 3
