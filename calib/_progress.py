@@ -7,7 +7,8 @@ import time
 
 
 class Progress:
-    """``with Progress(total, "label") as bar: bar.update()``; draws ``label [####....] k/total``."""
+    """``with Progress(total, "label") as bar: bar.update()``; draws ``label [####....]
+    k/total``."""
 
     def __init__(
         self, total: int, label: str = "", enabled: bool = True, stream=None, width: int = 30

@@ -14,12 +14,14 @@ def check_dof(dof: int) -> int:
 
 
 def force_rank(dof: int) -> int:
-    """Rank r of the motion matrix: dimension of the force vector (2 planar, 3 spatial, 3 for 6-DOF)."""
+    """Rank r of the motion matrix: dimension of the force vector (2 planar, 3 spatial, 3 for
+    6-DOF)."""
     return 2 if dof == 2 else 3
 
 
 def check_matrix(Z, name: str = "Z", drop_nonfinite: bool = False) -> tuple[np.ndarray, int]:
-    """Return (float 2-D array, number of rows dropped). NaN/inf rows are an error unless opted out."""
+    """Return (float 2-D array, number of rows dropped). NaN/inf rows are an error unless opted
+    out."""
     Z = np.asarray(Z, dtype=float)
     if Z.ndim != 2:
         raise CalibrationError(f"{name} must be 2-D (n_samples, n_channels), got shape {Z.shape}")
@@ -49,8 +51,8 @@ def check_samples(Z: np.ndarray, n_params: int, name: str = "Z") -> None:
     const = np.flatnonzero(spread <= 1e-12 * scale)
     if len(const):
         raise CalibrationError(
-            f"{name} channel(s) {const.tolist()} are constant; a dead or disconnected sense element "
-            "cannot be calibrated"
+            f"{name} channel(s) {const.tolist()} are constant; a dead or disconnected sense "
+            "element cannot be calibrated"
         )
 
 

@@ -199,7 +199,8 @@ def _project(Z: np.ndarray, mu: np.ndarray, Vr: np.ndarray) -> np.ndarray:
 def cylinder_start(
     Mhat: np.ndarray, a4: np.ndarray, resolve: bool = True
 ) -> tuple[np.ndarray, dict]:
-    """Paper's start for B (r, r+1): linear quadric, freedom resolved, smallest singular value zeroed.
+    """Paper's start for B (r, r+1): linear quadric, freedom resolved, smallest singular value
+    zeroed.
 
     ``resolve=False`` is the literal paper recipe (least-squares Q as it comes out, smallest
     eigenvalue zeroed), kept to show how far from the cylinder it can start.
@@ -275,7 +276,7 @@ def refine_gradient_descent(x0, Mhat, r, max_iter: int = 20000, tol: float = 1e-
     prev = np.inf
     it = 0
     converged = False
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned after the loop)
         res = _residuals(x, Mhat, r)
         cost = float(res @ res / n)
         grad = 2.0 * (_jacobian(x, Mhat, r).T @ res) / n

@@ -35,7 +35,8 @@ class EllipsoidFit:
 
     centre : (r,)  c
     W : (r, r)     symmetric PD map from the ellipsoid to the unit sphere: u = W (y - c)
-    centre_stderr : (r,) standard errors of c from the final Jacobian (noise estimated from residuals)
+    centre_stderr : (r,) standard errors of c from the final Jacobian (noise estimated from
+        residuals)
     info : dict    start kind, iterations, convergence, residual rms, condition number
     """
 
@@ -50,7 +51,8 @@ def _sym_index(r):
 
 
 def _algebraic(Y: np.ndarray):
-    """General quadric fit on (already normalised) Y; returns (centre, E) or None if not an ellipsoid."""
+    """General quadric fit on (already normalised) Y; returns (centre, E) or None if not an
+    ellipsoid."""
     n, r = Y.shape
     idx = _sym_index(r)
     nq = len(idx)
@@ -114,7 +116,8 @@ def _prior(W, idx, weight):
 
 
 def _normal_equations(Y, c, W, idx, prior_weight=0.0):
-    """J^T J and J^T e of the Sampson residuals plus the prior, and the data cost e^T e, at (c, W)."""
+    """J^T J and J^T e of the Sampson residuals plus the prior, and the data cost e^T e, at
+    (c, W)."""
     r = Y.shape[1]
     npar = r + len(idx)
     JTJ = np.zeros((npar, npar))
@@ -174,7 +177,7 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
     converged = False
     it = 0
     data_cost = None
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned after the loop)
         if data_cost is not None:
             sigma2 = data_cost / max(n - npar, 1)
         elif sigma2 is None:  # first pass: the prior weight needs sigma before the normal eqs.
@@ -227,7 +230,8 @@ def fit_ellipsoid(
     """Fit an ellipse (r=2) or ellipsoid (r=3) to points Y of shape (n, r).
 
     ``isotropy_prior`` is the prior spread tau of W around a multiple of the identity, relative to
-    its mean diagonal: the refinement minimises ``sum d_i^2 + (sigma / tau)^2 |W - wbar I|^2 / wbar^2``
+    its mean diagonal: the refinement minimises ``sum d_i^2 + (sigma / tau)^2 |W - wbar I|^2 /
+    wbar^2``
     with sigma the current residual rms (a maximum a posteriori fit). With good coverage the data
     outweigh it by ~n; with partial coverage it keeps the ill-determined shape, and so the offset,
     bounded; with noise-free data (sigma = 0) it vanishes. None disables it.

@@ -149,7 +149,8 @@ def fit_ft6(
 
 
 def random_known_loads(k: int, rng, force: float = 1.0, torque: float = 0.1) -> np.ndarray:
-    """k random 6-D loads (k, 6): forces of size ~force, torques ~torque, spanning all 6 dimensions."""
+    """k random 6-D loads (k, 6): forces of size ~force, torques ~torque, spanning all 6
+    dimensions."""
     rng = np.random.default_rng(rng)
     M = rng.normal(size=(k, 6))
     M[:, :3] *= force

@@ -1,7 +1,8 @@
 """Least-squares calibration with known loads, paper eqs. (2)-(3): ``C^T = Z^+ M``.
 
 With ``bias=True`` a column of ones is appended, ``[Z 1] [C^T; d^T] = M``, so the fit also absorbs a
-constant load offset ``d`` (solved by centring, which keeps C in the data's row space). When p > dof only ``C z0`` is identifiable from known loads, so the
+constant load offset ``d`` (solved by centring, which keeps C in the data's row space). When p >
+dof only ``C z0`` is identifiable from known loads, so the
 reported channel offset is the minimum-norm ``z0 = -C^+ d`` (it reproduces the loads exactly).
 """
 

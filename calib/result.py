@@ -18,7 +18,8 @@ class CalibrationError(ValueError):
 
 
 class CalibrationWarning(UserWarning):
-    """The fit succeeded but its result is unreliable (poor excitation, hyperboloid, mirror ambiguity)."""
+    """The fit succeeded but its result is unreliable (poor excitation, hyperboloid, mirror
+    ambiguity)."""
 
 
 def warn(message: str) -> None:
@@ -39,7 +40,8 @@ class Calibration:
     dof : int
         Number of load components (2, 3 or 6).
     method : str
-        Which estimator produced it (``"least_squares"``, ``"sfm"``, ``"paper"``, ``"centered"``, ...).
+        Which estimator produced it (``"least_squares"``, ``"sfm"``, ``"paper"``, ``"centered"``,
+        ...).
     diagnostics : dict
         JSON-serialisable numbers: singular values, rank gap, excitation coverage, condition
         numbers,

@@ -2,7 +2,8 @@
 
 Pipeline for ``Z`` (n, p) of a constant-magnitude load moved over orientations:
 
-1. SVD ``Z = U Sigma V^T`` (7), keep rank r (8); ``M^ = U* Sigma*^1/2``, ``S^ = Sigma*^1/2 V*^T`` (9).
+1. SVD ``Z = U Sigma V^T`` (7), keep rank r (8); ``M^ = U* Sigma*^1/2``, ``S^ = Sigma*^1/2 V*^T``
+(9).
 2. The unit-magnitude constraint ``|m_i| = 1`` (14) is linear in the symmetric ``Q = A^-1 A^-T``:
    ``m^_i^T Q m^_i = 1``, solved in the least-squares sense over all rows.
 3. Factor ``Q = L L^T`` (``L = A^-1``; the symmetric square root is used, which fixes the
@@ -101,7 +102,8 @@ def fit_unit_quadric(X: np.ndarray) -> np.ndarray:
 
 
 def sqrt_psd(Q: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Symmetric square root of Q; returns (root, was_definite). Negative eigenvalues are clipped."""
+    """Symmetric square root of Q; returns (root, was_definite). Negative eigenvalues are
+    clipped."""
     w, V = np.linalg.eigh((Q + Q.T) / 2)
     ok = bool(w.min() > 0)
     w = np.clip(w, 1e-12 * max(w.max(), 1e-300), None)

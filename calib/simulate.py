@@ -13,7 +13,8 @@ Scale: the paper's ``C`` maps raw counts to unit force, so its shape matrix, giv
 A unit force therefore produces at most 16.67 counts, while the
 paper states that "the maximum signal for all illustrated trials was about 150". We read this as a
 force of magnitude ``PAPER_FORCE_MAGNITUDE = 9`` (9 * 16.67 = 150.0 counts peak), which also makes
-the quoted noise percentages right: peak noise 3 = 2 %, 15 = 10 %, 25 = 16.7 % ("about 17 %") of 150.
+the quoted noise percentages right: peak noise 3 = 2 %, 15 = 10 %, 25 = 16.7 % ("about 17 %") of
+150.
 """
 
 from __future__ import annotations
@@ -77,7 +78,8 @@ PAPER_TRIALS = {
 
 
 def paper_shape_matrix() -> np.ndarray:
-    """Shape matrix S (3, 8) of the paper's sensor in counts per unit force: ``S^T = C^+`` (eq. 5)."""
+    """Shape matrix S (3, 8) of the paper's sensor in counts per unit force: ``S^T = C^+``
+    (eq. 5)."""
     return np.linalg.pinv(PAPER_C).T
 
 
