@@ -20,7 +20,7 @@ $(STAMP): $(BIN)/python pyproject.toml
 install: $(STAMP)
 
 # The main job on defaults: teacher data, SfM fit + Figure 3, BC, PPO, evaluation, calib trials;
-# writes demo_out/report.md (about 10 minutes on 2 cores).
+# writes demo_out/report.md (about 3-4 minutes on 2 cores).
 demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv demo --out demo_out
 
@@ -32,6 +32,10 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/env_speed.py
+	$(BIN)/python benchmarks/sfm_fit_speed.py --blas-threads 1
+	$(BIN)/python benchmarks/eval_workers.py
+	$(BIN)/python benchmarks/recorder_overhead.py
+	$(BIN)/python benchmarks/calib_speed.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo_out

@@ -1,4 +1,4 @@
-"""``mkv demo``: the main job end to end, on defaults, in about ten minutes on two cores.
+"""``mkv demo``: the main job end to end, on defaults (about 3-4 minutes on two cores).
 
 It runs, in order, the same commands a user would (each printed, so every number in the report
 can be reproduced by hand):

@@ -70,6 +70,12 @@ def conclusions(evals: dict, learner: str = "SfM", others=("BC", "PPO")) -> list
     return lines
 
 
+def _arch(net_arch) -> str:
+    """``{"pi": [64, 64], ...}`` or ``[64, 64]`` -> ``"64x64"``."""
+    layers = net_arch.get("pi") if isinstance(net_arch, dict) else net_arch
+    return "x".join(str(n) for n in layers) if layers else "linear"
+
+
 def _read_json(path):
     with open(path, encoding="utf-8") as f:
         return json.load(f)
@@ -111,7 +117,8 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           f"{budget.held_seed}..{budget.held_seed + budget.held_episodes - 1} |",
           f"| SfM | default features ({sfm.feature_spec.n_features}: sensors, traces 0.5/0.8, "
           f"previous command), rank by the largest singular-value ratio, ppca solver |",
-          f"| BC | SB3 ActorCriticPolicy {bc_meta.get('net_arch')}, {bc_meta['epochs']} epochs, "
+          f"| BC | SB3 ActorCriticPolicy, {_arch(bc_meta.get('net_arch'))} MLP, "
+          f"{bc_meta['epochs']} epochs, "
           f"same features, trained on {bc_meta['teacher_steps']} of the "
           f"{sfm.training['rows']} steps the SfM policy was fitted on |",
           f"| PPO | SB3 PPO MlpPolicy on the MKV-v0 reward, {ppo_meta['timesteps']} env steps, "
