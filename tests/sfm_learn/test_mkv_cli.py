@@ -145,13 +145,15 @@ def test_extension_points_exist():
 
 def test_sigint_leaves_no_partial_file(tmp_path):
     out = tmp_path / "big.npz"
-    cmd = [sys.executable, "-c", "import sys; from sfm_learn.cli import main; sys.exit(main())",
+    cmd = [sys.executable, "-c", "import sys; from sfm_learn.cli import main; "
+           "print('ready', flush=True); sys.exit(main())",
            "record", "--env", "MKV-v0", "--policy", "teacher", "--episodes", "2000",
            "--seed", "0", "--out", str(out), "--quiet"]
     env = dict(os.environ, SDL_VIDEODRIVER="dummy")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
                             text=True)
-    time.sleep(4.0)  # past imports, well inside the recording loop
+    assert proc.stdout.readline().strip() == "ready"  # imports done: main() handles SIGINT
+    time.sleep(1.0)  # well inside the recording loop (2000 episodes take minutes)
     assert proc.poll() is None, proc.communicate()
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
