@@ -44,12 +44,13 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from mkv_env.files import atomic_path
 
 FORMAT = "mkv-dataset"
 SCHEMA_VERSION = 1
@@ -275,32 +276,14 @@ def save(data: Dataset, path) -> str:
     meta["content_sha256"] = content_sha256(arrays)
     validate(Dataset(arrays, meta))
     meta_bytes = json.dumps(meta, sort_keys=True, separators=(",", ":")).encode("utf-8")
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED,
-                                 compresslevel=1) as zf:
-                _write_entry(zf, "metadata", np.frombuffer(meta_bytes, dtype=np.uint8))
-                for key in sorted(arrays):
-                    _write_entry(zf, key, arrays[key])
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(path, ".npz") as tmp, open(tmp, "wb") as f:
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+            _write_entry(zf, "metadata", np.frombuffer(meta_bytes, dtype=np.uint8))
+            for key in sorted(arrays):
+                _write_entry(zf, key, arrays[key])
+        f.flush()
+        os.fsync(f.fileno())
     return path
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 
 def _write_entry(zf: zipfile.ZipFile, key: str, array: np.ndarray) -> None:

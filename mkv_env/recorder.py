@@ -177,11 +177,14 @@ def run_episodes(env: gym.Env, policy, seeds: Sequence[int], recorder: EpisodeRe
 
 def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict | None = None,
            on_episode: Callable[[int, int], None] | None = None,
-           max_steps: int | None = None) -> ds.Dataset:
+           max_steps: int | None = None, first_seed: int | None = None) -> ds.Dataset:
     """Record ``episodes`` episodes of ``policy`` (spec string or object) in ``env_id``.
 
     Episode ``i`` resets the env with seed ``seed + i``. Returns the dataset (in memory; write it
-    with :func:`mkv_env.dataset.save`).
+    with :func:`mkv_env.dataset.save`). A policy given as a spec is built with the policy seed of
+    ``first_seed`` (default ``seed``): a run that records part of a larger seed range (a worker's
+    share of an evaluation) passes the range's first seed, so its episodes do not depend on how
+    the range was split.
     """
     if not (isinstance(episodes, (int, np.integer)) and episodes >= 1):
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
@@ -191,7 +194,8 @@ def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict |
     try:
         if isinstance(policy, str):
             spec = policy
-            policy = make_policy(policy, env, seed=policy_seed(seed))
+            policy = make_policy(policy, env,
+                                 seed=policy_seed(seed if first_seed is None else first_seed))
         else:
             spec = getattr(policy, "spec", type(policy).__name__)
         recorder = EpisodeRecorder(env.unwrapped.sensor_names)

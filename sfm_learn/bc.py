@@ -46,11 +46,19 @@ from __future__ import annotations
 
 import argparse
 import io
-import math
 import os
 import time
 
-from sfm_learn.cli import CliError, _add_quiet, _seed, check_output_path
+from mkv_env.files import atomic_write_bytes
+from sfm_learn.cli import (
+    CliError,
+    _add_quiet,
+    _fraction,
+    _positive_float,
+    _positive_int,
+    _seed,
+    check_output_path,
+)
 
 FORMAT = "mkv-bc"
 FORMAT_VERSION = 1
@@ -62,32 +70,6 @@ DEFAULTS = {"epochs": 30, "batch_size": 256, "lr": 1e-3, "held_out": 0.2}
 
 
 # ---------------------------------------------------------------------- arguments
-def _positive_int(text: str) -> int:
-    from sfm_learn.cli import _positive_int as f
-
-    return f(text)
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
-
-
-def _fraction(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}") from None
-    if not 0.0 <= v < 1.0:
-        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
-    return v
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", metavar="DATA.npz", help="demonstrations (mkv record)")
     p.add_argument("--out", required=True, metavar="BC.zip")
@@ -333,7 +315,7 @@ def save(policy, meta: dict, path: str) -> None:
     torch = _sb3.import_torch()
     buf = io.BytesIO()
     torch.save(policy.state_dict(), buf)
-    _sb3.atomic_write_bytes(
+    atomic_write_bytes(
         path,
         _sb3.zip_bytes({_sb3.META_MEMBER: _sb3.meta_bytes(meta), "policy.pth": buf.getvalue()}),
     )

@@ -27,13 +27,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import sys
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from mkv_env.dataset import DatasetError
+from mkv_env.files import atomic_path
 from mkv_env.policies import PolicySpecError, make_policy, register_policy_loader
 from mkv_env.script import ScriptError
 from sfm_learn import POLICY_LOADERS
@@ -64,24 +65,40 @@ def _register_policy_loaders() -> None:
 
 
 # ---------------------------------------------------------------------- argument types
-def _positive_int(text: str) -> int:
+# argparse ``type=`` functions shared by every command: a bad value is one line,
+# "argument --x: expected a positive integer, got '-3'".
+def _number(text: str, cast, ok, expected: str):
     try:
-        v = int(text)
+        v = cast(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+        v = None
+    if v is None or not ok(v):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return v
+
+
+def _positive_int(text: str) -> int:
+    return _number(text, int, lambda v: v >= 1, "a positive integer")
+
+
+def _non_negative_int(text: str) -> int:
+    return _number(text, int, lambda v: v >= 0, "an integer >= 0")
 
 
 def _seed(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if not 0 <= v < 2**62:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
-    return v
+    return _number(text, int, lambda v: 0 <= v < 2**62, "a non-negative integer")
+
+
+def _positive_float(text: str) -> float:
+    return _number(text, float, lambda v: math.isfinite(v) and v > 0, "a positive number")
+
+
+def _non_negative_float(text: str) -> float:
+    return _number(text, float, lambda v: math.isfinite(v) and v >= 0, "a number >= 0")
+
+
+def _fraction(text: str) -> float:
+    return _number(text, float, lambda v: 0.0 <= v < 1.0, "a fraction in [0, 1)")
 
 
 def _env_kwargs(text: str) -> dict:
@@ -129,28 +146,6 @@ def check_output_path(path: str, what: str = "output") -> None:
         raise CliError(f"{what} directory {directory} does not exist")
     if os.path.isdir(path):
         raise CliError(f"{what} {path} is a directory")
-
-
-def atomic_write_text(path: str, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same directory."""
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        _make_readable(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _make_readable(path: str) -> None:
-    """mkstemp creates 0600 files; give the final file the usual permissions (0666 & ~umask)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
 
 
 def progress_for(args, total: int, desc: str):
@@ -285,18 +280,9 @@ def _write_gif(frames, path: str, fps: int) -> str:
     from PIL import Image
 
     images = [Image.fromarray(f) for f in frames]
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".gif", dir=directory)
-    os.close(fd)
-    try:
+    with atomic_path(path, ".gif") as tmp:
         images[0].save(tmp, save_all=True, append_images=images[1:],
                        duration=max(1, round(1000 / fps)), loop=0)
-        _make_readable(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return f"{len(frames)} frames to {path}"
 
 

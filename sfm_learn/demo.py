@@ -28,7 +28,8 @@ import sys
 import time
 from dataclasses import dataclass
 
-from sfm_learn.cli import CliError, _positive_int, _seed, atomic_write_text
+from mkv_env.files import atomic_write_text
+from sfm_learn.cli import CliError, _positive_int, _seed
 
 __all__ = ["add_arguments", "run", "Budget"]
 
@@ -176,7 +177,8 @@ def run(args) -> int:
         print(text)
 
     st.call("which features the SfM policy needs (feature-set study)",
-            "python -c 'sfm_learn.study.feature_study(...)' (see scripts/sfm_feature_study.py)",
+            "sfm_learn.study.feature_study on the data above "
+            "(standalone: python scripts/sfm_feature_study.py)",
             run_study)
     st.mkv("behaviour cloning on the same demonstrations", [
         "train-bc", train, "--out", bc, "--epochs", b.bc_epochs, "--seed", b.train_seed,

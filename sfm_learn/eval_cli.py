@@ -18,13 +18,13 @@ from __future__ import annotations
 import argparse
 import os
 
+from mkv_env.files import atomic_write_text
 from sfm_learn.cli import (
     CliError,
     _add_env_args,
     _add_quiet,
     _positive_int,
     _seed,
-    atomic_write_text,
     check_output_path,
     progress_for,
 )

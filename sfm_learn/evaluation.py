@@ -37,7 +37,6 @@ import pickle
 import queue
 import re
 import signal
-import tempfile
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -45,11 +44,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-import mkv_env
 from mkv_env.dataset import Dataset
-from mkv_env.policies import describe, make_policy
-from mkv_env.recorder import EpisodeRecorder, make_env, policy_seed, record
-from mkv_env.recorder import run_episodes as _record_episodes
+from mkv_env.files import atomic_path
+from mkv_env.policies import describe
+from mkv_env.recorder import record
 
 METRIC_KEYS = ("escape_rate", "mean_escape_time_s", "distance_m", "stuck_fraction",
                "collisions_per_min", "mean_return")
@@ -337,22 +335,9 @@ def _run_unit(env_id: str, env_kwargs: dict | None, policy, eval_seed: int, firs
     """Episodes with env seeds ``first .. first + count - 1`` of an evaluation that starts at
     ``eval_seed``: builds its own env, and the policy (from a spec) with the evaluation's policy
     seed, so the records do not depend on how the seeds were chunked."""
-    env = make_env(env_id, env_kwargs)
-    try:
-        if isinstance(policy, str):
-            spec = policy
-            policy = make_policy(policy, env, seed=policy_seed(eval_seed))
-        else:
-            spec = describe(policy)
-        recorder = EpisodeRecorder(env.unwrapped.sensor_names)
-        _record_episodes(env, policy, range(first, first + count), recorder, on_episode)
-        meta = {"env_id": env_id, "env_kwargs": dict(env_kwargs or {}), "policy": spec,
-                "seed": int(first),
-                "control_period_s": float(getattr(env.unwrapped, "control_period_s", 0.1)),
-                "package_version": mkv_env.__version__}
-        return episode_records(recorder.to_dataset(meta))
-    finally:
-        env.close()
+    data = record(env_id, policy, count, first, env_kwargs, on_episode=on_episode,
+                  first_seed=eval_seed)
+    return episode_records(data)
 
 
 def plan_units(n_policies: int, episodes: int, workers: int,
@@ -753,20 +738,9 @@ def plot_evaluations(evaluations: Sequence[Evaluation], path: str,
                  + (f"; error bars: {level} bootstrap CI" if level else ""))
     fig.suptitle(title, fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    directory = os.path.dirname(os.path.abspath(path))
     ext = os.path.splitext(path)[1].lstrip(".").lower() or "png"
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=f".{ext}", dir=directory)
-    os.close(fd)
-    try:
+    with atomic_path(path, f".{ext}") as tmp:
         fig.savefig(tmp, format=ext)
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _fmt(v) -> str:

@@ -8,9 +8,10 @@ atomically and returns its path.
 from __future__ import annotations
 
 import os
-import tempfile
 
 import numpy as np
+
+from mkv_env.files import atomic_path
 
 __all__ = ["plot_figure3", "plot_spectrum", "plot_learning_cost", "MatplotlibMissing"]
 
@@ -39,19 +40,9 @@ def _pyplot():
 def _save(fig, path) -> str:
     plt = _pyplot()
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=directory)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        with atomic_path(path, ".png") as tmp:
+            fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     finally:
         plt.close(fig)
     return path

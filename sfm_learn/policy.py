@@ -26,12 +26,12 @@ from __future__ import annotations
 import io
 import json
 import os
-import tempfile
 import time
 import zipfile
 
 import numpy as np
 
+from mkv_env.files import atomic_path
 from sfm_learn.features import FeatureBuilder, FeatureSpec, default_feature_spec
 from sfm_learn.projector import EigenspaceProjector
 
@@ -200,24 +200,13 @@ class SfMPolicy:
             "thresholds": self.thresholds,
         }
         meta = json.dumps(self.metadata(), indent=2, sort_keys=True, default=_json_default)
-        directory = os.path.dirname(os.path.abspath(path))
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=directory)
-        os.close(fd)
-        try:
-            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zf:
-                for key, a in arrays.items():
-                    buf = io.BytesIO()
-                    np.save(buf, np.asarray(a), allow_pickle=False)
-                    zf.writestr(key + ".npy", buf.getvalue())
-                zf.writestr(_META_MEMBER, meta)
-            mask = os.umask(0o022)
-            os.umask(mask)
-            os.chmod(tmp, 0o666 & ~mask)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_path(path, ".npz") as tmp, zipfile.ZipFile(tmp, "w",
+                                                               zipfile.ZIP_DEFLATED) as zf:
+            for key, a in arrays.items():
+                buf = io.BytesIO()
+                np.save(buf, np.asarray(a), allow_pickle=False)
+                zf.writestr(key + ".npy", buf.getvalue())
+            zf.writestr(_META_MEMBER, meta)
         return path
 
     @classmethod

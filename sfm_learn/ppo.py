@@ -58,10 +58,13 @@ import math
 import os
 import time
 
+from mkv_env.files import atomic_write_bytes
 from sfm_learn.cli import (
     CliError,
     _add_env_args,
     _add_quiet,
+    _non_negative_float,
+    _positive_float,
     _positive_int,
     _seed,
     check_output_path,
@@ -87,26 +90,6 @@ DEFAULTS = {
 
 
 # ---------------------------------------------------------------------- arguments
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return v
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     _add_env_args(p, required=True)
     p.add_argument(
@@ -391,7 +374,7 @@ def save(model, meta: dict, path: str) -> None:
 
     buf = io.BytesIO()
     model.save(buf)
-    _sb3.atomic_write_bytes(
+    atomic_write_bytes(
         path, _sb3.add_member(buf.getvalue(), _sb3.META_MEMBER, _sb3.meta_bytes(meta))
     )
 

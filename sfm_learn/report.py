@@ -12,7 +12,7 @@ import datetime as _dt
 import json
 import os
 
-from sfm_learn.cli import atomic_write_text
+from mkv_env.files import atomic_write_text
 from sfm_learn.evaluation import METRIC_LABELS, format_markdown, paired_difference_ci
 
 __all__ = ["write_report", "conclusions", "HIGHER_IS_BETTER"]
@@ -115,8 +115,10 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           f"({sfm.training['rows']} steps) |",
           f"| held-out teacher runs (Figure 3) | {budget.held_episodes} episodes, env seeds "
           f"{budget.held_seed}..{budget.held_seed + budget.held_episodes - 1} |",
-          f"| SfM | default features ({sfm.feature_spec.n_features}: sensors, traces 0.5/0.8, "
-          f"previous command), rank by the largest singular-value ratio, ppca solver |",
+          f"| SfM | default features ({sfm.feature_spec.n_features}: sensors, traces "
+          f"{'/'.join(f'{d:g}' for d in sfm.feature_spec.trace_decays)}, previous command "
+          f"({sfm.feature_spec.prev_action})), rank by the largest singular-value ratio, "
+          f"{sfm.projector.solver} solver |",
           f"| BC | SB3 ActorCriticPolicy, {_arch(bc_meta.get('net_arch'))} MLP, "
           f"{bc_meta['epochs']} epochs, "
           f"same features, trained on {bc_meta['teacher_steps']} of the "
@@ -148,10 +150,10 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           f"| steer direction at the teacher's steer onsets | "
           f"{_fmt(cmp['steer_direction_onset'])} ({cmp['steer_onsets']} onsets) | 0.500 | "
           f"reported |", "",
-          "Steer direction over all steering steps is high because, once a turn has started, "
-          "the recorded steering angle and current show its side; at the onsets, where the side "
-          "is chosen (at random by the teacher), agreement is at chance, as in the paper "
-          "(see docs/sfm.md).", ""]
+          "Over all steering steps, direction agreement is inflated by the replay: once a turn "
+          "has started, the recorded steering angle and current show its side. The onset row is "
+          "the honest one (the teacher picks its escape side at random; the paper found the "
+          "direction not learned); with few onsets it is a rough number. See docs/sfm.md.", ""]
 
     # ------------------------------------------------------------ feature study
     if study:

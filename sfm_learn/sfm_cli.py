@@ -16,7 +16,8 @@ import os
 
 import numpy as np
 
-from sfm_learn.cli import CliError, atomic_write_text, check_output_path
+from mkv_env.files import atomic_write_text
+from sfm_learn.cli import CliError, _non_negative_int, check_output_path
 
 _SOLVERS = ("ppca", "lstsq", "ridge")
 
@@ -38,16 +39,6 @@ def _decays(text: str):
     if not all(0.0 <= v < 1.0 for v in vals):
         raise argparse.ArgumentTypeError(f"decays must be in [0, 1), got {text!r}")
     return vals
-
-
-def _nonneg_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return v
 
 
 def _png_path(path: str, what: str) -> None:
@@ -86,7 +77,7 @@ def add_fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", choices=("default", "raw"), default="default",
                    help="default: sensors, decaying traces and the previous command; raw: the "
                         "sensors only. --history/--traces/--prev-action override parts")
-    p.add_argument("--history", type=_nonneg_int, default=None, metavar="K",
+    p.add_argument("--history", type=_non_negative_int, default=None, metavar="K",
                    help="stack the K previous observations")
     p.add_argument("--traces", type=_decays, default=None, metavar="D,D",
                    help="decay factors of exponential traces, e.g. 0.5,0.8 ('' for none)")
@@ -177,7 +168,7 @@ def add_compare_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", metavar="fig3.png", help="write the paper's Figure 3")
     p.add_argument("--spectrum", metavar="PNG",
                    help="write the spectrum plot (default with --plot: <plot>_spectrum.png)")
-    p.add_argument("--episode", type=_nonneg_int, default=None, metavar="I",
+    p.add_argument("--episode", type=_non_negative_int, default=None, metavar="I",
                    help="episode shown in the figure (default: the one with most back-offs)")
     p.add_argument("--json", metavar="OUT.json", help="also write the metrics as JSON")
 
