@@ -26,7 +26,7 @@ import subprocess
 import sys
 import time
 
-from sfm_learn.evaluation import default_start_method, evaluate_many
+from sfm_learn.evaluation.runner import default_start_method, evaluate_many
 
 TARGET = 1.7
 

@@ -50,7 +50,7 @@ if __name__ == "__main__":
 import numpy as np  # noqa: E402  (after the BLAS thread variables are set)
 import scipy.linalg  # noqa: E402
 
-from sfm_learn.projector import EigenspaceProjector  # noqa: E402
+from sfm_learn.eigenspace.projector import EigenspaceProjector  # noqa: E402
 
 
 def best_time(fn, repeat):
@@ -116,7 +116,7 @@ def main(args):
     import gymnasium as gym
 
     from mkv_env.recorder import record
-    from sfm_learn.policy import fit_policy
+    from sfm_learn.eigenspace.policy import fit_policy
 
     data = record("MKV-v0", "teacher", 2, 0, {"max_episode_steps": 200})
     policy = fit_policy(data)

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mkv_env.files import atomic_path
+from sfm_common.files import atomic_path
 
 FORMAT = "mkv-dataset"
 SCHEMA_VERSION = 1

@@ -1,6 +1,7 @@
 """Which features does the linear SfM policy need? (issue: "report which feature set ... and why").
 
-Fits the policy with every configuration of :data:`sfm_learn.study.CONFIGS` on three 20-episode
+Fits the policy with every configuration of :data:`sfm_learn.evaluation.study.CONFIGS` on three
+20-episode
 teacher recordings of MKV-v0 (env seeds 0.., 100.., 200..) and measures open-loop agreement on
 held-out runs (seeds 500..504) and the closed loop (MKVJam-v0 seeds 1000..1099, MKV-v0 seeds
 1000..1019); prints a Markdown table of means over the training sets next to the teacher's numbers
@@ -17,7 +18,8 @@ import time
 
 from mkv_env.recorder import record
 from sfm_learn.evaluation import evaluate
-from sfm_learn.study import feature_study, study_markdown
+from sfm_learn.evaluation.study import feature_study
+from sfm_learn.reporting.tables import study_markdown
 
 
 def main() -> int:

@@ -1,8 +1,20 @@
-"""sfm_learn: the eigenspace (shape-from-motion) projector policy, baselines and evaluation.
+"""sfm_learn: the eigenspace (shape-from-motion) policy, its baselines, evaluation and reports.
 
-Importing the package registers the policy specs ``sfm:PATH``, ``ppo:PATH`` and ``bc:PATH`` with
+Layers, each importing only the ones before it (``tests/test_layering.py`` checks this)::
+
+    eigenspace/   projector, features, policy        the paper's learner
+    evaluation/   records, bootstrap, runner,        episodes -> metrics with intervals;
+                  compare, study                     Figure 3 agreement; the feature study
+    baselines/    sb3, bc, ppo, sb3_zoo              Stable-Baselines3 learners and policy files
+    reporting/    tables, plots, report              Markdown, PNG, the demo report
+    cli/          one module per ``mkv`` command     the only place argparse and CliError live
+
+Library functions raise ``ValueError``/``TypeError`` (one-line messages); the ``mkv`` command
+turns them into exit status 2.
+
+Importing the package registers the policy specs of :data:`POLICY_LOADERS` with
 :mod:`mkv_env.policies` (lazily: each loader module is imported only when its spec is used), so
-any process that imports ``sfm_learn`` (a worker of ``mkv eval --workers`` too) understands them.
+any process that imports ``sfm_learn`` (an evaluation worker too) understands them.
 """
 
 from mkv_env.policies import register_policy_loader as _register
@@ -11,9 +23,9 @@ __version__ = "0.1.0"
 
 #: Policy-spec prefixes provided by sfm_learn: prefix -> "module:function" (imported on first use).
 POLICY_LOADERS: dict[str, str] = {
-    "sfm": "sfm_learn.policy:load_spec",
-    "ppo": "sfm_learn.ppo:load_spec",
-    "bc": "sfm_learn.bc:load_spec",
+    "sfm": "sfm_learn.eigenspace.policy:load_spec",
+    "ppo": "sfm_learn.baselines.ppo:load_spec",
+    "bc": "sfm_learn.baselines.bc:load_spec",
 }
 
 for _prefix, _target in POLICY_LOADERS.items():

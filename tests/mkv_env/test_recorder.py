@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 import mkv_env  # noqa: F401
-from mkv_env.progress import Progress
 from mkv_env.recorder import make_env, policy_seed, record, summarize
 
 
@@ -77,21 +76,3 @@ def test_policy_seed_is_used_per_episode():
     b = record("MKV-v0", "random", episodes=1, seed=4, env_kwargs={"max_episode_steps": 20})
     assert np.array_equal(a["actions"][20:], b["actions"])
     assert policy_seed(3) != policy_seed(4)
-
-
-def test_progress_bar_draws_to_a_terminal_only(capsys):
-    import io
-
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    out = Tty()
-    with Progress(3, "rec", stream=out, min_interval_s=0.0) as bar:
-        for _ in range(3):
-            bar.update()
-    assert "3/3" in out.getvalue() and out.getvalue().endswith("\n")
-    quiet = io.StringIO()
-    with Progress(3, "rec", stream=quiet) as bar:
-        bar.update(3)
-    assert quiet.getvalue() == ""

@@ -1,0 +1,77 @@
+"""Command-line plumbing shared by ``mkv`` and ``calib``: argparse number types, a parser whose
+errors are one line, and one-line error text.
+
+Every ``type=`` function here turns a bad value into one line such as
+``argument --episodes: expected a positive integer, got '-3'``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+__all__ = [
+    "UsageError", "OneLineParser", "one_line", "positive_int", "non_negative_int", "seed",
+    "positive_float", "non_negative_float", "fraction", "SEED_LIMIT",
+]
+
+#: Seeds are accepted in [0, SEED_LIMIT): numpy's SeedSequence takes any, but episode seeds
+#: ``seed + i`` must stay within a signed 64-bit integer.
+SEED_LIMIT = 2**62
+
+
+class UsageError(Exception):
+    """A command-line mistake found by the parser; ``prog`` names the (sub)command."""
+
+    def __init__(self, prog: str, message: str):
+        super().__init__(message)
+        self.prog = prog
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` that raises :class:`UsageError` with one line instead of printing
+    the usage block and exiting."""
+
+    def error(self, message):
+        raise UsageError(self.prog, f"{message} (see {self.prog} --help)")
+
+
+def one_line(e: BaseException) -> str:
+    """The first line of an exception's text (its type name if it has none)."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def _number(text: str, cast, ok, expected: str):
+    try:
+        v = cast(text)
+    except (ValueError, OverflowError):
+        v = None
+    if v is None or not ok(v):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    return _number(text, int, lambda v: v >= 1, "a positive integer")
+
+
+def non_negative_int(text: str) -> int:
+    return _number(text, int, lambda v: v >= 0, "an integer >= 0")
+
+
+def seed(text: str) -> int:
+    return _number(text, int, lambda v: 0 <= v < SEED_LIMIT,
+                   "a non-negative integer below 2**62")
+
+
+def positive_float(text: str) -> float:
+    return _number(text, float, lambda v: math.isfinite(v) and v > 0, "a positive number")
+
+
+def non_negative_float(text: str) -> float:
+    return _number(text, float, lambda v: math.isfinite(v) and v >= 0, "a number >= 0")
+
+
+def fraction(text: str) -> float:
+    return _number(text, float, lambda v: 0.0 <= v < 1.0, "a fraction in [0, 1)")

@@ -1,0 +1,359 @@
+"""``mkv train-bc`` and the ``bc:PATH`` policy spec: behaviour cloning of an SB3 policy.
+
+::
+
+    mkv train-bc DATA.npz --out bc.zip [--epochs 30] [--batch-size 256] [--lr 1e-3] [--seed 0]
+                 [--held-out 0.2] [--features default|raw] [--quiet]
+    mkv eval --env MKVJam-v0 --policy bc:bc.zip --episodes 50 --seed 1000
+
+An SB3 ``ActorCriticPolicy`` (tanh MLP, policy net 64x64; its value head is unused) is trained
+by plain supervised learning: minibatch Adam on the negative log-likelihood of the dataset's
+[drive, steer] commands under the policy's ``MultiDiscrete([3, 3])`` action distribution (the sum
+of the two categorical cross-entropies). Inputs are, by default, the same features the
+shape-from-motion policy uses (:func:`~sfm_learn.eigenspace.features.default_feature_spec`:
+every channel,
+decaying traces, the previous command), or with ``--features raw`` the raw observation; each
+input column is standardised with training-set statistics stored in the file.
+
+Whole episodes are held out (:func:`mkv_env.dataset.split_by_episode`, ``--held-out`` fraction,
+seeded by ``--seed``); per command it reports held-out accuracy next to the majority-class
+baseline (always predicting the training set's most frequent value: the teacher mostly drives
+forward with the steering off, so raw accuracy flatters) and the recall of each value
+(reverse/off/forward, left/off/right).
+
+File format (a zip; :func:`read_metadata`): ``policy.pth`` (the policy's torch ``state_dict``,
+loaded with ``weights_only=True``) and ``mkv_meta.json``: ``format`` (``"mkv-bc"``),
+``env_id``/``env_kwargs``/``control_period_s`` of the dataset, ``sensor_names``, ``action_nvec``,
+``action_names``, ``features`` (``"default"``/``"raw"``), ``feature_spec``
+(:meth:`FeatureSpec.to_dict`), ``input_mean``/``input_std``, ``net_arch``, ``activation``,
+``teacher_steps`` (training rows), ``teacher_episodes``, ``held_out_steps``/``_episodes``,
+``epochs``, ``batch_size``, ``lr``, ``seed``, ``train_wall_s``, ``held_out`` (accuracy, majority
+baseline, recall per command, joint accuracy, NLL), ``history`` (per-epoch losses and
+accuracies), ``dataset`` (file name, ``content_sha256``, recording policy), versions.
+
+At run time (``bc:PATH``) the feature builder runs online: it is reset at every episode start
+(``reset(seed)``, which the episode runners call, or ``episode_start=True``), fed each observation
+with the command the policy itself sent at the previous step, and the action is the argmax of
+each command's logits (``deterministic=False`` samples instead).
+
+Measured (one thread, shared 2-core machine): 30 epochs on 9,600 rows take about 2 s. Trained on
+20 teacher episodes of ``MKV-v0`` (held-out accuracy drive 0.995, steer 0.924 against
+majority-class 0.662 / 0.324), BC escapes 0.92 of 50 ``MKVJam-v0`` jams (seeds 1000..1049;
+teacher 1.00, random 0.04) and matches the teacher's 14.7 m per ``MKV-v0`` episode; with
+``--features raw`` it escapes 0.64.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import time
+
+from sfm_common.files import atomic_write_bytes
+from sfm_learn.baselines import sb3
+
+FORMAT = "mkv-bc"
+FORMAT_VERSION = 1
+ACTION_NAMES = ("drive", "steer")
+ACTION_NVEC = (3, 3)
+VALUE_NAMES = {"drive": ("reverse", "off", "forward"), "steer": ("left", "off", "right")}
+DEFAULT_NET_ARCH = {"pi": [64, 64], "vf": []}
+DEFAULTS = {"epochs": 30, "batch_size": 256, "lr": 1e-3, "held_out": 0.2}
+
+
+# ---------------------------------------------------------------------- features
+def feature_spec(sensor_names, features: str = "default"):
+    from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
+
+    if features == "default":
+        return default_feature_spec(sensor_names, ACTION_NVEC, ACTION_NAMES)
+    if features == "raw":
+        return FeatureSpec(
+            obs_names=tuple(sensor_names), action_nvec=ACTION_NVEC, action_names=ACTION_NAMES
+        )
+    raise ValueError(f"features must be 'default' or 'raw', got {features!r}")
+
+
+def dataset_features(builder, data):
+    """Batch features of every row of a dataset (episode starts from its ``step`` column)."""
+    return builder.transform(data["observations"], data["actions"], data["step"] == 0)
+
+
+def build_policy(n_inputs: int, net_arch, lr: float = 1e-3):
+    import gymnasium as gym
+    import numpy as np
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    from sfm_learn.baselines.sb3 import import_torch
+
+    torch = import_torch()
+    return ActorCriticPolicy(
+        gym.spaces.Box(-np.inf, np.inf, (n_inputs,), np.float32),
+        gym.spaces.MultiDiscrete(list(ACTION_NVEC)),
+        lambda _: lr,
+        net_arch=net_arch,
+        activation_fn=torch.nn.Tanh,
+    )
+
+
+# ---------------------------------------------------------------------- metrics
+def action_metrics(pred, true, majority) -> dict:
+    """Accuracy, majority-class baseline and per-value recall of each command."""
+    import numpy as np
+
+    out = {"accuracy": {}, "majority_accuracy": {}, "recall": {}, "support": {}}
+    for j, name in enumerate(ACTION_NAMES):
+        p, t = pred[:, j], true[:, j]
+        out["accuracy"][name] = float(np.mean(p == t)) if len(t) else None
+        out["majority_accuracy"][name] = float(np.mean(t == majority[j])) if len(t) else None
+        out["recall"][name] = [
+            float(np.mean(p[t == v] == v)) if np.any(t == v) else None
+            for v in range(ACTION_NVEC[j])
+        ]
+        out["support"][name] = [int(np.sum(t == v)) for v in range(ACTION_NVEC[j])]
+    out["joint_accuracy"] = float(np.mean(np.all(pred == true, axis=1))) if len(true) else None
+    return out
+
+
+# ---------------------------------------------------------------------- training
+def train(
+    data,
+    *,
+    epochs: int = 30,
+    batch_size: int = 256,
+    lr: float = 1e-3,
+    seed: int = 0,
+    held_out: float = 0.2,
+    features: str = "default",
+    net_arch=None,
+    on_epoch=None,
+):
+    """Behaviour-clone ``data`` (a :class:`mkv_env.dataset.Dataset`); returns ``(policy, meta)``.
+
+    ``on_epoch(epoch, record)`` is called after each epoch with that epoch's losses/accuracies.
+    """
+    import numpy as np
+
+    from mkv_env.dataset import split_by_episode
+    from sfm_learn.eigenspace.features import FeatureBuilder
+
+    torch = sb3.import_torch()
+    net_arch = dict(DEFAULT_NET_ARCH if net_arch is None else net_arch)
+    sensor_names = list(data.metadata["sensor_names"])
+    acts = data["actions"]
+    if (
+        acts.ndim != 2
+        or acts.shape[1] != len(ACTION_NVEC)
+        or np.any(acts < 0)
+        or np.any(acts >= np.array(ACTION_NVEC))
+    ):
+        raise ValueError(
+            f"dataset actions must be [drive, steer] indices in 0..2, got shape {acts.shape}"
+        )
+    if data.n_steps < 2:
+        raise ValueError(f"dataset has {data.n_steps} step(s); behaviour cloning needs more")
+    train_set, held_set = split_by_episode(data, held_out, seed)
+    spec = feature_spec(sensor_names, features)
+    builder = FeatureBuilder(spec)
+    x_train = dataset_features(builder, train_set)
+    y_train = train_set["actions"].astype(np.int64)
+    x_held = dataset_features(builder, held_set) if held_set.n_steps else None
+    y_held = held_set["actions"].astype(np.int64)
+    mean = x_train.mean(axis=0)
+    std = x_train.std(axis=0)
+    std = np.where(std > 1e-8, std, 1.0)
+    majority = [
+        int(np.bincount(y_train[:, j], minlength=n).argmax()) for j, n in enumerate(ACTION_NVEC)
+    ]
+
+    torch.manual_seed(int(seed))
+    policy = build_policy(spec.n_features, net_arch, lr)
+    policy.set_training_mode(True)
+    opt = torch.optim.Adam(policy.parameters(), lr=lr)
+    xt = torch.as_tensor(((x_train - mean) / std).astype(np.float32))
+    yt = torch.as_tensor(y_train)
+    xh = None if x_held is None else torch.as_tensor(((x_held - mean) / std).astype(np.float32))
+    yh = torch.as_tensor(y_held)
+    rng = np.random.default_rng(seed)
+    n = len(xt)
+    view = sb3.ActorPolicy(policy, ACTION_NVEC)
+    history = []
+    t0 = time.perf_counter()
+    for epoch in range(1, epochs + 1):
+        policy.set_training_mode(True)
+        order = torch.as_tensor(rng.permutation(n))
+        total = 0.0
+        for i in range(0, n, batch_size):
+            idx = order[i : i + batch_size]
+            nll = -policy.get_distribution(xt[idx]).log_prob(yt[idx]).mean()
+            opt.zero_grad(set_to_none=True)
+            nll.backward()
+            opt.step()
+            total += nll.item() * len(idx)
+        policy.set_training_mode(False)
+        rec = {"epoch": epoch, "train_nll": total / n}
+        if xh is not None:
+            with torch.no_grad():
+                rec["held_out_nll"] = float(-policy.get_distribution(xh).log_prob(yh).mean())
+            pred = view.actions_from_logits(view.logits(xh.numpy()))
+            m = action_metrics(pred, y_held, majority)
+            rec["held_out_accuracy"] = m["accuracy"]
+            rec["held_out_joint_accuracy"] = m["joint_accuracy"]
+        history.append(rec)
+        if on_epoch is not None:
+            on_epoch(epoch, rec)
+    train_wall = time.perf_counter() - t0
+
+    held = None
+    if xh is not None:
+        pred = view.actions_from_logits(view.logits(xh.numpy()))
+        held = action_metrics(pred, y_held, majority)
+        held["nll"] = history[-1]["held_out_nll"]
+    train_pred = view.actions_from_logits(view.logits(xt.numpy()))
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "env_id": data.metadata.get("env_id"),
+        "env_kwargs": data.metadata.get("env_kwargs", {}),
+        "control_period_s": data.metadata.get("control_period_s"),
+        "sensor_names": sensor_names,
+        "action_nvec": list(ACTION_NVEC),
+        "action_names": list(ACTION_NAMES),
+        "features": features,
+        "feature_spec": spec.to_dict(),
+        "input_mean": mean.tolist(),
+        "input_std": std.tolist(),
+        "net_arch": net_arch,
+        "activation": "tanh",
+        "teacher_steps": int(train_set.n_steps),
+        "teacher_episodes": int(train_set.n_episodes),
+        "held_out_steps": int(held_set.n_steps),
+        "held_out_episodes": int(held_set.n_episodes),
+        "held_out_fraction": float(held_out),
+        "majority_class": dict(zip(ACTION_NAMES, majority, strict=True)),
+        "epochs": int(epochs),
+        "batch_size": int(batch_size),
+        "lr": float(lr),
+        "seed": int(seed),
+        "train_wall_s": round(train_wall, 3),
+        "train_accuracy": action_metrics(train_pred, y_train, majority)["accuracy"],
+        "held_out": held,
+        "history": history,
+        "dataset": {
+            "content_sha256": data.metadata.get("content_sha256"),
+            "policy": data.metadata.get("policy"),
+            "n_steps": int(data.n_steps),
+            "n_episodes": int(data.n_episodes),
+        },
+        **sb3.versions(),
+    }
+    return policy, meta
+
+
+def save(policy, meta: dict, path: str) -> None:
+    """``policy.pth`` + ``mkv_meta.json`` in a deterministic zip, written atomically."""
+
+    torch = sb3.import_torch()
+    buf = io.BytesIO()
+    torch.save(policy.state_dict(), buf)
+    atomic_write_bytes(
+        path,
+        sb3.zip_bytes({sb3.META_MEMBER: sb3.meta_bytes(meta), "policy.pth": buf.getvalue()}),
+    )
+
+
+def read_metadata(path: str) -> dict:
+    """The ``mkv_meta.json`` of a ``mkv train-bc`` zip (raises PolicySpecError, one line)."""
+
+    return sb3.read_policy_zip(os.fspath(path), FORMAT)[0]
+
+
+# ---------------------------------------------------------------------- bc:PATH
+class BCPolicy:
+    """A behaviour-cloned policy with SB3 ``predict`` over one observation at a time."""
+
+    def __init__(self, policy, meta: dict, seed: int | None = None):
+        import numpy as np
+
+        from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec
+
+        self.meta = self.metadata = meta
+        self.builder = FeatureBuilder(FeatureSpec.from_dict(meta["feature_spec"]))
+        self.mean = np.asarray(meta["input_mean"], dtype=np.float64)
+        self.std = np.asarray(meta["input_std"], dtype=np.float64)
+        if self.mean.shape != (self.builder.n_features,) or self.std.shape != self.mean.shape:
+            raise ValueError("input statistics do not match the feature spec")
+        self.actor = sb3.ActorPolicy(policy, meta["action_nvec"], seed=seed)
+        self.n_obs = len(meta["sensor_names"])
+        self._prev = None
+        self._started = False
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start of an episode: forget the feature history and the previous command."""
+        self.actor.reset(seed)
+        self.builder.reset()
+        self._prev = None
+        self._started = False
+
+    def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
+        import numpy as np
+
+        obs = np.asarray(observation, dtype=np.float64)
+        single = obs.ndim == 1
+        if not single:
+            if obs.ndim == 2 and obs.shape[0] == 1:
+                obs = obs[0]
+            else:
+                raise ValueError(
+                    f"a BC policy takes one observation at a time, shape "
+                    f"({self.n_obs},); got {obs.shape}"
+                )
+        if episode_start is not None and bool(np.asarray(episode_start).reshape(-1)[0]):
+            self.reset()
+        if not self._started:
+            self.builder.reset()
+            self._prev = None
+        x = (self.builder.step(obs, self._prev) - self.mean) / self.std
+        self._started = True
+        action = self.actor.actions_from_logits(self.actor.logits(x[None, :]), deterministic)
+        self._prev = action[0]
+        return (action[0].copy() if single else action), state
+
+    def batch_actions(self, observations, actions, episode_start=None):
+        """Deterministic actions for a whole recording at once (batch features with the given
+        previous ``actions``): equals :meth:`predict` step by step when ``actions`` are the
+        policy's own."""
+        x = (self.builder.transform(observations, actions, episode_start) - self.mean) / self.std
+        return self.actor.actions_from_logits(self.actor.logits(x))
+
+
+def load_spec(arg, env, seed):
+    """``bc:PATH`` -> :class:`BCPolicy`."""
+    from mkv_env.policies import PolicySpecError
+
+    path = arg.strip()
+    meta, files = sb3.read_policy_zip(path, FORMAT, ("policy.pth",))
+    sb3.check_env(meta, env, path)
+    torch = sb3.import_torch()
+    try:
+        policy = build_policy(len(meta["input_mean"]), meta["net_arch"])
+        policy.load_state_dict(
+            torch.load(io.BytesIO(files["policy.pth"]), map_location="cpu", weights_only=True)
+        )
+        out = BCPolicy(policy, meta, seed)
+    except Exception as e:  # corrupt weights or metadata: one line
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise PolicySpecError(f"{path}: cannot rebuild the BC policy ({reason})") from None
+    out.spec = f"bc:{path}"
+    return out
+
+
+__all__ = [
+    "BCPolicy",
+    "DEFAULTS",
+    "VALUE_NAMES",
+    "load_spec",
+    "read_metadata",
+    "save",
+    "train",
+]

@@ -1,0 +1,348 @@
+"""``mkv train-ppo`` and the ``ppo:PATH`` policy spec: Stable-Baselines3 PPO on the env reward.
+
+::
+
+    mkv train-ppo --env MKVJam-v0 --timesteps 100000 --out ppo.zip [--seed 0] [--n-envs 2]
+                  [--vec sync|async] [--eval-every STEPS] [--eval-episodes 10]
+                  [--eval-seed 10000] [--checkpoint-dir DIR] [--env-kwargs JSON] [--quiet]
+    mkv eval --env MKVJam-v0 --policy ppo:ppo.zip --episodes 50 --seed 1000
+
+Training: SB3 ``PPO("MlpPolicy")`` on ``n_envs`` copies of the env (``DummyVecEnv`` for
+``--vec sync``, ``SubprocVecEnv`` for ``async``; env ``i`` of the vector is reset first with seed
+``seed + i``), actions ``MultiDiscrete([3, 3])``. The policy sees the raw sensor observation
+with each channel mapped from its ``Box`` bounds to [-1, 1] (a fixed scaling stored in the file,
+no running statistics). Hyperparameters (:data:`DEFAULTS`, chosen for this small problem: 10
+inputs, 9 actions, episodes of 300-600 steps): rollouts of ``n_steps=512`` steps per env,
+minibatch 64, 4 epochs per rollout, Adam 3e-4, gamma 0.99, GAE lambda 0.95, clip 0.2, entropy
+coefficient 0.01 (keeps the 3x3 command distribution from collapsing early), tanh MLP 64x64 for
+both policy and value. A budget smaller than one rollout shrinks ``n_steps`` (and the minibatch)
+to fit, so tiny test budgets run as asked. SB3 always finishes a rollout, so the steps actually
+used are ``timesteps`` rounded up to a multiple of ``n_steps * n_envs``.
+
+Evaluation (the learning curve): before training and then at the first rollout boundary at or
+after every ``--eval-every`` env steps (default: a tenth of the budget), and once at the end, the
+current policy runs ``--eval-episodes`` episodes on the fixed seeds ``eval_seed + i`` with
+deterministic (argmax) actions through :func:`sfm_learn.evaluation.evaluate`, the same runner and
+metrics as ``mkv eval``. Each point holds ``env_steps`` (steps trained on, exactly), ``wall_s``
+(training wall time so far, evaluation and checkpoint time excluded), ``mean_return``,
+``escape_rate`` (``null`` on envs without escapes, e.g. ``MKV-v0``) and ``distance_m``. With
+``--checkpoint-dir``, every evaluation also writes ``DIR/ppo_<steps>.zip`` (a full, loadable file).
+
+File format: SB3's own model zip (``PPO.load(path)`` works on it) plus one extra member
+``mkv_meta.json`` (:func:`read_metadata`): ``format`` (``"mkv-ppo"``), ``env_id``,
+``env_kwargs``, ``sensor_names``, ``action_nvec``, ``obs_scaling`` (``centre``, ``half``),
+``seed``, ``n_envs``, ``vec``, ``timesteps`` (env steps used), ``timesteps_requested``,
+``train_wall_s``, ``eval_wall_s``, ``hyperparameters``, ``eval`` (episodes, seed),
+``learning_curve``, ``final_eval``, ``package_version``, ``sb3_version``, ``torch_version``.
+The ``ppo:PATH`` loader rebuilds the policy network from ``policy.pth`` (weights only, no
+unpickling of ``data``), checks the env's sensor layout and returns an object with SB3 ``predict``.
+
+Measured (2-core machine shared with other jobs; SB3 2.9.2, torch 2.13 CPU, one thread): about
+1,900 env steps/s of training on ``MKV-v0`` with the default 2 sync envs (3,300 with 8 envs; the
+SB3 per-step policy call dominates, not the env), about 1,450 on ``MKVJam-v0`` (its resets
+simulate the robot into the jam). On ``MKV-v0`` PPO (seed 0; 10 evaluation episodes) reaches a
+return of 53 after 10k steps but is unstable (0-1 at 20k-30k, 46-51 from 40k to 100k except 20
+at 70k); the teacher scores 46 while driving 14.7 m per episode, PPO drives 5-7 m.
+On ``MKVJam-v0`` with the env's default reward PPO learns to stand still
+(return 0, escape rate 0 at 50k and 100k steps; also with ``ent_coef`` 0.05, ``gamma`` 0.995 or
+``escape_reward`` 20): backing out costs negative progress reward, and the teacher itself only
+earns a mean return of about 0.2 there, so "off" is nearly optimal for this reward.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import math
+import os
+import time
+
+import numpy as np
+
+from sfm_common.files import atomic_write_bytes
+from sfm_learn.baselines import sb3
+
+FORMAT = "mkv-ppo"
+FORMAT_VERSION = 2  # 2: obs_rescale (gymnasium RescaleObservation); 1: obs_scaling
+
+#: PPO hyperparameters used unless overridden on the command line.
+DEFAULTS = {
+    "n_steps": 512,
+    "batch_size": 64,
+    "n_epochs": 4,
+    "learning_rate": 3e-4,
+    "gamma": 0.99,
+    "gae_lambda": 0.95,
+    "clip_range": 0.2,
+    "ent_coef": 0.01,
+    "vf_coef": 0.5,
+    "max_grad_norm": 0.5,
+    "net_arch": [64, 64],
+}
+
+
+# ---------------------------------------------------------------------- training
+def rollout_steps(timesteps: int, n_envs: int, n_steps: int) -> int:
+    """Rollout steps per env: ``n_steps``, shrunk for budgets smaller than one rollout."""
+    if timesteps < n_envs * n_steps:
+        return max(2, math.ceil(timesteps / n_envs))
+    return n_steps
+
+
+def planned_timesteps(timesteps: int, n_envs: int, n_steps: int) -> int:
+    """Env steps PPO will actually take: ``timesteps`` rounded up to whole rollouts (SB3 always
+    finishes a rollout)."""
+    per_rollout = n_envs * rollout_steps(timesteps, n_envs, n_steps)
+    return math.ceil(timesteps / per_rollout) * per_rollout
+
+
+def check_env(env_id: str, env_kwargs: dict):
+    """Make the env once (fail fast, one line) and return its sensor names, action nvec, bounds."""
+    from mkv_env.recorder import make_env
+
+    env = make_env(env_id, env_kwargs)
+    try:
+        space = env.action_space
+        if not hasattr(space, "nvec"):
+            raise ValueError(f"env {env_id!r} has action space {space}, expected MultiDiscrete")
+        names = list(getattr(env.unwrapped, "sensor_names", []))
+        if not names:
+            raise ValueError(f"env {env_id!r} does not name its sensor channels")
+        obs = env.observation_space
+        return names, [int(v) for v in space.nvec], obs.low, obs.high
+    finally:
+        env.close()
+
+
+def _evaluate(env_id, env_kwargs, policy, episodes, seed) -> dict:
+    from sfm_learn.evaluation import evaluate
+
+    m = evaluate(env_id, policy, episodes, seed, env_kwargs).metrics
+    return {
+        "mean_return": m["mean_return"],
+        "escape_rate": m["escape_rate"],
+        "distance_m": m["distance_m"],
+    }
+
+
+def fmt_point(pt: dict) -> str:
+    text = f"steps {pt['env_steps']}: return {pt['mean_return']:.2f}"
+    if pt.get("escape_rate") is not None:
+        text += f", escape rate {pt['escape_rate']:.2f}"
+    return text + f", distance {pt['distance_m']:.2f} m"
+
+
+def train(
+    env_id: str,
+    timesteps: int,
+    *,
+    seed: int = 0,
+    n_envs: int = 2,
+    vec: str = "sync",
+    env_kwargs: dict | None = None,
+    eval_every: int | None = None,
+    eval_episodes: int = 10,
+    eval_seed: int = 10_000,
+    checkpoint_dir: str | None = None,
+    hyperparameters: dict | None = None,
+    progress=None,
+    log=None,
+):
+    """Train PPO; returns ``(model, meta)``. ``progress`` has ``update(n)``; ``log(line)`` gets
+    one line per evaluation. Writes checkpoints (atomically) when ``checkpoint_dir`` is given."""
+
+    torch = sb3.import_torch()
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    env_kwargs = dict(env_kwargs or {})
+    sensor_names, nvec, low, high = check_env(env_id, env_kwargs)
+    scale = sb3.rescale_function(low, high)
+    hp = dict(DEFAULTS)
+    hp.update(hyperparameters or {})
+    hp["n_steps"] = rollout_steps(timesteps, n_envs, hp["n_steps"])
+    per_rollout = n_envs * hp["n_steps"]
+    hp["batch_size"] = max(2, min(hp["batch_size"], per_rollout))
+    planned = planned_timesteps(timesteps, n_envs, hp["n_steps"])
+    eval_every = eval_every or max(1, timesteps // 10)
+
+    fns = [functools.partial(sb3.make_rescaled_env, env_id, env_kwargs) for _ in range(n_envs)]
+    venv = SubprocVecEnv(fns) if vec == "async" else DummyVecEnv(fns)
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "env_id": env_id,
+        "env_kwargs": env_kwargs,
+        "sensor_names": sensor_names,
+        "action_nvec": nvec,
+        "obs_rescale": {"low": np.asarray(low, dtype=float).tolist(),
+                        "high": np.asarray(high, dtype=float).tolist(), "to": [-1.0, 1.0],
+                        "wrapper": "gymnasium.wrappers.RescaleObservation"},
+        "seed": int(seed),
+        "n_envs": int(n_envs),
+        "vec": vec,
+        "timesteps_requested": int(timesteps),
+        "timesteps": 0,
+        "hyperparameters": hp,
+        "activation": "tanh",
+        "eval": {
+            "episodes": int(eval_episodes),
+            "seed": int(eval_seed),
+            "every": int(eval_every),
+            "deterministic": True,
+        },
+        "learning_curve": [],
+        "final_eval": None,
+        "train_wall_s": 0.0,
+        "eval_wall_s": 0.0,
+        **sb3.versions(),
+    }
+    state = {"excluded": 0.0, "next_eval": 0, "start": 0.0}
+
+    def policy_view(model):
+        return sb3.ActorPolicy(model.policy, nvec, transform=scale)
+
+    def do_eval(model):
+        t0 = time.perf_counter()
+        steps = int(model.num_timesteps)
+        wall = t0 - state["start"] - state["excluded"]
+        point = {
+            "env_steps": steps,
+            "wall_s": round(wall, 3),
+            **_evaluate(env_id, env_kwargs, policy_view(model), eval_episodes, eval_seed),
+        }
+        meta["learning_curve"].append(point)
+        meta["final_eval"] = point
+        if log is not None:
+            log(fmt_point(point))
+        if checkpoint_dir:
+            meta["timesteps"], meta["train_wall_s"] = steps, round(wall, 3)
+            save(model, meta, os.path.join(checkpoint_dir, f"ppo_{steps:08d}.zip"))
+        state["excluded"] += time.perf_counter() - t0
+        meta["eval_wall_s"] = round(state["excluded"], 3)
+        while state["next_eval"] <= steps:
+            state["next_eval"] += eval_every
+
+    class _Callback(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            # parameters here are exactly those trained on num_timesteps env steps
+            if self.model.num_timesteps >= state["next_eval"]:
+                do_eval(self.model)
+                self.model.policy.set_training_mode(False)
+
+        def _on_step(self) -> bool:
+            if progress is not None:
+                progress.update(n_envs)
+            return True
+
+    try:
+        model = PPO(
+            "MlpPolicy",
+            venv,
+            seed=int(seed),
+            device="cpu",
+            verbose=0,
+            n_steps=hp["n_steps"],
+            batch_size=hp["batch_size"],
+            n_epochs=hp["n_epochs"],
+            learning_rate=hp["learning_rate"],
+            gamma=hp["gamma"],
+            gae_lambda=hp["gae_lambda"],
+            clip_range=hp["clip_range"],
+            ent_coef=hp["ent_coef"],
+            vf_coef=hp["vf_coef"],
+            max_grad_norm=hp["max_grad_norm"],
+            policy_kwargs={"net_arch": list(hp["net_arch"]), "activation_fn": torch.nn.Tanh},
+        )
+        state["start"] = time.perf_counter()
+        model.learn(total_timesteps=int(timesteps), callback=_Callback())
+        if (
+            not meta["learning_curve"]
+            or meta["learning_curve"][-1]["env_steps"] != model.num_timesteps
+        ):
+            do_eval(model)
+        total = time.perf_counter() - state["start"]
+    finally:
+        try:
+            venv.close()
+        except (EOFError, OSError):  # workers already gone (Ctrl-C reaches them too)
+            pass
+    meta["timesteps"] = int(model.num_timesteps)
+    meta["timesteps_planned"] = int(planned)
+    meta["train_wall_s"] = round(total - state["excluded"], 3)
+    meta["eval_wall_s"] = round(state["excluded"], 3)
+    meta["final_eval"] = meta["learning_curve"][-1]
+    return model, meta
+
+
+def save(model, meta: dict, path: str) -> None:
+    """SB3's model zip plus ``mkv_meta.json``, written atomically."""
+
+    buf = io.BytesIO()
+    model.save(buf)
+    atomic_write_bytes(
+        path, sb3.add_member(buf.getvalue(), sb3.META_MEMBER, sb3.meta_bytes(meta))
+    )
+
+
+def read_metadata(path: str) -> dict:
+    """The ``mkv_meta.json`` of a ``mkv train-ppo`` zip (raises PolicySpecError, one line)."""
+
+    return sb3.read_policy_zip(os.fspath(path), FORMAT)[0]
+
+
+# ---------------------------------------------------------------------- ppo:PATH
+def _observation_transform(meta: dict, n: int):
+    """The observation map the policy was trained under: ``obs_rescale`` (format 2, Gymnasium's
+    RescaleObservation) or ``obs_scaling`` (format 1: centre / half-range in float64)."""
+    if "obs_rescale" in meta:
+        low = np.asarray(meta["obs_rescale"]["low"], dtype=np.float64)
+        high = np.asarray(meta["obs_rescale"]["high"], dtype=np.float64)
+        if low.shape != (n,) or high.shape != (n,):
+            raise ValueError("obs_rescale does not match the sensor names")
+        return sb3.rescale_function(low, high)
+    centre = np.asarray(meta["obs_scaling"]["centre"], dtype=np.float64)
+    half = np.asarray(meta["obs_scaling"]["half"], dtype=np.float64)
+    if centre.shape != (n,) or half.shape != (n,):
+        raise ValueError("obs_scaling does not match the sensor names")
+    return lambda o: (np.asarray(o, dtype=np.float64) - centre) / half
+
+
+def load_spec(arg, env, seed):
+    """``ppo:PATH`` -> a policy with SB3 ``predict`` (deterministic = argmax actions)."""
+    from mkv_env.policies import PolicySpecError
+
+    path = arg.strip()
+    meta, files = sb3.read_policy_zip(path, FORMAT, ("policy.pth",))
+    sb3.check_env(meta, env, path)
+    torch = sb3.import_torch()
+    import gymnasium as gym
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    try:
+        n = len(meta["sensor_names"])
+        transform = _observation_transform(meta, n)
+        acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
+        policy = ActorCriticPolicy(
+            gym.spaces.Box(-np.inf, np.inf, (n,), np.float32),
+            gym.spaces.MultiDiscrete(meta["action_nvec"]),
+            lambda _: 0.0,
+            net_arch=list(meta["hyperparameters"]["net_arch"]),
+            activation_fn=acts[meta.get("activation", "tanh")],
+        )
+        state = torch.load(io.BytesIO(files["policy.pth"]), map_location="cpu", weights_only=True)
+        policy.load_state_dict(state)
+    except PolicySpecError:
+        raise
+    except Exception as e:  # corrupt weights or metadata: one line
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise PolicySpecError(f"{path}: cannot rebuild the PPO policy ({reason})") from None
+    out = sb3.ActorPolicy(policy, meta["action_nvec"], transform=transform, seed=seed)
+    out.spec = f"ppo:{path}"
+    out.metadata = meta
+    return out
+
+
+__all__ = ["DEFAULTS", "check_env", "fmt_point", "load_spec", "planned_timesteps", "read_metadata",
+           "save", "train"]

@@ -1,0 +1,112 @@
+"""What every ``mkv`` command shares: :class:`CliError`, the env arguments, output-path checks,
+progress bars. The only module of sfm_learn besides the command modules that knows argparse.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+from sfm_common.cli import (  # noqa: F401  (re-exported for the command modules)
+    fraction,
+    non_negative_float,
+    non_negative_int,
+    one_line,
+    positive_float,
+    positive_int,
+    seed,
+)
+from sfm_common.progress import progress
+
+DEFAULT_ENV = "MKV-v0"
+
+
+class CliError(Exception):
+    """A user mistake: printed as one line, exit status 2."""
+
+
+def env_kwargs_type(text: str) -> dict:
+    """argparse type of ``--env-kwargs``: a JSON object."""
+    try:
+        v = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"not valid JSON ({e.msg})") from None
+    if not isinstance(v, dict):
+        raise argparse.ArgumentTypeError("expected a JSON object, e.g. '{\"n_clutter\": 5}'")
+    return v
+
+
+def add_env_arguments(p: argparse.ArgumentParser, required: bool = False) -> None:
+    """``--env ID`` and ``--env-kwargs JSON``."""
+    p.add_argument("--env", default=None if required else DEFAULT_ENV, required=required,
+                   metavar="ID", help="registered env id (MKV-v0, MKVJam-v0)"
+                   + ("" if required else f"; default {DEFAULT_ENV}"))
+    p.add_argument("--env-kwargs", type=env_kwargs_type, default={}, metavar="JSON",
+                   help="extra gymnasium.make arguments as a JSON object")
+
+
+def add_quiet_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def check_env_and_policies(env_id: str, env_kwargs: dict, specs=()) -> None:
+    """Fail fast (CliError) on an unknown env id, bad env kwargs or a bad policy spec; with
+    several specs, the bad one is named."""
+    from mkv_env.policies import PolicySpecError, make_policy
+    from mkv_env.recorder import make_env
+
+    try:
+        env = make_env(env_id, env_kwargs)
+    except ValueError as e:
+        raise CliError(one_line(e)) from None
+    try:
+        for spec in specs:
+            try:
+                make_policy(spec, env, seed=0)
+            except PolicySpecError as e:
+                text = one_line(e)
+                if len(specs) > 1 and spec not in text:
+                    text = f"--policy {spec}: {text}"
+                raise CliError(text) from None
+    finally:
+        env.close()
+
+
+def check_output_path(path: str, what: str = "output") -> None:
+    """The directory of ``path`` must exist and ``path`` must not be a directory."""
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise CliError(f"{what} directory {directory} does not exist")
+    if os.path.isdir(path):
+        raise CliError(f"{what} {path} is a directory")
+
+
+def check_writable(path: str, what: str) -> None:
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise CliError(f"{what} directory {directory} is not writable")
+
+
+def progress_for(args, total: int, desc: str, unit: str = "ep"):
+    """A progress bar unless ``--quiet`` (drawn only on a terminal)."""
+    return progress(total, desc, unit=unit, enabled=False if getattr(args, "quiet", False)
+                    else None)
+
+
+def load_dataset(path: str):
+    """A dataset file (mkv_env.dataset.load), with a one-line error when it is missing."""
+    from mkv_env.dataset import load
+
+    if not os.path.exists(path):
+        raise CliError(f"dataset {path} does not exist")
+    if os.path.isdir(path):
+        raise CliError(f"{path} is a directory, not a dataset file")
+    return load(path)
+
+
+def check_png_path(path: str, what: str) -> None:
+    """An output PNG: its directory exists and the name ends in .png."""
+    check_output_path(path, what)
+    if not path.lower().endswith(".png"):
+        raise CliError(f"{what} {path} must end in .png")

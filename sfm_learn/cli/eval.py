@@ -1,0 +1,120 @@
+"""``mkv eval``: evaluate policies on the same seeded episodes (see :mod:`sfm_learn.evaluation`).
+
+::
+
+    mkv eval --env MKVJam-v0 --policy teacher [--policy random ...] --episodes N [--seed S]
+             [--workers N] [--json OUT.json] [--plot OUT.png] [--env-kwargs JSON] [--quiet]
+
+Every ``--policy`` runs episodes with env seeds ``S .. S+N-1``. Stdout gets a Markdown table
+(one row per policy, one column per metric, ``value [low, high]`` with a bootstrap confidence
+interval). ``--json`` writes one evaluation object for one policy, a list in ``--policy`` order
+for several; ``--plot`` writes a bar plot with the intervals as error bars (needs matplotlib).
+All specs, the env and the output paths are checked before any episode runs; files are written
+only when everything has run (an error or Ctrl-C leaves none).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from sfm_common.files import atomic_write_text
+from sfm_learn.cli.common import (
+    CliError,
+    add_env_arguments,
+    add_quiet_argument,
+    check_env_and_policies,
+    check_output_path,
+    check_writable,
+    positive_int,
+    progress_for,
+    seed,
+)
+
+
+def max_workers() -> int:
+    """The largest ``--workers`` accepted: 4 per CPU."""
+    return 4 * (os.cpu_count() or 1)
+
+
+def _workers(text: str) -> int:
+    v = positive_int(text)
+    if v > max_workers():
+        raise argparse.ArgumentTypeError(
+            f"expected at most {max_workers()} (4 per CPU), got {text!r}")
+    return v
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_env_arguments(p, required=True)
+    p.add_argument("--policy", required=True, action="append", metavar="SPEC",
+                   help="teacher, teacher:key=value,..., random, script:PATH, sfm:PATH, "
+                        "ppo:PATH, bc:PATH; repeat to compare several on the same seeds "
+                        "(each spec at most once)")
+    p.add_argument("--episodes", type=positive_int, required=True, metavar="N",
+                   help="episodes per policy")
+    p.add_argument("--seed", type=seed, default=0, metavar="S",
+                   help="episode i uses env seed S+i (default 0)")
+    p.add_argument("--workers", type=_workers, default=1, metavar="N",
+                   help="worker processes (default 1: run in this process); the numbers do "
+                        "not depend on it")
+    p.add_argument("--json", metavar="OUT.json",
+                   help="also write the metrics and confidence intervals as JSON")
+    p.add_argument("--plot", metavar="OUT.png",
+                   help="also write a bar plot of every metric (needs matplotlib)")
+    add_quiet_argument(p)
+
+
+def _check_plot(path: str) -> None:
+    check_output_path(path, "plot")
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        raise CliError("--plot needs matplotlib (pip install 'mkv-sfm[plots]')") from None
+    ext = os.path.splitext(path)[1].lstrip(".").lower()
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if ext not in formats:
+        raise CliError(f"plot {path}: unsupported file type {ext or '(none)'!r}; use one of "
+                       + ", ".join(sorted(formats)))
+
+
+def run(args) -> int:
+    from sfm_learn.evaluation import evaluate_many, evaluations_json
+    from sfm_learn.reporting.tables import format_markdown
+
+    specs = [s.strip() for s in args.policy]
+    seen = set()
+    for s in specs:
+        if s in seen:
+            raise CliError(f"--policy {s} given more than once")
+        seen.add(s)
+    outputs = [p for p in (args.json, args.plot) if p]
+    if len(outputs) == 2 and os.path.abspath(args.json) == os.path.abspath(args.plot):
+        raise CliError("--json and --plot name the same file")
+    if args.json:
+        check_output_path(args.json, "JSON output")
+        check_writable(args.json, "JSON output")
+    if args.plot:
+        _check_plot(args.plot)
+        check_writable(args.plot, "plot")
+    check_env_and_policies(args.env, args.env_kwargs, specs)
+
+    desc = f"eval {specs[0]}" if len(specs) == 1 else f"eval {len(specs)} policies"
+    with progress_for(args, args.episodes * len(specs), desc) as bar:
+        results = evaluate_many(args.env, specs, args.episodes, args.seed, args.env_kwargs,
+                                workers=args.workers, on_episode=lambda p, i, n: bar.update(1))
+    print(format_markdown(results))
+    if args.plot:
+        from sfm_learn.reporting.plots import plot_evaluations
+
+        plot_evaluations(results, args.plot)
+    if args.json:
+        try:
+            atomic_write_text(args.json, evaluations_json(results))
+        except BaseException:
+            if args.plot and os.path.exists(args.plot):
+                os.unlink(args.plot)  # all or nothing
+            raise
+    for path in outputs:
+        print(f"wrote {path}")
+    return 0

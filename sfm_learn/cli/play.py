@@ -1,0 +1,123 @@
+"""``mkv play``: render an episode of a policy, in a window or as frames (PNG files or a GIF).
+
+::
+
+    mkv play --policy SPEC [--env ID] [--seed S] [--max-steps N] [--out FRAMES_DIR | OUT.gif]
+
+Without a display the frames go to ``play_frames/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from sfm_common.files import atomic_path
+from sfm_learn.cli.common import (
+    CliError,
+    add_env_arguments,
+    check_env_and_policies,
+    check_output_path,
+    positive_int,
+    seed,
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_env_arguments(p)
+    p.add_argument("--policy", required=True, metavar="SPEC")
+    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
+                   help="stop after N steps (default: the episode's own end)")
+    p.add_argument("--out", metavar="DIR|OUT.gif",
+                   help="write frames (PNG files in DIR, or one animated GIF) instead of a "
+                        "window; the default without a display is play_frames/")
+
+
+def has_display() -> bool:
+    """Whether a pygame window can be opened (not SDL's dummy driver, an X/Wayland display)."""
+    if os.environ.get("SDL_VIDEODRIVER", "") in ("dummy", "offscreen"):
+        return False
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def run(args) -> int:
+    from mkv_env.policies import make_policy
+    from mkv_env.recorder import make_env, policy_seed
+
+    out = args.out
+    if out is None and not has_display():
+        out = "play_frames"
+    gif = out is not None and out.lower().endswith(".gif")
+    if out is not None:
+        if gif:
+            check_output_path(out)
+        elif os.path.exists(out) and not os.path.isdir(out):
+            raise CliError(f"frames directory {out} exists and is not a directory")
+    if gif:
+        try:
+            import PIL.Image  # noqa: F401  (only to write GIFs)
+        except ImportError:
+            raise CliError("writing a GIF needs Pillow; give a directory for PNG frames") from None
+    check_env_and_policies(args.env, args.env_kwargs, [args.policy])
+    try:
+        import pygame  # noqa: F401
+    except ImportError:
+        raise CliError("mkv play needs pygame (pip install 'mkv-sfm[render]')") from None
+
+    env = make_env(args.env, args.env_kwargs, render_mode="rgb_array" if out else "human")
+    frames = []
+    try:
+        policy = make_policy(args.policy, env, seed=policy_seed(args.seed))
+        if hasattr(policy, "reset"):
+            policy.reset(seed=policy_seed(args.seed))
+        obs, info = env.reset(seed=args.seed)
+        if out:
+            frames.append(env.render())
+        steps, ret, start = 0, 0.0, True
+        while True:
+            action, _ = policy.predict(obs, episode_start=start)
+            start = False
+            obs, reward, terminated, truncated, info = env.step(action)
+            ret += float(reward)
+            steps += 1
+            if out:
+                frames.append(env.render())
+            if terminated or truncated or (args.max_steps and steps >= args.max_steps):
+                break
+    finally:
+        env.close()
+    summary = f"{steps} steps, return {ret:.2f}, distance {info['distance_m']:.2f} m"
+    if "escaped" in info:
+        summary += ", escaped" if info["escaped"] else ", not escaped"
+    print(summary)
+    if out:
+        written = _write_gif(frames, out, env.metadata.get("render_fps", 10)) if gif \
+            else _write_pngs(frames, out)
+        print(f"wrote {written}")
+    return 0
+
+
+def _write_pngs(frames, directory: str) -> str:
+    import numpy as np
+    import pygame
+
+    os.makedirs(directory, exist_ok=True)
+    width = max(4, len(str(len(frames))))
+    for i, frame in enumerate(frames):
+        surface = pygame.surfarray.make_surface(np.ascontiguousarray(frame.transpose(1, 0, 2)))
+        pygame.image.save(surface, os.path.join(directory, f"frame_{i:0{width}d}.png"))
+    return f"{len(frames)} PNG frames to {directory}"
+
+
+def _write_gif(frames, path: str, fps: int) -> str:
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames]
+    with atomic_path(path, ".gif") as tmp:
+        images[0].save(tmp, save_all=True, append_images=images[1:],
+                       duration=max(1, round(1000 / fps)), loop=0)
+    return f"{len(frames)} frames to {path}"

@@ -1,0 +1,376 @@
+"""The shape-from-motion policy: features -> eigenspace projector -> three-valued motor commands.
+
+Training (the paper's section 9, DESIGN.md section 4): every time step of the teacher's runs
+becomes one row ``[sensor features, motor commands]``; :class:`~sfm_learn.eigenspace.projector.
+EigenspaceProjector` standardises the columns, takes the SVD and keeps the leading eigenvectors.
+At run time only the sensor part is known: the projector solves the eigenspace coefficients from
+it and reconstructs the commands, continuous values on the signed scale (reverse/left = -1,
+off = 0, forward/right = +1). Each is then quantised back to reverse / off / forward with two
+thresholds ``lo < hi`` per command::
+
+    command = reverse (index 0) if value < lo,  off (1) if lo <= value <= hi,  forward (2) if > hi
+
+``thresholds="fixed"`` uses the midpoints ``lo = -0.5, hi = +0.5``. ``thresholds="learned"`` (the
+default) picks, per command, the pair that maximises the *balanced* accuracy (mean per-class
+recall) on the training rows, so a rare class (reverse, steering) is not given up for the frequent
+one; both are recorded in the saved model.
+
+Files: ``POLICY.npz`` holds the arrays (projector state, thresholds) and one JSON member with the
+metadata: format, feature spec, sensor names, env id, training summary (rows, episodes, rank,
+singular values, wall time). Loading checks the format and, given an env, that its sensor names
+equal the saved ones.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import time
+import zipfile
+
+import numpy as np
+
+from sfm_common.files import atomic_path
+from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec, default_feature_spec
+from sfm_learn.eigenspace.projector import EigenspaceProjector
+
+__all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thresholds",
+           "quantise", "FORMAT"]
+
+FORMAT = "mkv-sfm-policy"
+FORMAT_VERSION = 1
+FIXED_THRESHOLDS = (-0.5, 0.5)
+_META_MEMBER = "metadata.json"
+_ARRAYS = ("mean_", "scale_", "components_", "singular_values_", "coef_", "intercept_",
+           "thresholds")
+
+
+class PolicyFileError(ValueError):
+    """A policy file that is missing, corrupt, of another format or for another sensor layout."""
+
+
+def quantise(values, thresholds):
+    """Map continuous signed commands (n, n_act) or (n_act,) to action indices 0/1/2.
+
+    ``thresholds`` has shape (n_act, 2): ``(lo, hi)`` per command.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    t = np.asarray(thresholds, dtype=np.float64)
+    return (v >= t[..., 0]).astype(np.int64) + (v > t[..., 1]).astype(np.int64)
+
+
+def _balanced_accuracy(pred, true, n_classes=3):
+    recalls = [np.mean(pred[true == c] == c) for c in range(n_classes) if np.any(true == c)]
+    return float(np.mean(recalls)) if recalls else 0.0
+
+
+def learn_thresholds(values, actions, n_grid=41):
+    """Per command, the ``(lo, hi)`` pair that maximises balanced accuracy on training rows.
+
+    Args:
+        values: reconstructed signed commands, shape (n, n_act).
+        actions: the teacher's action indices, shape (n, n_act).
+        n_grid: candidate thresholds per side (quantiles of the values).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    actions = np.asarray(actions)
+    out = np.empty((values.shape[1], 2))
+    for j in range(values.shape[1]):
+        v, a = values[:, j], actions[:, j]
+        cand = np.unique(np.quantile(v, np.linspace(0.0, 1.0, n_grid)))
+        cand = np.concatenate([[-np.inf], (cand[:-1] + cand[1:]) / 2, [np.inf]])
+        best, best_score = FIXED_THRESHOLDS, -1.0
+        for lo in cand:
+            for hi in cand[cand >= lo]:
+                score = _balanced_accuracy(quantise(v, np.array([lo, hi])), a)
+                if score > best_score + 1e-12:
+                    best, best_score = (lo, hi), score
+        lo, hi = best
+        # infinite thresholds (a class never predicted) are stored as large finite numbers
+        out[j] = [np.clip(lo, -1e6, 1e6), np.clip(hi, -1e6, 1e6)]
+    return out
+
+
+class SfMPolicy:
+    """A fitted shape-from-motion policy with the stable-baselines3 ``predict`` interface.
+
+    Build one with :func:`fit_policy` or :meth:`load`. It is stateful like the teacher (the
+    feature builder keeps history, traces and the previous command): ``predict`` with
+    ``episode_start=True`` or :meth:`reset` starts a new episode.
+    """
+
+    def __init__(self, projector: EigenspaceProjector, feature_spec: FeatureSpec, thresholds,
+                 env_id: str | None = None, training: dict | None = None):
+        self.projector = projector
+        self.feature_spec = feature_spec
+        self.builder = FeatureBuilder(feature_spec)
+        self.thresholds = np.asarray(thresholds, dtype=np.float64).reshape(-1, 2)
+        self.env_id = env_id
+        self.training = dict(training or {})
+        self.spec = "sfm"
+        self._coef = np.ascontiguousarray(projector.coef_)
+        self._intercept = projector.intercept_.copy()
+        self._prev = None
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def sensor_names(self) -> tuple:
+        return tuple(self.feature_spec.obs_names)
+
+    @property
+    def n_components(self) -> int:
+        return int(self.projector.n_components_)
+
+    # ------------------------------------------------------------------ run time
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode (forget history, traces and the previous command)."""
+        self.builder.reset()
+        self._prev = None
+
+    def command_values(self, observation) -> np.ndarray:
+        """Continuous signed commands for one observation (advances the feature state)."""
+        f = self.builder.step(observation, self._prev)
+        return f @ self._coef + self._intercept
+
+    def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
+        """SB3-style: ``(action, None)``; action int64 of shape (n_act,) for one observation."""
+        obs = np.asarray(observation)
+        if obs.ndim != 1:
+            raise ValueError(f"SfMPolicy.predict takes one observation of shape "
+                             f"({len(self.sensor_names)},), got shape {obs.shape}")
+        if episode_start is not None and bool(np.any(episode_start)):
+            self.reset()
+        action = self.decode(self.command_values(obs))
+        self._prev = action
+        return action, None
+
+    def batch_values(self, observations, actions, episode_start) -> np.ndarray:
+        """Continuous commands for a whole recording, the previous command taken from
+        ``actions`` (the teacher's: an open-loop replay, as in the paper's Figure 3)."""
+        f = self.builder.transform(observations, actions, episode_start)
+        return f @ self._coef + self._intercept
+
+    def batch_predict(self, observations, actions, episode_start) -> np.ndarray:
+        """Quantised :meth:`batch_values`: the action indices (n, n_act)."""
+        return self.decode(self.batch_values(observations, actions, episode_start))
+
+    @property
+    def encoding(self) -> str:
+        n_act = len(self.feature_spec.action_nvec)
+        return "signed" if self._intercept.shape[-1] == n_act else "onehot"
+
+    def decode(self, values) -> np.ndarray:
+        """Reconstructed command columns -> action indices: thresholds on signed values, or the
+        largest entry of each one-hot block."""
+        if self.encoding == "signed":
+            return quantise(values, self.thresholds)
+        v = np.asarray(values)
+        out, k0 = [], 0
+        for k in self.feature_spec.action_nvec:
+            out.append(np.argmax(v[..., k0:k0 + k], axis=-1))
+            k0 += k
+        return np.stack(out, axis=-1).astype(np.int64)
+
+    # ------------------------------------------------------------------ files
+    def metadata(self) -> dict:
+        return {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "env_id": self.env_id,
+            "sensor_names": list(self.sensor_names),
+            "feature_spec": self.feature_spec.to_dict(),
+            "projector": self.projector.get_params(),
+            "n_components": self.n_components,
+            "n_known": int(self.projector.n_known_),
+            "n_samples_seen": float(self.projector.n_samples_seen_),
+            "rank_floor": float(self.projector.rank_floor_),
+            "noise_variance": float(self.projector.noise_variance_),
+            "training": self.training,
+        }
+
+    def save(self, path) -> str:
+        """Write ``path`` (.npz) atomically; returns the path."""
+        path = os.fspath(path)
+        arrays = {
+            "mean_": self.projector.mean_, "scale_": self.projector.scale_,
+            "components_": self.projector.components_,
+            "singular_values_": self.projector.singular_values_,
+            "coef_": self.projector.coef_, "intercept_": self.projector.intercept_,
+            "thresholds": self.thresholds,
+        }
+        meta = json.dumps(self.metadata(), indent=2, sort_keys=True, default=_json_default)
+        with atomic_path(path, ".npz") as tmp, zipfile.ZipFile(tmp, "w",
+                                                               zipfile.ZIP_DEFLATED) as zf:
+            for key, a in arrays.items():
+                buf = io.BytesIO()
+                np.save(buf, np.asarray(a), allow_pickle=False)
+                zf.writestr(key + ".npy", buf.getvalue())
+            zf.writestr(_META_MEMBER, meta)
+        return path
+
+    @classmethod
+    def load(cls, path, env=None) -> SfMPolicy:
+        """Read a policy file; with ``env``, check its sensor names match (PolicyFileError)."""
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            raise PolicyFileError(f"policy file {path} does not exist")
+        try:
+            with zipfile.ZipFile(path) as zf:
+                if _META_MEMBER not in zf.namelist():
+                    raise PolicyFileError(f"{path} is not an SfM policy file (no {_META_MEMBER}; "
+                                          f"a dataset or another model?)")
+                meta = json.loads(zf.read(_META_MEMBER))
+                if meta.get("format") != FORMAT:
+                    raise PolicyFileError(f"{path} is not an SfM policy file "
+                                          f"(format {meta.get('format')!r})")
+                arrays = {k: np.load(io.BytesIO(zf.read(k + ".npy")), allow_pickle=False)
+                          for k in _ARRAYS}
+        except PolicyFileError:
+            raise
+        except (zipfile.BadZipFile, KeyError, ValueError, OSError) as e:
+            why = str(e).splitlines()[0] if str(e) else ""
+            raise PolicyFileError(f"{path} is not a readable SfM policy file "
+                                  f"({type(e).__name__}: {why})") from None
+        if meta.get("format_version", 0) > FORMAT_VERSION:
+            raise PolicyFileError(f"{path} has format version {meta['format_version']}; this "
+                                  f"package reads up to {FORMAT_VERSION}")
+        spec = FeatureSpec.from_dict(meta["feature_spec"])
+        proj = EigenspaceProjector(**meta["projector"])
+        proj.mean_, proj.scale_ = arrays["mean_"], arrays["scale_"]
+        proj.components_ = arrays["components_"]
+        proj.singular_values_ = arrays["singular_values_"]
+        proj.coef_, proj.intercept_ = arrays["coef_"], arrays["intercept_"]
+        proj.n_components_ = int(meta["n_components"])
+        proj.n_known_ = int(meta["n_known"])
+        proj.n_missing_ = int(arrays["intercept_"].shape[0])
+        proj.n_features_in_ = proj.n_known_ + proj.n_missing_
+        proj.n_samples_seen_ = float(meta["n_samples_seen"])
+        proj.explained_variance_ = proj.singular_values_**2 / max(proj.n_samples_seen_, 1.0)
+        proj.rank_floor_ = float(meta["rank_floor"])
+        proj.noise_variance_ = float(meta["noise_variance"])
+        if proj.coef_.shape != (proj.n_known_, proj.n_missing_):
+            raise PolicyFileError(f"{path} is inconsistent: coefficient shape {proj.coef_.shape}")
+        policy = cls(proj, spec, arrays["thresholds"], meta.get("env_id"), meta.get("training"))
+        if env is not None:
+            policy.check_env(env, path)
+        return policy
+
+    def check_env(self, env, path="the policy") -> None:
+        """Raise PolicyFileError unless ``env`` has this policy's sensor layout and actions."""
+        names = tuple(getattr(env.unwrapped, "sensor_names", ()))
+        if names != self.sensor_names:
+            raise PolicyFileError(
+                f"{path} was fitted on sensors [{', '.join(self.sensor_names)}] but the env has "
+                f"[{', '.join(names)}]")
+        nvec = tuple(int(n) for n in getattr(env.action_space, "nvec", ()))
+        if nvec != tuple(self.feature_spec.action_nvec):
+            raise PolicyFileError(f"{path} commands {tuple(self.feature_spec.action_nvec)} but "
+                                  f"the env's action space is {env.action_space}")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def signed_actions(actions, nvec) -> np.ndarray:
+    """Action indices -> signed values (index ``a`` of an n-valued command -> ``a - (n-1)/2``)."""
+    return np.asarray(actions, dtype=np.float64) - (np.asarray(nvec, dtype=np.float64) - 1) / 2
+
+
+def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=None,
+               solver: str = "ppca", rank_rtol: float = 1e-3, thresholds: str = "learned",
+               alpha: float = 1e-3, encoding: str = "signed") -> SfMPolicy:
+    """Fit an :class:`SfMPolicy` to a recorded :class:`~mkv_env.dataset.Dataset`.
+
+    Args:
+        data: the teacher's recording (any number of episodes), or a list of recordings with
+            the same sensor layout (e.g. wandering runs plus jam runs), stacked.
+        feature_spec: the features; default
+            :func:`~sfm_learn.eigenspace.features.default_feature_spec`.
+        n_components: kept eigenvectors; ``None`` = the paper's largest-ratio rule.
+        solver, rank_rtol, alpha: passed to :class:`EigenspaceProjector`.
+        thresholds: ``"learned"`` (balanced accuracy on the training rows) or ``"fixed"``.
+        encoding: the command columns of the training matrix: ``"signed"`` (one column per
+            command, -1/0/+1, quantised by thresholds) or ``"onehot"`` (one column per command
+            value, decoded by the largest reconstructed entry).
+    """
+    if thresholds not in ("learned", "fixed"):
+        raise ValueError(f"thresholds must be 'learned' or 'fixed', got {thresholds!r}")
+    if encoding not in ("signed", "onehot"):
+        raise ValueError(f"encoding must be 'signed' or 'onehot', got {encoding!r}")
+    t0 = time.perf_counter()
+    datasets = list(data) if isinstance(data, list | tuple) else [data]
+    if not datasets:
+        raise ValueError("no dataset to fit")
+    names = list(datasets[0].sensor_names)
+    for d in datasets[1:]:
+        if list(d.sensor_names) != names:
+            raise ValueError(f"datasets have different sensor layouts: {names} vs "
+                             f"{list(d.sensor_names)}")
+    nvec = (3, 3)
+    if feature_spec is None:
+        feature_spec = default_feature_spec(names, nvec)
+    elif tuple(feature_spec.obs_names) != tuple(names):
+        raise ValueError("the feature spec's obs_names differ from the dataset's sensor names")
+    builder = FeatureBuilder(feature_spec)
+    feats = np.concatenate([builder.transform(d["observations"], d["actions"], episode_starts(d))
+                            for d in datasets])
+    actions = np.concatenate([np.asarray(d["actions"], dtype=np.int64) for d in datasets])
+    if encoding == "onehot":
+        target = onehot_actions(actions, feature_spec.action_nvec)
+    else:
+        target = signed_actions(actions, feature_spec.action_nvec)
+    proj = EigenspaceProjector(n_components, rank_rtol=rank_rtol, solver=solver, alpha=alpha)
+    proj.fit(feats, target)
+    values = feats @ proj.coef_ + proj.intercept_
+    if encoding == "onehot":
+        thr = np.zeros((0, 2))
+    elif thresholds == "learned":
+        thr = learn_thresholds(values, actions)
+    else:
+        thr = np.tile(FIXED_THRESHOLDS, (target.shape[1], 1))
+    env_ids = sorted({str(d.metadata.get("env_id")) for d in datasets})
+    training = {
+        "rows": int(len(actions)),
+        "episodes": int(sum(d.n_episodes for d in datasets)),
+        "datasets": [{"env_id": d.metadata.get("env_id"), "episodes": int(d.n_episodes),
+                      "rows": int(d.n_steps), "sha256": d.metadata.get("content_sha256"),
+                      "teacher": d.metadata.get("policy")} for d in datasets],
+        "encoding": encoding,
+        "thresholds": thresholds if encoding == "signed" else "argmax",
+        "wall_s": round(time.perf_counter() - t0, 4),
+    }
+    return SfMPolicy(proj, feature_spec, thr, env_ids[0] if len(env_ids) == 1 else None,
+                     training)
+
+
+def onehot_actions(actions, nvec) -> np.ndarray:
+    """Action indices (n, n_act) -> one-hot blocks (n, sum(nvec)), 0/1 floats."""
+    actions = np.asarray(actions, dtype=np.int64)
+    blocks = [np.eye(int(k))[actions[:, j]] for j, k in enumerate(nvec)]
+    return np.concatenate(blocks, axis=1)
+
+
+def episode_starts(data) -> np.ndarray:
+    """Boolean (n_steps,) flags, True at the first step of every episode."""
+    starts = np.zeros(data.n_steps, dtype=bool)
+    for sl in data.episode_slices():
+        starts[sl.start] = True
+    return starts
+
+
+def load_spec(arg: str, env, seed):
+    """Policy-spec loader for ``sfm:PATH``."""
+    from mkv_env.policies import PolicySpecError
+
+    if not arg:
+        raise PolicySpecError("sfm: needs a path, e.g. sfm:policy.npz")
+    try:
+        return SfMPolicy.load(arg, env)
+    except PolicyFileError as e:
+        raise PolicySpecError(str(e)) from None

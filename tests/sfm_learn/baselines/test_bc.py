@@ -1,0 +1,250 @@
+"""``mkv train-bc`` and ``bc:PATH``: accuracy against the majority class, online == batch,
+file format, one-line errors, no partial output."""
+
+import io
+import json
+import os
+import zipfile
+
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+from mkv_env import dataset as ds  # noqa: E402
+from mkv_env.policies import make_policy  # noqa: E402
+from mkv_env.recorder import make_env, record  # noqa: E402
+from sfm_learn.baselines import bc  # noqa: E402
+from sfm_learn.cli import main  # noqa: E402
+
+ENV_KW = {"max_episode_steps": 150}
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def teacher_data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bcdata") / "teacher.npz"
+    ds.save(record("MKV-v0", "teacher", episodes=10, seed=0, env_kwargs=ENV_KW), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def trained(teacher_data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bc") / "bc.zip"
+    code = main(["train-bc", str(teacher_data), "--out", str(out), "--epochs", "15", "--quiet"])
+    assert code == 0
+    return out
+
+
+def test_held_out_accuracy_beats_the_majority_class(teacher_data, trained):
+    data = ds.load(teacher_data)
+    train, held = data.split(0.2, seed=0)
+    meta = bc.read_metadata(trained)
+    assert meta["teacher_steps"] == train.n_steps and meta["held_out_steps"] == held.n_steps
+    for j, name in enumerate(bc.ACTION_NAMES):
+        majority = np.bincount(train["actions"][:, j], minlength=3).argmax()
+        baseline = float(np.mean(held["actions"][:, j] == majority))
+        acc = meta["held_out"]["accuracy"][name]
+        assert meta["held_out"]["majority_accuracy"][name] == pytest.approx(baseline)
+        # at least half of the majority-class errors removed
+        assert 1 - acc <= 0.5 * (1 - baseline), (name, acc, baseline)
+
+
+def test_metadata_contents(teacher_data, trained):
+    data = ds.load(teacher_data)
+    meta = bc.read_metadata(trained)
+    assert meta["format"] == "mkv-bc" and meta["env_id"] == "MKV-v0"
+    assert meta["sensor_names"] == data.sensor_names and meta["action_nvec"] == [3, 3]
+    assert meta["features"] == "default" and meta["epochs"] == 15
+    assert meta["dataset"]["content_sha256"] == data.metadata["content_sha256"]
+    assert meta["dataset"]["file"] == "teacher.npz"
+    assert len(meta["input_mean"]) == len(meta["input_std"]) > len(data.sensor_names)
+    assert meta["train_wall_s"] > 0 and len(meta["history"]) == 15
+    assert set(meta["held_out"]["recall"]) == {"drive", "steer"}
+    json.dumps(meta, allow_nan=False)
+    with zipfile.ZipFile(trained) as zf:
+        assert sorted(zf.namelist()) == ["mkv_meta.json", "policy.pth"]
+
+
+def test_online_predict_equals_batch_path(trained):
+    env = make_env("MKV-v0", ENV_KW)
+    policy = make_policy(f"bc:{trained}", env, seed=0)
+    env.close()
+    # record episodes with the BC policy itself: its actions are the previous commands it sees
+    data = record("MKV-v0", policy, episodes=2, seed=50, env_kwargs={"max_episode_steps": 60})
+    batch = policy.batch_actions(data["observations"], data["actions"], data["step"] == 0)
+    assert np.array_equal(batch, data["actions"])
+    # a single observation in, shape (2,) out; a (1, n_obs) batch gives (1, 2)
+    policy.reset(seed=0)
+    a, state = policy.predict(data["observations"][0])
+    assert a.shape == (2,) and state is None
+    a2, _ = policy.predict(data["observations"][:1], episode_start=np.array([True]))
+    assert a2.shape == (1, 2) and np.array_equal(a2[0], a)
+    with pytest.raises(ValueError, match="one observation at a time"):
+        policy.predict(data["observations"][:3])
+
+
+def test_mkv_eval_runs_a_bc_policy(trained, capsys):
+    code, text, err = run(
+        capsys,
+        "eval",
+        "--env",
+        "MKV-v0",
+        "--env-kwargs",
+        '{"max_episode_steps": 30}',
+        "--policy",
+        f"bc:{trained}",
+        "--episodes",
+        "2",
+        "--quiet",
+    )
+    assert code == 0, err
+    assert f"bc:{trained}" in text
+
+
+def test_raw_features_and_same_seed_same_weights(teacher_data, tmp_path, capsys):
+    import torch
+
+    outs = []
+    for name in ("a.zip", "b.zip"):
+        out = tmp_path / name
+        code, text, err = run(
+            capsys,
+            "train-bc",
+            str(teacher_data),
+            "--out",
+            str(out),
+            "--features",
+            "raw",
+            "--epochs",
+            "2",
+            "--held-out",
+            "0.3",
+        )
+        assert code == 0, err
+        assert "held-out" in text and "majority-class baseline" in text and "recall" in text
+        outs.append(out)
+    metas = [bc.read_metadata(o) for o in outs]
+    assert metas[0]["features"] == "raw" and len(metas[0]["input_mean"]) == 10
+    assert metas[0]["held_out"] == metas[1]["held_out"]
+    weights = []
+    for o in outs:
+        with zipfile.ZipFile(o) as zf:
+            weights.append(zf.read("policy.pth"))
+    sd = [torch.load(io.BytesIO(w), weights_only=True) for w in weights]
+    assert all(torch.equal(sd[0][k], sd[1][k]) for k in sd[0])
+
+
+def test_sensor_layout_mismatch(teacher_data, tmp_path, capsys):
+    data = ds.load(teacher_data)
+    renamed = [f"{n}_v2" if n == "battery" else n for n in data.sensor_names]
+    other = ds.build(dict(data.arrays), dict(data.metadata, sensor_names=renamed))
+    ds.save(other, tmp_path / "other.npz")
+    out = tmp_path / "other.zip"
+    assert (
+        run(
+            capsys,
+            "train-bc",
+            str(tmp_path / "other.npz"),
+            "--out",
+            str(out),
+            "--epochs",
+            "1",
+            "--quiet",
+        )[0]
+        == 0
+    )
+    code, _, err = run(
+        capsys, "eval", "--env", "MKV-v0", "--policy", f"bc:{out}", "--episodes", "1"
+    )
+    assert code == 2 and err.count("\n") == 1
+    assert "other.zip was trained on sensors [" in err and "battery_v2" in err
+    assert "but env has [" in err
+
+
+def test_bc_zip_as_ppo_is_refused(trained, capsys):
+    code, _, err = run(
+        capsys, "eval", "--env", "MKV-v0", "--policy", f"ppo:{trained}", "--episodes", "1"
+    )
+    assert code == 2 and err.count("\n") == 1
+    assert "is a behaviour-cloning policy, not a PPO model; use bc:" in err
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("missing", "does not exist"),
+        ("text", "not a readable dataset"),
+        ("directory", "is a directory"),
+        ("outdir", "does not exist"),
+        ("held_out", "fraction in [0, 1)"),
+        ("epochs", "positive integer"),
+        ("lr", "positive number"),
+        ("features", "invalid choice"),
+    ],
+)
+def test_train_bc_bad_input_is_one_line_exit_2(teacher_data, tmp_path, capsys, case, message):
+    (tmp_path / "notes.npz").write_text("not a zip\n")
+    (tmp_path / "d").mkdir()
+    data, out, extra = str(teacher_data), str(tmp_path / "bc.zip"), []
+    if case == "missing":
+        data = str(tmp_path / "nothing.npz")
+    elif case == "text":
+        data = str(tmp_path / "notes.npz")
+    elif case == "directory":
+        data = str(tmp_path / "d")
+    elif case == "outdir":
+        out = str(tmp_path / "no" / "bc.zip")
+    elif case == "held_out":
+        extra = ["--held-out", "1.5"]
+    elif case == "epochs":
+        extra = ["--epochs", "-1"]
+    elif case == "lr":
+        extra = ["--lr", "nan"]
+    elif case == "features":
+        extra = ["--features", "fancy"]
+    code, _, err = run(capsys, "train-bc", data, "--out", out, *extra)
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    assert err.startswith("mkv train-bc: error:") and "Traceback" not in err
+    assert sorted(os.listdir(tmp_path)) == ["d", "notes.npz"]
+
+
+def test_interrupt_leaves_no_output(teacher_data, tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bc, "action_metrics", interrupted)
+    code, _, err = run(
+        capsys,
+        "train-bc",
+        str(teacher_data),
+        "--out",
+        str(tmp_path / "b.zip"),
+        "--epochs",
+        "2",
+        "--quiet",
+    )
+    assert code == 130 and "interrupted" in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_corrupt_bc_zip_is_one_line(trained, tmp_path, capsys):
+    bad = tmp_path / "bad.zip"
+    with zipfile.ZipFile(trained) as src, zipfile.ZipFile(bad, "w") as dst:
+        dst.writestr("mkv_meta.json", src.read("mkv_meta.json"))
+        dst.writestr("policy.pth", b"garbage")
+    code, _, err = run(
+        capsys, "eval", "--env", "MKV-v0", "--policy", f"bc:{bad}", "--episodes", "1"
+    )
+    assert code == 2 and err.count("\n") == 1 and "cannot rebuild the BC policy" in err
+    truncated = tmp_path / "trunc.zip"
+    truncated.write_bytes(trained.read_bytes()[:200])
+    code, _, err = run(
+        capsys, "eval", "--env", "MKV-v0", "--policy", f"bc:{truncated}", "--episodes", "1"
+    )
+    assert code == 2 and err.count("\n") == 1 and "not a readable bc policy zip" in err

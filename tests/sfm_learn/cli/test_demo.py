@@ -1,0 +1,89 @@
+"""``mkv demo --quick`` end to end, and the report's computed conclusions."""
+
+import json
+
+import pytest
+
+from sfm_learn.cli import main
+from sfm_learn.evaluation import EpisodeRecord, Evaluation, aggregate
+from sfm_learn.reporting.report import conclusions
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "out"
+    assert main(["demo", "--quick", "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_quick_demo_writes_the_report_and_every_file_it_links(demo_dir):
+    report = (demo_dir / "report.md").read_text()
+    for heading in ("## Set-up", "## The shape-from-motion policy and the paper's Figure 3",
+                    "## Closed loop", "## Learning cost", "## Conclusions",
+                    "## Force-sensor calibration", "## How this report was made"):
+        assert heading in report
+    for png in ("fig3.png", "sfm_spectrum.png", "eval/jam.png", "eval/wander.png",
+                "learning_cost.png"):
+        assert f"({png})" in report
+        assert (demo_dir / png).read_bytes()[:4] == b"\x89PNG"
+    assert (demo_dir / "calib" / "trials.md").exists()
+    assert "Quick run" in report
+
+
+def test_quick_demo_evaluates_every_policy_on_the_same_seeds(demo_dir):
+    for key, env in (("jam", "MKVJam-v0"), ("wander", "MKV-v0")):
+        doc = json.loads((demo_dir / "eval" / f"{key}.json").read_text())
+        assert [d["policy"] for d in doc] == ["teacher", "random", "SfM", "BC", "PPO"]
+        assert all(d["env"] == env and d["seed"] == 1000 for d in doc)
+        assert all(set(d["metrics_ci"]) == set(d["metrics"]) for d in doc)
+    report = (demo_dir / "report.md").read_text()
+    sfm = next(d for d in json.loads((demo_dir / "eval" / "jam.json").read_text())
+               if d["policy"] == "SfM")
+    assert f"| SfM | {sfm['metrics']['escape_rate']:.3f}" in report
+
+
+def test_demo_refuses_a_file_as_output_dir(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["demo", "--quick", "--out", str(f)]) == 2
+    assert "not a directory" in capsys.readouterr().err
+
+
+def _records(values, metric_field="distance_m"):
+    return [EpisodeRecord(seed=i, steps=10, duration_s=1.0, episode_return=0.0,
+                          distance_m=float(v), stuck_steps=0, collisions=0, jams=0, escapes=0,
+                          escaped=None, escape_time_s=None) for i, v in enumerate(values)]
+
+
+def _ev(name, values):
+    recs = _records(values)
+    return Evaluation("MKV-v0", name, len(recs), 0, aggregate(recs), recs)
+
+
+def test_conclusions_say_when_a_baseline_beats_sfm_and_when_it_is_a_tie():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(5, 10, 40)
+    evals = {"jam": [], "wander": [_ev("SfM", base), _ev("PPO", base + 3.0),
+                                   _ev("BC", base + rng.normal(0, 0.5, 40))]}
+    lines = conclusions(evals)
+    ppo = [line for line in lines if "PPO" in line]
+    assert len(ppo) == 2
+    assert ppo[0].startswith("**PPO beats SfM** on: distance per episode [m] on MKV-v0")
+    assert "difference -3.000" in ppo[0]
+    bc = [line for line in lines if "BC" in line]
+    assert any(line.startswith("No clear difference between SfM and BC") for line in bc)
+
+
+def test_every_policy_kind_gives_the_same_numbers_for_any_worker_count(demo_dir):
+    from sfm_learn.evaluation import evaluate_many, evaluations_json
+
+    specs = [f"sfm:{demo_dir / 'policies' / 'sfm.npz'}", f"bc:{demo_dir / 'policies' / 'bc.zip'}",
+             f"ppo:{demo_dir / 'policies' / 'ppo.zip'}"]
+    one = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=1))
+    two = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=2))
+    assert one == two
+    doc = json.loads(one)
+    assert [set(d) for d in doc] == [{"env", "policy", "episodes", "seed", "metrics",
+                                      "metrics_ci"}] * 3

@@ -1,0 +1,107 @@
+"""``mkv fit`` and ``mkv compare``: outputs, plots, and one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from sfm_learn.cli import main
+from sfm_learn.eigenspace.policy import SfMPolicy
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory, data_files):
+    train, _ = data_files
+    out = tmp_path_factory.mktemp("fit") / "policy.npz"
+    assert main(["fit", str(train), "--out", str(out)]) == 0
+    return out
+
+
+def test_fit_reports_rank_and_spectrum_and_writes_a_loadable_policy(capsys, tmp_path,
+                                                                    data_files):
+    train, _ = data_files
+    out, spec = tmp_path / "p.npz", tmp_path / "spectrum.png"
+    code, text, err = run(capsys, "fit", train, "--out", out, "--spectrum", spec)
+    assert code == 0, err
+    p = SfMPolicy.load(out)
+    assert f"chosen rank n = {p.n_components} of {p.projector.n_features_in_}" in text
+    assert "<- n (largest ratio above the floor)" in text
+    for s in p.projector.singular_values_[:3]:
+        assert f"{s:11.4g}" in text
+    assert spec.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_fit_options_change_the_model(capsys, tmp_path, data_files):
+    train, _ = data_files
+    out = tmp_path / "p.npz"
+    code, text, err = run(capsys, "fit", train, "--out", out, "--features", "raw",
+                          "--history", "2", "--rank", "4", "--solver", "lstsq",
+                          "--thresholds", "fixed")
+    assert code == 0, err
+    p = SfMPolicy.load(out)
+    assert p.n_components == 4 and p.feature_spec.history == 2
+    assert p.feature_spec.trace_decays == () and p.feature_spec.prev_action == "none"
+    assert p.projector.solver == "lstsq"
+    np.testing.assert_array_equal(p.thresholds, [[-0.5, 0.5], [-0.5, 0.5]])
+    assert "(given)" in text
+
+
+def test_compare_prints_metrics_and_writes_figure3_spectrum_and_json(capsys, tmp_path, fitted,
+                                                                     data_files):
+    _, held = data_files
+    fig, js = tmp_path / "fig3.png", tmp_path / "cmp.json"
+    code, text, err = run(capsys, "compare", held, fitted, "--plot", fig, "--json", js)
+    assert code == 0, err
+    doc = json.loads(js.read_text())
+    m = doc["metrics"]
+    assert f"{m['drive']:>8.3f}" in text and f"{m['steer_timing']:>8.3f}" in text
+    assert 0.0 <= m["drive"] <= 1.0 and m["baseline"]["drive"] > 0
+    assert len(doc["episodes"]) == 3 and not doc["in_sample"]
+    assert "WARNING" not in text
+    for png in (fig, tmp_path / "fig3_spectrum.png"):
+        assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_compare_on_the_training_data_warns_in_sample(capsys, fitted, data_files):
+    train, _ = data_files
+    code, text, err = run(capsys, "compare", train, fitted)
+    assert code == 0 and "in-sample" in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["fit", "{missing}", "--out", "{tmp}/p.npz"], "does not exist"),
+    (["fit", "{train}", "--out", "{tmp}/p.txt"], "must end in .npz"),
+    (["fit", "{train}", "--out", "{tmp}/nodir/p.npz"], "does not exist"),
+    (["fit", "{train}", "--out", "{tmp}/p.npz", "--rank", "0"], "--rank must be in"),
+    (["fit", "{train}", "--out", "{tmp}/p.npz", "--traces", "0.5,1.5"], "decays must be in"),
+    (["fit", "{train}", "--out", "{tmp}/p.npz", "--spectrum", "{tmp}/s.pdf"], "must end in .png"),
+    (["compare", "{held}", "{train}"], "not an SfM policy file"),
+    (["compare", "{held}", "{missing}"], "does not exist"),
+    (["compare", "{held}", "{policy}", "--episode", "7", "--plot", "{tmp}/f.png"],
+     "out of range"),
+    (["eval", "--env", "MKVJam-v0", "--policy", "sfm:{missing}", "--episodes", "1"],
+     "does not exist"),
+    (["eval", "--env", "MKVJam-v0", "--policy", "sfm:", "--episodes", "1"], "needs a path"),
+])
+def test_bad_input_is_one_line_exit_2_and_no_output(capsys, tmp_path, data_files, fitted,
+                                                    argv, message):
+    train, held = data_files
+    fill = dict(missing=tmp_path / "missing.npz", tmp=tmp_path, train=train, held=held,
+                policy=fitted)
+    code, out, err = run(capsys, *[a.format(**fill) for a in argv])
+    assert code == 2
+    assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "p.npz").exists() and not (tmp_path / "f.png").exists()
+
+
+def test_sfm_spec_evaluates_through_mkv_eval(capsys, fitted):
+    code, text, err = run(capsys, "eval", "--env", "MKVJam-v0", "--policy", f"sfm:{fitted}",
+                          "--episodes", "2", "--seed", "3", "--quiet")
+    assert code == 0, err
+    assert "escape rate" in text

@@ -1,0 +1,191 @@
+"""SfMPolicy: quantisation, fitting, files, sensor-layout checks, and the seeded science."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+import mkv_env  # noqa: F401
+from mkv_env.policies import PolicySpecError, make_policy
+from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
+from sfm_learn.eigenspace.policy import (
+    PolicyFileError,
+    SfMPolicy,
+    episode_starts,
+    fit_policy,
+    learn_thresholds,
+    onehot_actions,
+    quantise,
+    signed_actions,
+)
+from sfm_learn.evaluation import evaluate
+from sfm_learn.evaluation.compare import compare
+
+
+# ---------------------------------------------------------------- quantisation
+def test_quantise_maps_values_to_reverse_off_forward():
+    thr = np.array([[-0.5, 0.5], [-0.2, 0.3]])
+    v = np.array([[-0.6, -0.21], [-0.5, -0.2], [0.5, 0.3], [0.51, 0.31]])
+    assert quantise(v, thr).tolist() == [[0, 0], [1, 1], [1, 1], [2, 2]]
+
+
+@given(st.lists(st.floats(-5, 5), min_size=2, max_size=50),
+       st.floats(-2, 2), st.floats(0, 2))
+def test_quantise_is_monotone_in_the_value(values, lo, width):
+    thr = np.array([[lo, lo + width]])
+    v = np.sort(np.array(values))[:, None]
+    q = quantise(v, thr)[:, 0]
+    assert set(q.tolist()) <= {0, 1, 2}
+    assert np.all(np.diff(q) >= 0)
+
+
+def test_learned_thresholds_separate_separable_classes():
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 3, 600)
+    v = (a - 1) * 0.3 + rng.uniform(-0.1, 0.1, a.size) + 0.2  # shifted: fixed +-0.5 fails
+    thr = learn_thresholds(v[:, None], a[:, None])
+    assert np.mean(quantise(v[:, None], thr)[:, 0] == a) == 1.0
+    assert np.mean(quantise(v[:, None], [[-0.5, 0.5]])[:, 0] == a) < 0.8
+
+
+def test_action_encodings():
+    a = np.array([[0, 2], [1, 1], [2, 0]])
+    assert signed_actions(a, (3, 3)).tolist() == [[-1, 1], [0, 0], [1, -1]]
+    oh = onehot_actions(a, (3, 3))
+    assert oh.shape == (3, 6) and oh.sum(axis=1).tolist() == [2, 2, 2]
+    assert oh[0].tolist() == [1, 0, 0, 0, 0, 1]
+
+
+# ---------------------------------------------------------------- fitting and files
+@pytest.fixture(scope="module")
+def policy(small_train):
+    return fit_policy(small_train)
+
+
+def test_fit_uses_the_default_features_and_records_its_training(policy, small_train):
+    assert policy.feature_spec == default_feature_spec(small_train.sensor_names)
+    assert policy.sensor_names == tuple(small_train.sensor_names)
+    assert policy.training["rows"] == small_train.n_steps
+    assert policy.training["datasets"][0]["sha256"] == small_train.metadata["content_sha256"]
+    assert 1 <= policy.n_components <= policy.projector.n_known_
+    assert policy.thresholds.shape == (2, 2)
+
+
+def test_save_load_round_trip_predicts_identically(policy, small_train, tmp_path):
+    path = policy.save(tmp_path / "p.npz")
+    back = SfMPolicy.load(path)
+    obs, act = small_train["observations"], small_train["actions"]
+    starts = episode_starts(small_train)
+    np.testing.assert_array_equal(back.batch_values(obs, act, starts),
+                                  policy.batch_values(obs, act, starts))
+    assert back.feature_spec == policy.feature_spec and back.env_id == "MKV-v0"
+    assert back.metadata() == policy.metadata()
+
+
+def test_online_predict_equals_the_batch_path_on_its_own_episode(policy):
+    env = gym.make("MKV-v0", max_episode_steps=80)
+    obs, _ = env.reset(seed=3)
+    policy.reset()
+    observations, actions = [], []
+    for _ in range(80):
+        a, state = policy.predict(obs)
+        assert state is None and a.dtype == np.int64 and a.shape == (2,)
+        observations.append(obs)
+        actions.append(a)
+        obs, _, term, trunc, _ = env.step(a)
+        if term or trunc:
+            break
+    starts = np.zeros(len(actions), dtype=bool)
+    starts[0] = True
+    np.testing.assert_array_equal(policy.batch_predict(np.array(observations),
+                                                       np.array(actions), starts),
+                                  np.array(actions))
+
+
+def test_episode_start_resets_the_feature_state(policy, small_train):
+    obs = small_train["observations"]
+    policy.reset()
+    first = policy.predict(obs[0])[0]
+    for o in obs[1:30]:
+        policy.predict(o)
+    again = policy.predict(obs[0], episode_start=True)[0]
+    np.testing.assert_array_equal(first, again)
+
+
+def test_predict_rejects_a_batch(policy, small_train):
+    with pytest.raises(ValueError, match="one observation"):
+        policy.predict(small_train["observations"][:2])
+
+
+def test_load_refuses_a_different_sensor_layout(policy, tmp_path):
+    path = policy.save(tmp_path / "p.npz")
+    env = gym.make("MKV-v0")
+
+    class Other:
+        unwrapped = type("U", (), {"sensor_names": ("a", "b")})()
+        action_space = env.action_space
+
+    with pytest.raises(PolicyFileError, match=r"fitted on sensors \[drive_ticks.*env has \[a, b\]"):
+        SfMPolicy.load(path, Other())
+    with pytest.raises(PolicySpecError, match="fitted on sensors"):
+        make_policy(f"sfm:{path}", Other())
+    assert make_policy(f"sfm:{path}", env).n_components == policy.n_components
+
+
+@pytest.mark.parametrize("content", [b"", b"not a zip", None])
+def test_load_of_a_bad_file_is_one_clear_error(tmp_path, content, small_train):
+    path = tmp_path / "bad.npz"
+    if content is None:  # a dataset is an npz too, but not a policy
+        from mkv_env.dataset import save
+
+        save(small_train, path)
+    else:
+        path.write_bytes(content)
+    with pytest.raises(PolicyFileError, match="bad.npz") as e:
+        SfMPolicy.load(path)
+    assert "\n" not in str(e.value)
+    with pytest.raises(PolicyFileError, match="does not exist"):
+        SfMPolicy.load(tmp_path / "missing.npz")
+
+
+def test_fit_stacks_datasets_with_the_same_layout(small_train):
+    p = fit_policy([small_train, small_train], FeatureSpec(obs_names=small_train.sensor_names))
+    assert p.training["rows"] == 2 * small_train.n_steps and p.training["episodes"] == 6
+
+
+def test_onehot_policy_decodes_by_argmax(small_train, tmp_path):
+    p = fit_policy(small_train, encoding="onehot")
+    assert p.encoding == "onehot" and p.projector.n_missing_ == 6
+    back = SfMPolicy.load(p.save(tmp_path / "oh.npz"))
+    v = np.array([[0.1, 0.9, 0.0, 0.7, 0.2, 0.1]])
+    assert back.decode(v).tolist() == [[1, 0]]
+
+
+# ---------------------------------------------------------------- seeded science (issue 5)
+@pytest.fixture(scope="module")
+def wander_policy(wander_train):
+    return fit_policy(wander_train)
+
+
+def test_held_out_agreement_meets_the_targets(wander_policy, wander_held):
+    m = compare(wander_policy, wander_held).metrics
+    # measured 0.968 / 0.909 at the time of writing (issue targets 0.90 / 0.80)
+    assert m["drive"] >= 0.90
+    assert m["steer_timing"] >= 0.80
+    assert m["drive"] > m["baseline"]["drive"] + 0.2
+    assert m["steer_timing"] > m["baseline"]["steer_timing"] + 0.1
+
+
+def test_closed_loop_escape_rate_is_at_least_90_percent_of_the_teachers(wander_policy):
+    teacher = evaluate("MKVJam-v0", "teacher", 50, 1000).metrics["escape_rate"]
+    sfm = evaluate("MKVJam-v0", wander_policy, 50, 1000).metrics["escape_rate"]
+    assert sfm >= 0.9 * teacher, (sfm, teacher)
+
+
+def test_a_policy_that_sees_nothing_useful_fails_the_escape_target(wander_train):
+    """The closed-loop test can fail: a policy fitted on the compass and battery only."""
+    spec = FeatureSpec(obs_names=wander_train.sensor_names, channels=("compass", "battery"))
+    blind = fit_policy(wander_train, spec)
+    teacher = evaluate("MKVJam-v0", "teacher", 30, 1000).metrics["escape_rate"]
+    assert evaluate("MKVJam-v0", blind, 30, 1000).metrics["escape_rate"] < 0.9 * teacher
