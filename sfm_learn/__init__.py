@@ -26,6 +26,7 @@ POLICY_LOADERS: dict[str, str] = {
     "sfm": "sfm_learn.eigenspace.policy:load_spec",
     "ppo": "sfm_learn.baselines.ppo:load_spec",
     "bc": "sfm_learn.baselines.bc:load_spec",
+    "sb3": "sfm_learn.baselines.sb3_models:load_spec",
 }
 
 for _prefix, _target in POLICY_LOADERS.items():

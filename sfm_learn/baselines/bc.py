@@ -270,54 +270,39 @@ def read_metadata(path: str) -> dict:
 
 # ---------------------------------------------------------------------- bc:PATH
 class BCPolicy:
-    """A behaviour-cloned policy with SB3 ``predict`` over one observation at a time."""
+    """A behaviour-cloned policy with SB3's ``predict`` (one observation or a batch of envs)."""
 
     def __init__(self, policy, meta: dict, seed: int | None = None):
         import numpy as np
 
-        from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec
+        from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec, OnlineFeatures
 
         self.meta = self.metadata = meta
-        self.builder = FeatureBuilder(FeatureSpec.from_dict(meta["feature_spec"]))
+        spec = FeatureSpec.from_dict(meta["feature_spec"])
+        self.builder = FeatureBuilder(spec)
         self.mean = np.asarray(meta["input_mean"], dtype=np.float64)
         self.std = np.asarray(meta["input_std"], dtype=np.float64)
         if self.mean.shape != (self.builder.n_features,) or self.std.shape != self.mean.shape:
             raise ValueError("input statistics do not match the feature spec")
         self.actor = sb3.ActorPolicy(policy, meta["action_nvec"], seed=seed)
-        self.n_obs = len(meta["sensor_names"])
-        self._prev = None
-        self._started = False
+        self._online = OnlineFeatures(spec)
 
     def reset(self, seed: int | None = None) -> None:
-        """Start of an episode: forget the feature history and the previous command."""
+        """Start of an episode in every env: forget feature histories and previous commands."""
         self.actor.reset(seed)
-        self.builder.reset()
-        self._prev = None
-        self._started = False
+        self._online.reset()
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
+        """SB3's ``predict``: ``(actions, state)`` for one observation (n_obs,) or a batch
+        (n_envs, n_obs); each env keeps its own features, reset by its ``episode_start``."""
         import numpy as np
 
-        obs = np.asarray(observation, dtype=np.float64)
-        single = obs.ndim == 1
-        if not single:
-            if obs.ndim == 2 and obs.shape[0] == 1:
-                obs = obs[0]
-            else:
-                raise ValueError(
-                    f"a BC policy takes one observation at a time, shape "
-                    f"({self.n_obs},); got {obs.shape}"
-                )
-        if episode_start is not None and bool(np.asarray(episode_start).reshape(-1)[0]):
-            self.reset()
-        if not self._started:
-            self.builder.reset()
-            self._prev = None
-        x = (self.builder.step(obs, self._prev) - self.mean) / self.std
-        self._started = True
-        action = self.actor.actions_from_logits(self.actor.logits(x[None, :]), deterministic)
-        self._prev = action[0]
-        return (action[0].copy() if single else action), state
+        obs, single = self._online.as_batch(observation, "a BC policy")
+        feats = self._online.step(obs, episode_start)
+        x = (np.stack(feats) - self.mean) / self.std
+        actions = self.actor.actions_from_logits(self.actor.logits(x), deterministic)
+        self._online.set_previous(actions)
+        return (actions[0].copy() if single else actions), state
 
     def batch_actions(self, observations, actions, episode_start=None):
         """Deterministic actions for a whole recording at once (batch features with the given

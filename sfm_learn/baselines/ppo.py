@@ -293,7 +293,7 @@ def read_metadata(path: str) -> dict:
 
 
 # ---------------------------------------------------------------------- ppo:PATH
-def _observation_transform(meta: dict, n: int):
+def observation_transform(meta: dict, n: int):
     """The observation map the policy was trained under: ``obs_rescale`` (format 2, Gymnasium's
     RescaleObservation) or ``obs_scaling`` (format 1: centre / half-range in float64)."""
     if "obs_rescale" in meta:
@@ -322,7 +322,7 @@ def load_spec(arg, env, seed):
 
     try:
         n = len(meta["sensor_names"])
-        transform = _observation_transform(meta, n)
+        transform = observation_transform(meta, n)
         acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
         policy = ActorCriticPolicy(
             gym.spaces.Box(-np.inf, np.inf, (n,), np.float32),
@@ -344,5 +344,6 @@ def load_spec(arg, env, seed):
     return out
 
 
-__all__ = ["DEFAULTS", "check_env", "fmt_point", "load_spec", "planned_timesteps", "read_metadata",
+__all__ = ["DEFAULTS", "check_env", "fmt_point", "load_spec", "observation_transform",
+           "planned_timesteps", "read_metadata",
            "save", "train"]

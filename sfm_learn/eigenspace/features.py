@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["FeatureSpec", "FeatureBuilder"]
+__all__ = ["FeatureSpec", "FeatureBuilder", "OnlineFeatures"]
 
 PREV_ACTION_MODES = ("none", "signed", "onehot")
 HISTORY_PADS = ("edge", "zero")
@@ -382,6 +382,64 @@ class FeatureBuilder:
             parts.append(self._encode_actions(act, np.array([valid]))[0])
         self._started = True
         return np.concatenate(parts) if parts else np.empty(0)
+
+
+class OnlineFeatures:
+    """Run-time features for a policy serving one env or a batch of envs (SB3's ``predict``
+    contract): one :class:`FeatureBuilder` (history, traces) and one previous command per env
+    index, each reset when its ``episode_start`` flag is set.
+
+    ``step(observations, episode_start)`` returns one feature row per env; after the policy has
+    chosen its actions it calls ``set_previous(actions)`` so they enter the next step's features.
+    """
+
+    def __init__(self, spec):
+        self.spec = spec
+        self.n_obs = len(spec.obs_names)
+        self._builders: list[FeatureBuilder] = []
+        self._prev: list = []
+
+    def reset(self) -> None:
+        """Start a new episode in every env."""
+        for b in self._builders:
+            b.reset()
+        self._prev = [None] * len(self._builders)
+
+    def as_batch(self, observation, who: str = "the policy") -> tuple[np.ndarray, bool]:
+        """``(observations of shape (n_envs, n_obs), single)`` from one observation or a batch;
+        ValueError (one line) for any other shape."""
+        obs = np.asarray(observation, dtype=np.float64)
+        if obs.ndim == 1 and obs.shape[0] == self.n_obs:
+            return obs[None, :], True
+        if obs.ndim == 2 and obs.shape[1] == self.n_obs and obs.shape[0] >= 1:
+            return obs, False
+        raise ValueError(f"{who} takes one observation of shape ({self.n_obs},) or a batch of "
+                         f"shape (n_envs, {self.n_obs}); got shape {obs.shape}")
+
+    def step(self, observations, episode_start=None) -> list[np.ndarray]:
+        """Features of each env's observation, shape (n_features,) each, in env order.
+
+        ``observations`` has shape (n_envs, n_obs); ``episode_start`` is None, a bool, or one
+        bool per env (True starts that env's episode: no history, no previous command).
+        """
+        n = len(observations)
+        while len(self._builders) < n:
+            self._builders.append(FeatureBuilder(self.spec))
+            self._prev.append(None)
+        starts = (np.zeros(n, dtype=bool) if episode_start is None
+                  else np.broadcast_to(np.asarray(episode_start, dtype=bool).reshape(-1), (n,)))
+        out = []
+        for i in range(n):
+            if starts[i]:
+                self._builders[i].reset()
+                self._prev[i] = None
+            out.append(self._builders[i].step(observations[i], self._prev[i]))
+        return out
+
+    def set_previous(self, actions) -> None:
+        """The commands just sent, shape (n_envs, n_act), for the next step's features."""
+        for i, a in enumerate(actions):
+            self._prev[i] = a
 
 
 def default_feature_spec(obs_names, action_nvec=(3, 3), action_names=("drive", "steer")):

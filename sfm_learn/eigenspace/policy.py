@@ -32,7 +32,12 @@ import zipfile
 import numpy as np
 
 from sfm_common.files import atomic_path
-from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec, default_feature_spec
+from sfm_learn.eigenspace.features import (
+    FeatureBuilder,
+    FeatureSpec,
+    OnlineFeatures,
+    default_feature_spec,
+)
 from sfm_learn.eigenspace.projector import EigenspaceProjector
 
 __all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thresholds",
@@ -111,7 +116,7 @@ class SfMPolicy:
         self.spec = "sfm"
         self._coef = np.ascontiguousarray(projector.coef_)
         self._intercept = projector.intercept_.copy()
-        self._prev = None
+        self._online = OnlineFeatures(feature_spec)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -124,26 +129,24 @@ class SfMPolicy:
 
     # ------------------------------------------------------------------ run time
     def reset(self, seed: int | None = None) -> None:
-        """Start a new episode (forget history, traces and the previous command)."""
-        self.builder.reset()
-        self._prev = None
-
-    def command_values(self, observation) -> np.ndarray:
-        """Continuous signed commands for one observation (advances the feature state)."""
-        f = self.builder.step(observation, self._prev)
-        return f @ self._coef + self._intercept
+        """Start a new episode in every env (forget history, traces and previous commands)."""
+        self._online.reset()
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
-        """SB3-style: ``(action, None)``; action int64 of shape (n_act,) for one observation."""
-        obs = np.asarray(observation)
-        if obs.ndim != 1:
-            raise ValueError(f"SfMPolicy.predict takes one observation of shape "
-                             f"({len(self.sensor_names)},), got shape {obs.shape}")
-        if episode_start is not None and bool(np.any(episode_start)):
-            self.reset()
-        action = self.decode(self.command_values(obs))
-        self._prev = action
-        return action, None
+        """SB3's ``predict``: ``(actions, state)``.
+
+        ``observation`` is one observation, shape (n_obs,), or a batch, shape (n_envs, n_obs),
+        one row per env of a vector env; the returned actions are int64 of shape (n_act,) or
+        (n_envs, n_act). Each env keeps its own feature state (history, traces, previous
+        command); ``episode_start`` (one bool, or one per env) starts that env's episode.
+        ``state`` is returned unchanged (the policy keeps its memory itself); ``deterministic``
+        is ignored (the policy is deterministic).
+        """
+        obs, single = self._online.as_batch(observation, "SfMPolicy.predict")
+        feats = self._online.step(obs, episode_start)
+        actions = np.stack([self.decode(f @ self._coef + self._intercept) for f in feats])
+        self._online.set_previous(actions)
+        return (actions[0] if single else actions), state
 
     def batch_values(self, observations, actions, episode_start) -> np.ndarray:
         """Continuous commands for a whole recording, the previous command taken from

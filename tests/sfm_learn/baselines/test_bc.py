@@ -85,8 +85,15 @@ def test_online_predict_equals_batch_path(trained):
     assert a.shape == (2,) and state is None
     a2, _ = policy.predict(data["observations"][:1], episode_start=np.array([True]))
     assert a2.shape == (1, 2) and np.array_equal(a2[0], a)
-    with pytest.raises(ValueError, match="one observation at a time"):
-        policy.predict(data["observations"][:3])
+    # a batch of three envs: each row as if that env ran alone from its episode start
+    rows = data["observations"][:3]
+    batch, _ = policy.predict(rows, episode_start=np.ones(3, dtype=bool))
+    assert batch.shape == (3, 2)
+    for i in range(3):
+        policy.reset(seed=0)
+        np.testing.assert_array_equal(batch[i], policy.predict(rows[i])[0])
+    with pytest.raises(ValueError, match="n_envs"):
+        policy.predict(np.zeros((3, 4)))
 
 
 def test_mkv_eval_runs_a_bc_policy(trained, capsys):

@@ -113,9 +113,32 @@ def test_episode_start_resets_the_feature_state(policy, small_train):
     np.testing.assert_array_equal(first, again)
 
 
-def test_predict_rejects_a_batch(policy, small_train):
-    with pytest.raises(ValueError, match="one observation"):
-        policy.predict(small_train["observations"][:2])
+def test_batch_predict_keeps_one_feature_state_per_env(policy, small_train):
+    """A batch of two envs equals two policies run one observation at a time (SB3 contract)."""
+    obs = small_train["observations"]
+    a, b = obs[:40], obs[100:140]
+    policy.reset()
+    batch = [policy.predict(np.stack([x, y]), episode_start=np.array([t == 0, t == 0]))[0]
+             for t, (x, y) in enumerate(zip(a, b, strict=True))]
+    singles = []
+    for run in (a, b):
+        policy.reset()
+        singles.append([policy.predict(x, episode_start=(t == 0))[0] for t, x in enumerate(run)])
+    np.testing.assert_array_equal(np.stack(batch)[:, 0], np.stack(singles[0]))
+    np.testing.assert_array_equal(np.stack(batch)[:, 1], np.stack(singles[1]))
+    # restarting env 1 alone leaves env 0's state alone
+    policy.reset()
+    for t in range(20):
+        policy.predict(np.stack([a[t], b[t]]), episode_start=np.array([t == 0, t == 0]))
+    got = policy.predict(np.stack([a[20], b[0]]), episode_start=np.array([False, True]))[0]
+    np.testing.assert_array_equal(got[0], singles[0][20])
+    np.testing.assert_array_equal(got[1], singles[1][0])
+
+
+@pytest.mark.parametrize("shape", [(3,), (2, 3), (1, 2, 10), (0, 10)])
+def test_predict_rejects_other_shapes(policy, shape):
+    with pytest.raises(ValueError, match=r"shape \(n_envs, 10\)"):
+        policy.predict(np.zeros(shape))
 
 
 def test_load_refuses_a_different_sensor_layout(policy, tmp_path):
