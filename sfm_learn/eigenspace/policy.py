@@ -44,11 +44,10 @@ __all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thr
            "quantise", "FORMAT"]
 
 FORMAT = "mkv-sfm-policy"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the complete projector (to_arrays); 1: run-time arrays only
 FIXED_THRESHOLDS = (-0.5, 0.5)
 _META_MEMBER = "metadata.json"
-_ARRAYS = ("mean_", "scale_", "components_", "singular_values_", "coef_", "intercept_",
-           "thresholds")
+_V1_ARRAYS = ("mean_", "scale_", "components_", "singular_values_", "coef_", "intercept_")
 
 
 class PolicyFileError(ValueError):
@@ -193,15 +192,15 @@ class SfMPolicy:
         }
 
     def save(self, path) -> str:
-        """Write ``path`` (.npz) atomically; returns the path."""
+        """Write ``path`` (.npz) atomically; returns the path.
+
+        Members: ``projector.<name>.npy`` (everything :meth:`EigenspaceProjector.to_arrays`
+        holds, so the loaded projector is complete, ``partial_fit`` included),
+        ``thresholds.npy`` and ``metadata.json``.
+        """
         path = os.fspath(path)
-        arrays = {
-            "mean_": self.projector.mean_, "scale_": self.projector.scale_,
-            "components_": self.projector.components_,
-            "singular_values_": self.projector.singular_values_,
-            "coef_": self.projector.coef_, "intercept_": self.projector.intercept_,
-            "thresholds": self.thresholds,
-        }
+        arrays = {f"projector.{k}": v for k, v in self.projector.to_arrays().items()}
+        arrays["thresholds"] = self.thresholds
         meta = json.dumps(self.metadata(), indent=2, sort_keys=True, default=_json_default)
         with atomic_path(path, ".npz") as tmp, zipfile.ZipFile(tmp, "w",
                                                                zipfile.ZIP_DEFLATED) as zf:
@@ -214,47 +213,83 @@ class SfMPolicy:
 
     @classmethod
     def load(cls, path, env=None) -> SfMPolicy:
-        """Read a policy file; with ``env``, check its sensor names match (PolicyFileError)."""
+        """Read a policy file; with ``env``, check its sensor names match.
+
+        Everything read is validated (the file's checksum-free content is not trusted): a
+        missing, corrupt, foreign or malformed file raises :class:`PolicyFileError` with one line.
+        """
         path = os.fspath(path)
         if not os.path.exists(path):
             raise PolicyFileError(f"policy file {path} does not exist")
+        if os.path.isdir(path):
+            raise PolicyFileError(f"{path} is a directory, not a policy file")
         try:
             with zipfile.ZipFile(path) as zf:
-                if _META_MEMBER not in zf.namelist():
+                names = zf.namelist()
+                if _META_MEMBER not in names:
                     raise PolicyFileError(f"{path} is not an SfM policy file (no {_META_MEMBER}; "
                                           f"a dataset or another model?)")
                 meta = json.loads(zf.read(_META_MEMBER))
-                if meta.get("format") != FORMAT:
-                    raise PolicyFileError(f"{path} is not an SfM policy file "
-                                          f"(format {meta.get('format')!r})")
-                arrays = {k: np.load(io.BytesIO(zf.read(k + ".npy")), allow_pickle=False)
-                          for k in _ARRAYS}
+                if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+                    got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+                    raise PolicyFileError(f"{path} is not an SfM policy file (format {got!r})")
+                arrays = {n[:-4]: np.load(io.BytesIO(zf.read(n)), allow_pickle=False)
+                          for n in names if n.endswith(".npy")}
         except PolicyFileError:
             raise
-        except (zipfile.BadZipFile, KeyError, ValueError, OSError) as e:
+        except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError,
+                UnicodeDecodeError) as e:
             why = str(e).splitlines()[0] if str(e) else ""
             raise PolicyFileError(f"{path} is not a readable SfM policy file "
                                   f"({type(e).__name__}: {why})") from None
-        if meta.get("format_version", 0) > FORMAT_VERSION:
-            raise PolicyFileError(f"{path} has format version {meta['format_version']}; this "
-                                  f"package reads up to {FORMAT_VERSION}")
+        try:
+            return cls._from_file_content(meta, arrays, env, path)
+        except PolicyFileError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            if isinstance(e, KeyError):
+                why = f"missing {why}"
+            raise PolicyFileError(f"{path} is a malformed SfM policy file ({why})") from None
+
+    @classmethod
+    def _from_file_content(cls, meta: dict, arrays: dict, env, path: str) -> SfMPolicy:
+        version = meta.get("format_version", 0)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise PolicyFileError(f"{path} has format version {version!r}; expected an integer")
+        if version > FORMAT_VERSION:
+            raise PolicyFileError(f"{path} has format version {version}; this package reads up "
+                                  f"to {FORMAT_VERSION}")
+        if not isinstance(meta.get("feature_spec"), dict):
+            raise ValueError("feature_spec must be a JSON object")
         spec = FeatureSpec.from_dict(meta["feature_spec"])
-        proj = EigenspaceProjector(**meta["projector"])
-        proj.mean_, proj.scale_ = arrays["mean_"], arrays["scale_"]
-        proj.components_ = arrays["components_"]
-        proj.singular_values_ = arrays["singular_values_"]
-        proj.coef_, proj.intercept_ = arrays["coef_"], arrays["intercept_"]
-        proj.n_components_ = int(meta["n_components"])
-        proj.n_known_ = int(meta["n_known"])
-        proj.n_missing_ = int(arrays["intercept_"].shape[0])
-        proj.n_features_in_ = proj.n_known_ + proj.n_missing_
-        proj.n_samples_seen_ = float(meta["n_samples_seen"])
-        proj.explained_variance_ = proj.singular_values_**2 / max(proj.n_samples_seen_, 1.0)
-        proj.rank_floor_ = float(meta["rank_floor"])
-        proj.noise_variance_ = float(meta["noise_variance"])
-        if proj.coef_.shape != (proj.n_known_, proj.n_missing_):
-            raise PolicyFileError(f"{path} is inconsistent: coefficient shape {proj.coef_.shape}")
-        policy = cls(proj, spec, arrays["thresholds"], meta.get("env_id"), meta.get("training"))
+        if version == 1:
+            proj_arrays = _version1_projector_arrays(meta, arrays)
+        else:
+            proj_arrays = {k[len("projector."):]: v for k, v in arrays.items()
+                           if k.startswith("projector.")}
+        proj = EigenspaceProjector.from_arrays(proj_arrays)
+        if proj.n_known_ != spec.n_features:
+            raise ValueError(f"the projector has {proj.n_known_} known columns but the feature "
+                             f"spec makes {spec.n_features}")
+        thresholds = np.asarray(arrays["thresholds"])
+        n_act = len(spec.action_nvec)
+        signed = proj.n_missing_ == n_act
+        want = (n_act, 2) if signed else (0, 2)
+        bad = (thresholds.shape != want or thresholds.dtype.kind not in "fiu"
+               or not np.all(np.isfinite(thresholds)))
+        if bad or (signed and np.any(thresholds[:, 0] > thresholds[:, 1])):
+            raise ValueError(f"thresholds must be finite (lo <= hi) of shape {want}, got "
+                             f"{thresholds.shape}")
+        if not signed and proj.n_missing_ != sum(spec.action_nvec):
+            raise ValueError(f"the projector reconstructs {proj.n_missing_} columns; commands "
+                             f"{tuple(spec.action_nvec)} need {n_act} or {sum(spec.action_nvec)}")
+        training = meta.get("training") or {}
+        if not isinstance(training, dict):
+            raise ValueError("training must be a JSON object")
+        env_id = meta.get("env_id")
+        policy = cls(proj, spec, thresholds, env_id if isinstance(env_id, str) else None,
+                     training)
         if env is not None:
             policy.check_env(env, path)
         return policy
@@ -270,6 +305,35 @@ class SfMPolicy:
         if nvec != tuple(self.feature_spec.action_nvec):
             raise PolicyFileError(f"{path} commands {tuple(self.feature_spec.action_nvec)} but "
                                   f"the env's action space is {env.action_space}")
+
+
+def _version1_projector_arrays(meta: dict, arrays: dict) -> dict:
+    """The projector of a format-1 file (run-time arrays and a few numbers in the metadata; no
+    training statistics, so no ``partial_fit``), as :meth:`EigenspaceProjector.from_arrays`
+    takes it."""
+    out = {k: arrays[k] for k in _V1_ARRAYS}
+    params = meta["projector"]
+    if not isinstance(params, dict):
+        raise ValueError("projector must be a JSON object")
+    unknown = sorted(set(params) - set(EigenspaceProjector._param_names()))
+    if unknown:
+        raise ValueError(f"unknown projector parameter {unknown[0]!r}")
+    out.update({f"param.{k}": np.asarray("none" if v is None else v) for k, v in params.items()})
+    n_seen = meta["n_samples_seen"]
+    for key in ("n_components", "n_known"):
+        if isinstance(meta[key], bool) or not isinstance(meta[key], int):
+            raise ValueError(f"{key} must be an integer, got {meta[key]!r}")
+    out["n_components_"] = np.asarray(meta["n_components"], dtype=np.int64)
+    out["n_known_"] = np.asarray(meta["n_known"], dtype=np.int64)
+    out["n_missing_"] = np.asarray(np.asarray(arrays["intercept_"]).shape[0], dtype=np.int64)
+    out["n_samples_seen_"] = np.asarray(float(n_seen))
+    out["n_rows_seen_"] = np.asarray(int(n_seen), dtype=np.int64)
+    out["rank_floor_"] = np.asarray(float(meta["rank_floor"]))
+    out["noise_variance_"] = np.asarray(float(meta["noise_variance"]))
+    s = np.asarray(arrays["singular_values_"], dtype=np.float64)
+    out["explained_variance_"] = s**2 / max(float(n_seen), 1.0)
+    out["rank_ratios_"] = np.empty(0)
+    return out
 
 
 def _json_default(o):

@@ -351,6 +351,9 @@ class EigenspaceProjector:
         self : EigenspaceProjector
         """
         first = not hasattr(self, "_r")
+        if first and hasattr(self, "coef_"):
+            raise ValueError("this projector was loaded without its training statistics (an "
+                             "older file); partial_fit cannot continue it: fit it again")
         known, missing = self._validate_data(known, missing, reset=first)
         if known.shape[0] < 1:
             raise ValueError("partial_fit needs at least 1 sample; got an empty batch")
@@ -470,6 +473,90 @@ class EigenspaceProjector:
             return w_m @ np.linalg.pinv(w_k)
         m = w_k.T @ w_k + noise_var * np.eye(n)
         return w_m @ np.linalg.solve(m, w_k.T)
+
+    # ------------------------------------------------------------------ files
+    _ARRAYS = ("mean_", "scale_", "singular_values_", "explained_variance_", "components_",
+               "coef_", "intercept_", "rank_ratios_")
+    _INTS = ("n_components_", "n_known_", "n_missing_", "n_rows_seen_")
+    _FLOATS = ("n_samples_seen_", "rank_floor_", "noise_variance_")
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Everything a fitted projector is, as numpy arrays (no pickling needed to store them):
+        the constructor parameters (``param.<name>``), the learned attributes, and the sufficient
+        statistics ``partial_fit`` continues from (``stat.weight``, ``stat.mean``, ``stat.r``).
+        :meth:`from_arrays` rebuilds an equal projector."""
+        self._check_is_fitted("to_arrays")
+        out = {f"param.{k}": np.asarray("none" if v is None else v)
+               for k, v in self.get_params().items()}
+        out.update({k: np.asarray(getattr(self, k), dtype=np.float64) for k in self._ARRAYS})
+        out.update({k: np.asarray(int(getattr(self, k)), dtype=np.int64) for k in self._INTS})
+        out.update({k: np.asarray(float(getattr(self, k))) for k in self._FLOATS})
+        if hasattr(self, "_r"):
+            out["stat.weight"] = np.asarray(float(self._weight))
+            out["stat.mean"] = np.asarray(self._mean, dtype=np.float64)
+            out["stat.r"] = np.asarray(self._r, dtype=np.float64)
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays) -> EigenspaceProjector:
+        """The projector :meth:`to_arrays` stored. Raises ``ValueError`` (one line) for missing,
+        mistyped, non-finite or inconsistently shaped entries. Without the ``stat.*`` entries
+        the projector predicts but cannot :meth:`partial_fit`."""
+        def get(key):
+            if key not in arrays:
+                raise ValueError(f"projector arrays lack {key!r}")
+            return np.asarray(arrays[key])
+
+        params = {}
+        for name in cls._param_names():
+            key = f"param.{name}"
+            if key not in arrays:
+                continue  # a parameter added later keeps its default
+            v = get(key)
+            if v.ndim != 0:
+                raise ValueError(f"projector parameter {name} must be a scalar")
+            v = v.item()
+            params[name] = None if v == "none" else v
+        proj = cls(**params)
+        try:
+            proj._validate_params()
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"projector parameters: {e}") from None
+        for k in cls._ARRAYS:
+            a = get(k)
+            if a.dtype.kind not in "fiu" or not np.all(np.isfinite(a)):
+                raise ValueError(f"projector {k} must be finite numbers")
+            setattr(proj, k, a.astype(np.float64))
+        for k in cls._INTS:
+            a = get(k)
+            if a.ndim != 0 or a.dtype.kind not in "iu" or int(a) < 0:
+                raise ValueError(f"projector {k} must be a non-negative integer")
+            setattr(proj, k, int(a))
+        for k in cls._FLOATS:
+            a = get(k)
+            if a.ndim != 0 or a.dtype.kind not in "fiu" or not np.isfinite(a):
+                raise ValueError(f"projector {k} must be a finite number")
+            setattr(proj, k, float(a))
+        nk, nm, n = proj.n_known_, proj.n_missing_, proj.n_components_
+        p = nk + nm
+        proj.n_features_in_ = p
+        shapes = {"mean_": (p,), "scale_": (p,), "coef_": (nk, nm), "intercept_": (nm,),
+                  "components_": (n, p)}
+        for k, shape in shapes.items():
+            if getattr(proj, k).shape != shape:
+                raise ValueError(f"projector {k} has shape {getattr(proj, k).shape}, expected "
+                                 f"{shape} for {nk} known and {nm} missing columns, "
+                                 f"{n} components")
+        if proj.singular_values_.ndim != 1 or not 1 <= n <= max(proj.singular_values_.size, 1):
+            raise ValueError(f"projector n_components_={n} does not fit "
+                             f"{proj.singular_values_.size} singular values")
+        if "stat.r" in arrays:
+            proj._weight = float(get("stat.weight"))
+            proj._mean = get("stat.mean").astype(np.float64)
+            proj._r = get("stat.r").astype(np.float64)
+            if proj._mean.shape != (p,) or proj._r.shape != (p, p):
+                raise ValueError("projector statistics do not match its column counts")
+        return proj
 
     # ------------------------------------------------------------------ run time
     def reconstruct(self, known):

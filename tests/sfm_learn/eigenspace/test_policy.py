@@ -172,6 +172,85 @@ def test_load_of_a_bad_file_is_one_clear_error(tmp_path, content, small_train):
         SfMPolicy.load(tmp_path / "missing.npz")
 
 
+def _rewrite(path, out, meta_edit=None, arrays_edit=None):
+    """Copy policy file ``path`` to ``out`` with its metadata / arrays changed."""
+    import io
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(path) as zf:
+        meta = json.loads(zf.read("metadata.json"))
+        arrays = {n[:-4]: np.load(io.BytesIO(zf.read(n))) for n in zf.namelist()
+                  if n.endswith(".npy")}
+    if meta_edit:
+        meta = meta_edit(meta)
+    if arrays_edit:
+        arrays_edit(arrays)
+    with zipfile.ZipFile(out, "w") as zf:
+        for k, a in arrays.items():
+            buf = io.BytesIO()
+            np.save(buf, a)
+            zf.writestr(k + ".npy", buf.getvalue())
+        zf.writestr("metadata.json", json.dumps(meta))
+    return out
+
+
+def _to_version_1(arrays):
+    """The format-1 layout: run-time arrays without prefix, no training statistics."""
+    for k in ("mean_", "scale_", "components_", "singular_values_", "coef_", "intercept_"):
+        arrays[k] = arrays.pop(f"projector.{k}")
+    for k in [k for k in arrays if k.startswith("projector.")]:
+        arrays.pop(k)
+
+
+def test_format_1_files_still_load_and_predict_the_same(policy, small_train, tmp_path):
+    path = policy.save(tmp_path / "p.npz")
+    v1 = _rewrite(path, tmp_path / "v1.npz", lambda m: {**m, "format_version": 1},
+                  _to_version_1)
+    old = SfMPolicy.load(v1)
+    obs, act = small_train["observations"], small_train["actions"]
+    starts = small_train["step"] == 0
+    np.testing.assert_array_equal(old.batch_predict(obs, act, starts),
+                                  policy.batch_predict(obs, act, starts))
+    with pytest.raises(ValueError, match="without its training statistics"):
+        old.projector.partial_fit(np.zeros((2, old.projector.n_known_)), np.zeros((2, 2)))
+
+
+@pytest.mark.parametrize("meta_edit, arrays_edit, message", [
+    (lambda m: [m], None, "format 'list'"),
+    (lambda m: {k: v for k, v in m.items() if k != "feature_spec"}, None, "feature_spec"),
+    (lambda m: {**m, "format_version": "two"}, None, "format version"),
+    (lambda m: {**m, "format_version": 99}, None, "reads up to"),
+    (lambda m: {**m, "training": [1]}, None, "training"),
+    (None, lambda a: a.__setitem__("thresholds", np.zeros((3, 2))), "thresholds"),
+    (None, lambda a: a.__setitem__("thresholds", np.full((2, 2), np.nan)), "thresholds"),
+    (None, lambda a: a.__setitem__("projector.coef_",
+                                   np.full_like(a["projector.coef_"], np.nan)), "finite"),
+    (None, lambda a: a.pop("projector.coef_"), "coef_"),
+    (None, lambda a: a.__setitem__("projector.n_components_", np.asarray(1.5)), "integer"),
+])
+def test_malformed_policy_files_are_one_line_errors(policy, tmp_path, meta_edit, arrays_edit,
+                                                     message):
+    path = policy.save(tmp_path / "p.npz")
+    bad = _rewrite(path, tmp_path / "bad.npz", meta_edit, arrays_edit)
+    with pytest.raises(PolicyFileError, match=message) as e:
+        SfMPolicy.load(bad)
+    assert "\n" not in str(e.value) and "bad.npz" in str(e.value)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda m: {**m, "projector": {**m["projector"], "magic": 1}}, "unknown projector parameter"),
+    (lambda m: {**m, "n_components": "3"}, "n_components must be an integer"),
+    (lambda m: {**m, "projector": [1, 2]}, "projector must be a JSON object"),
+])
+def test_malformed_format_1_files_are_one_line_errors(policy, tmp_path, edit, message):
+    path = policy.save(tmp_path / "p.npz")
+    bad = _rewrite(path, tmp_path / "bad.npz", lambda m: edit({**m, "format_version": 1}),
+                   _to_version_1)
+    with pytest.raises(PolicyFileError, match=message):
+        SfMPolicy.load(bad)
+
+
 def test_fit_stacks_datasets_with_the_same_layout(small_train):
     p = fit_policy([small_train, small_train], FeatureSpec(obs_names=small_train.sensor_names))
     assert p.training["rows"] == 2 * small_train.n_steps and p.training["episodes"] == 6

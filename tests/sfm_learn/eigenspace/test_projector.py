@@ -372,3 +372,66 @@ def test_seeded_regression_spectrum_rank_and_held_out_error():
 
 REGRESSION_REL_SPECTRUM = [1.0, 0.8133445414, 0.5899721827, 0.0205371647, 0.0198860679]
 REGRESSION_REL_RMSE = [0.0559364295, 0.0556647603]
+
+
+# ---------------------------------------------------------------------- to_arrays / from_arrays
+def _data(seed, n=300):
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n, 3))
+    known = z @ rng.standard_normal((3, 7)) + 0.01 * rng.standard_normal((n, 7))
+    missing = z @ rng.standard_normal((3, 2))
+    return known, missing
+
+
+@pytest.mark.parametrize("solver", ["lstsq", "ridge", "ppca"])
+def test_a_projector_rebuilt_from_its_arrays_is_complete(solver):
+    known, missing = _data(0)
+    a = EigenspaceProjector(solver=solver, rank_rtol=1e-4).fit(known[:200], missing[:200])
+    b = EigenspaceProjector.from_arrays(a.to_arrays())
+    assert b.get_params() == a.get_params()
+    np.testing.assert_array_equal(b.reconstruct(known), a.reconstruct(known))
+    np.testing.assert_array_equal(b.transform(known), a.transform(known))
+    # it continues learning exactly where the original left off
+    a.partial_fit(known[200:], missing[200:])
+    b.partial_fit(known[200:], missing[200:])
+    np.testing.assert_array_equal(b.coef_, a.coef_)
+    assert b.n_rows_seen_ == a.n_rows_seen_ == 300
+
+
+def test_arrays_need_no_pickle(tmp_path):
+    known, missing = _data(1)
+    a = EigenspaceProjector(n_components=2).fit(known, missing)
+    np.savez(tmp_path / "p.npz", **a.to_arrays())
+    with np.load(tmp_path / "p.npz", allow_pickle=False) as f:
+        b = EigenspaceProjector.from_arrays(dict(f))
+    assert b.n_components == 2 and b.n_components_ == 2
+    np.testing.assert_array_equal(b.reconstruct(known), a.reconstruct(known))
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda d: d.pop("coef_"), "lack 'coef_'"),
+    (lambda d: d.__setitem__("coef_", np.full_like(d["coef_"], np.nan)), "finite"),
+    (lambda d: d.__setitem__("coef_", d["coef_"][:, :1]), "shape"),
+    (lambda d: d.__setitem__("n_components_", np.asarray(2.5)), "integer"),
+    (lambda d: d.__setitem__("n_components_", np.asarray(99)), "99 components"),
+    (lambda d: d.__setitem__("param.solver", np.asarray("magic")), "solver"),
+    (lambda d: d.__setitem__("stat.r", np.zeros((2, 2))), "statistics"),
+])
+def test_damaged_arrays_are_one_line_errors(damage, message):
+    known, missing = _data(2)
+    arrays = EigenspaceProjector().fit(known, missing).to_arrays()
+    damage(arrays)
+    with pytest.raises(ValueError, match=message) as e:
+        EigenspaceProjector.from_arrays(arrays)
+    assert "\n" not in str(e.value)
+
+
+def test_partial_fit_refuses_a_projector_without_statistics():
+    known, missing = _data(3)
+    arrays = EigenspaceProjector().fit(known, missing).to_arrays()
+    for k in ("stat.r", "stat.mean", "stat.weight"):
+        arrays.pop(k)
+    b = EigenspaceProjector.from_arrays(arrays)
+    b.reconstruct(known)  # still predicts
+    with pytest.raises(ValueError, match="without its training statistics"):
+        b.partial_fit(known, missing)
