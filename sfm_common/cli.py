@@ -12,7 +12,7 @@ import math
 
 __all__ = [
     "UsageError", "OneLineParser", "one_line", "positive_int", "non_negative_int", "seed",
-    "positive_float", "non_negative_float", "fraction", "SEED_LIMIT",
+    "positive_float", "non_negative_float", "fraction", "SEED_LIMIT", "int_in_range",
 ]
 
 #: Seeds are accepted in [0, SEED_LIMIT): numpy's SeedSequence takes any, but episode seeds
@@ -75,3 +75,15 @@ def non_negative_float(text: str) -> float:
 
 def fraction(text: str) -> float:
     return _number(text, float, lambda v: 0.0 <= v < 1.0, "a fraction in [0, 1)")
+
+
+def int_in_range(low: int, high: int):
+    """An argparse type accepting integers in ``[low, high]`` (inclusive), e.g. a stated maximum
+    of episodes or timesteps, so a typo of extra zeros is an error, not a week of computing."""
+    def parse(text: str) -> int:
+        expected = (f"a positive integer (at most {high:_})" if low == 1
+                    else f"an integer in [{low}, {high:_}]")
+        return _number(text, int, lambda v: low <= v <= high, expected)
+
+    parse.__name__ = f"int_in_[{low},{high}]"
+    return parse

@@ -10,6 +10,7 @@ import os
 
 from sfm_common.cli import (  # noqa: F401  (re-exported for the command modules)
     fraction,
+    int_in_range,
     non_negative_float,
     non_negative_int,
     one_line,
@@ -20,6 +21,14 @@ from sfm_common.cli import (  # noqa: F401  (re-exported for the command modules
 from sfm_common.progress import progress
 
 DEFAULT_ENV = "MKV-v0"
+
+#: Stated maxima (a typo of extra zeros is an error, not a week of computing).
+MAX_EPISODES = 10_000_000
+MAX_TIMESTEPS = 10_000_000_000
+MAX_ENVS = 256
+episodes_type = int_in_range(1, MAX_EPISODES)
+timesteps_type = int_in_range(1, MAX_TIMESTEPS)
+n_envs_type = int_in_range(1, MAX_ENVS)
 
 
 class CliError(Exception):
@@ -110,3 +119,26 @@ def check_png_path(path: str, what: str) -> None:
     check_output_path(path, what)
     if not path.lower().endswith(".png"):
         raise CliError(f"{what} {path} must end in .png")
+
+
+def spec_path(spec: str) -> str | None:
+    """The file a policy spec reads (``sfm:P``, ``bc:P``, ``ppo:P``, ``script:P``, ``sb3:ALGO:P``),
+    or None (``teacher``, ``random``)."""
+    prefix, _, arg = spec.strip().partition(":")
+    if prefix == "sb3":
+        arg = arg.partition(":")[2]
+    return arg.strip() or None if prefix not in ("teacher", "random") else None
+
+
+def check_outputs(inputs=(), outputs=()) -> None:
+    """Every output path must differ from every input and from the other outputs, and must not
+    be an existing non-regular file (CliError, one line)."""
+    from sfm_common.files import check_distinct, check_writable_target
+
+    try:
+        check_distinct(inputs, outputs)
+        for out in outputs:
+            if out is not None:
+                check_writable_target(out)
+    except ValueError as e:
+        raise CliError(one_line(e)) from None

@@ -17,6 +17,7 @@ from sfm_common.files import atomic_write_text
 from sfm_learn.cli.common import (
     CliError,
     check_output_path,
+    check_outputs,
     check_png_path,
     load_dataset,
     non_negative_int,
@@ -58,6 +59,7 @@ def run(args) -> int:
         check_png_path(spectrum, "spectrum plot")
     if args.json:
         check_output_path(args.json, "JSON output")
+    check_outputs([args.data, args.policy], [args.json, args.plot, spectrum])
     data = load_dataset(args.data)
     try:
         policy = SfMPolicy.load(args.policy)

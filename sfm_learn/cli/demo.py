@@ -23,12 +23,14 @@ import argparse
 import json
 import os
 import shlex
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 
 from sfm_common.files import atomic_write_text
 from sfm_common.progress import progress
-from sfm_learn.cli.common import CliError, positive_int, seed
+from sfm_learn.cli.common import CliError, episodes_type, positive_int, seed, timesteps_type
 
 __all__ = ["add_arguments", "run", "Budget"]
 
@@ -62,9 +64,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="output directory (default demo_out; created if missing)")
     p.add_argument("--quick", action="store_true",
                    help="tiny budgets: a smoke run in well under a minute")
-    p.add_argument("--ppo-timesteps", type=positive_int, default=None, metavar="T",
+    p.add_argument("--ppo-timesteps", type=timesteps_type, default=None, metavar="T",
                    help=f"PPO budget in env steps (default {Budget.ppo_timesteps})")
-    p.add_argument("--train-episodes", type=positive_int, default=None, metavar="N",
+    p.add_argument("--train-episodes", type=episodes_type, default=None, metavar="N",
                    help=f"teacher training episodes (default {Budget.train_episodes})")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="evaluation worker processes (default 2)")
@@ -123,10 +125,52 @@ class _Stages:
 
 
 def run(args) -> int:
-    b = _budget(args)
-    out = os.path.abspath(args.out)
-    if os.path.exists(out) and not os.path.isdir(out):
+    """Build the whole output in a temporary sibling folder and swap it in only when complete:
+    an interrupt or a failure leaves the previous output untouched and nothing partial."""
+    final = os.path.realpath(args.out)
+    if os.path.exists(final) and not os.path.isdir(final):
         raise CliError(f"--out {args.out} exists and is not a directory")
+    parent = os.path.dirname(final)
+    if not os.path.isdir(parent):
+        raise CliError(f"--out {args.out}: directory {parent} does not exist")
+    _check_extras()
+    work = tempfile.mkdtemp(prefix=f".{os.path.basename(final)}.tmp-", dir=parent)
+    try:
+        _run(args, work, final)
+        _swap_in(work, final)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    print(f"\nwrote {os.path.join(args.out, 'report.md')}")
+    return 0
+
+
+def _swap_in(work: str, final: str) -> None:
+    """Replace ``final`` by the finished ``work`` folder (the old one is removed afterwards)."""
+    old = None
+    if os.path.exists(final):
+        old = tempfile.mkdtemp(prefix=f".{os.path.basename(final)}.old-",
+                               dir=os.path.dirname(final))
+        os.rmdir(old)
+        os.rename(final, old)
+    try:
+        os.rename(work, final)
+    except BaseException:
+        if old is not None:
+            os.rename(old, final)
+        raise
+    os.chmod(final, 0o777 & ~_umask())
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _check_extras() -> None:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
@@ -138,6 +182,11 @@ def run(args) -> int:
     except ImportError:
         raise CliError("mkv demo trains the SB3 baselines: it needs torch and "
                        "stable-baselines3 (pip install 'mkv-sfm[baselines]')") from None
+
+
+def _run(args, out: str, final: str) -> None:
+    """Every stage, writing into ``out`` (the temporary folder); ``final`` is where it goes."""
+    b = _budget(args)
     for sub in ("", "data", "policies", "eval"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
 
@@ -214,8 +263,7 @@ def run(args) -> int:
                      quick=args.quick, study=study)
 
     st.call("learning-cost plot and report", "(mkv demo) report.md", write)
-    print(f"\nwrote {p('report.md')} ({time.perf_counter() - t_start:.0f} s in all)")
-    return 0
+    print(f"\nfinished in {time.perf_counter() - t_start:.0f} s")
 
 
 def _evaluate(env_id, policies, names, episodes, b: Budget, stem: str, quiet: bool):

@@ -25,10 +25,13 @@ from sfm_learn.cli.common import (
     add_quiet_argument,
     check_env_and_policies,
     check_output_path,
+    check_outputs,
     check_writable,
+    episodes_type,
     positive_int,
     progress_for,
     seed,
+    spec_path,
 )
 
 
@@ -51,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="teacher, teacher:key=value,..., random, script:PATH, sfm:PATH, "
                         "ppo:PATH, bc:PATH; repeat to compare several on the same seeds "
                         "(each spec at most once)")
-    p.add_argument("--episodes", type=positive_int, required=True, metavar="N",
+    p.add_argument("--episodes", type=episodes_type, required=True, metavar="N",
                    help="episodes per policy")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
                    help="episode i uses env seed S+i (default 0)")
@@ -89,8 +92,7 @@ def run(args) -> int:
             raise CliError(f"--policy {s} given more than once")
         seen.add(s)
     outputs = [p for p in (args.json, args.plot) if p]
-    if len(outputs) == 2 and os.path.abspath(args.json) == os.path.abspath(args.plot):
-        raise CliError("--json and --plot name the same file")
+    check_outputs([spec_path(s) for s in specs], outputs)
     if args.json:
         check_output_path(args.json, "JSON output")
         check_writable(args.json, "JSON output")

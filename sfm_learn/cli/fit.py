@@ -15,6 +15,7 @@ import os
 from sfm_learn.cli.common import (
     CliError,
     check_output_path,
+    check_outputs,
     check_png_path,
     load_dataset,
     non_negative_int,
@@ -89,6 +90,7 @@ def run(args) -> int:
         raise CliError(f"output {args.out} must end in .npz")
     if args.spectrum:
         check_png_path(args.spectrum, "spectrum plot")
+    check_outputs(args.data, [args.out, args.spectrum])
     datasets = [load_dataset(p) for p in args.data]
     names = list(datasets[0].sensor_names)
     for path, d in zip(args.data[1:], datasets[1:], strict=True):

@@ -14,9 +14,11 @@ from sfm_learn.cli.common import (
     add_quiet_argument,
     check_env_and_policies,
     check_output_path,
-    positive_int,
+    check_outputs,
+    episodes_type,
     progress_for,
     seed,
+    spec_path,
 )
 
 
@@ -24,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument("--policy", required=True, metavar="SPEC",
                    help="teacher, teacher:key=value,..., random, script:PATH, sfm:PATH, ...")
-    p.add_argument("--episodes", type=positive_int, required=True, metavar="N")
+    p.add_argument("--episodes", type=episodes_type, required=True, metavar="N")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
                    help="episode i uses env seed S+i (default 0)")
     p.add_argument("--out", required=True, metavar="DATA.npz")
@@ -36,6 +38,7 @@ def run(args) -> int:
     from mkv_env.recorder import record, summarize
 
     check_output_path(args.out)
+    check_outputs([spec_path(args.policy)], [args.out])
     check_env_and_policies(args.env, args.env_kwargs, [args.policy])
     with progress_for(args, args.episodes, f"record {args.env}") as bar:
         data = record(args.env, args.policy, args.episodes, args.seed, args.env_kwargs,

@@ -16,6 +16,7 @@ from sfm_learn.baselines.bc import ACTION_NAMES, DEFAULTS, VALUE_NAMES, save, tr
 from sfm_learn.cli.common import (
     add_quiet_argument,
     check_output_path,
+    check_outputs,
     fraction,
     load_dataset,
     positive_float,
@@ -81,6 +82,7 @@ def _fmt_acc(acc: dict | None) -> str:
 
 def run(args) -> int:
     check_output_path(args.out)
+    check_outputs([args.data], [args.out])
     data = load_dataset(args.data)
     if data.n_episodes < 2 and args.held_out > 0:
         print(f"note: {args.data} has one episode; nothing held out")

@@ -18,12 +18,16 @@ from sfm_learn.cli.common import (
     add_env_arguments,
     add_quiet_argument,
     check_output_path,
+    check_outputs,
+    episodes_type,
+    n_envs_type,
     non_negative_float,
     one_line,
     positive_float,
     positive_int,
     progress_for,
     seed,
+    timesteps_type,
 )
 
 
@@ -31,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument(
         "--timesteps",
-        type=positive_int,
+        type=timesteps_type,
         required=True,
         metavar="T",
         help="env steps to train on (rounded up to whole rollouts)",
@@ -45,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="seeds torch, the policy and the envs (env i starts at S+i); default 0",
     )
     p.add_argument(
-        "--n-envs", type=positive_int, default=2, metavar="N", help="parallel envs (default 2)"
+        "--n-envs", type=n_envs_type, default=2, metavar="N", help="parallel envs (default 2)"
     )
     p.add_argument(
         "--vec",
@@ -63,7 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--eval-episodes",
-        type=positive_int,
+        type=episodes_type,
         default=10,
         metavar="N",
         help="episodes per evaluation (default 10)",
@@ -122,6 +126,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     check_output_path(args.out)
+    check_outputs([], [args.out])
     d = args.checkpoint_dir
     if d:
         if os.path.exists(d) and not os.path.isdir(d):

@@ -349,6 +349,31 @@ def signed_actions(actions, nvec) -> np.ndarray:
     return np.asarray(actions, dtype=np.float64) - (np.asarray(nvec, dtype=np.float64) - 1) / 2
 
 
+#: Most columns a fit accepts: its SVD costs O(columns^3) and its statistics O(columns^2) memory.
+MAX_COLUMNS = 10_000
+
+
+def _memory_bytes() -> int:
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8 * 2**30
+
+
+def check_fit_size(n_rows: int, n_columns: int) -> None:
+    """ValueError (one line) before allocating, when a fit of ``n_rows`` x ``n_columns`` (features
+    plus commands) would not fit in half the machine's memory or exceeds :data:`MAX_COLUMNS`."""
+    if n_columns > MAX_COLUMNS:
+        raise ValueError(f"{n_columns} feature columns is more than the {MAX_COLUMNS} a fit "
+                         "accepts (check --history / --traces)")
+    need = 8 * (3 * n_rows * n_columns + 4 * n_columns * n_columns)
+    have = _memory_bytes() // 2
+    if need > have:
+        raise ValueError(f"a fit of {n_rows} rows x {n_columns} columns needs about "
+                         f"{need / 2**30:.1f} GiB; at most {have / 2**30:.1f} GiB (half this "
+                         "machine's memory) is allowed: use fewer rows or features")
+
+
 def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=None,
                solver: str = "ppca", rank_rtol: float = 1e-3, thresholds: str = "learned",
                alpha: float = 1e-3, encoding: str = "signed") -> SfMPolicy:
@@ -384,6 +409,9 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
         feature_spec = default_feature_spec(names, nvec)
     elif tuple(feature_spec.obs_names) != tuple(names):
         raise ValueError("the feature spec's obs_names differ from the dataset's sensor names")
+    n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"
+                 else len(feature_spec.action_nvec))
+    check_fit_size(sum(d.n_steps for d in datasets), feature_spec.n_features + n_targets)
     builder = FeatureBuilder(feature_spec)
     feats = np.concatenate([builder.transform(d["observations"], d["actions"], episode_starts(d))
                             for d in datasets])

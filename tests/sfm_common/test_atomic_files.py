@@ -36,3 +36,53 @@ def test_suffix_can_be_chosen_for_writers_that_read_it(tmp_path):
         assert tmp.endswith(".png")
         open(tmp, "w").close()
     assert (tmp_path / "plot").exists()
+
+
+def test_a_symlink_is_written_through(tmp_path):
+    target = tmp_path / "real.txt"
+    target.write_text("old")
+    link = tmp_path / "link.txt"
+    link.symlink_to(target)
+    atomic_write_text(link, "new")
+    assert link.is_symlink() and target.read_text() == "new"
+
+
+def test_the_replaced_file_keeps_its_permissions(tmp_path):
+    target = tmp_path / "a.txt"
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    atomic_write_text(target, "new")
+    assert stat.S_IMODE(target.stat().st_mode) == 0o640
+
+
+@pytest.mark.parametrize("kind", ["directory", "fifo", "device"])
+def test_non_regular_targets_are_refused_and_left_alone(tmp_path, kind):
+    if kind == "directory":
+        target = tmp_path / "d"
+        target.mkdir()
+    elif kind == "fifo":
+        target = tmp_path / "f"
+        os.mkfifo(target)
+    else:
+        target = "/dev/null"
+    with pytest.raises(ValueError, match="directory|not a regular file"):
+        atomic_write_text(target, "x")
+    if kind == "device":
+        assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+    assert [p for p in os.listdir(tmp_path) if p.startswith(".tmp-")] == []
+
+
+def test_outputs_must_differ_from_inputs_and_each_other(tmp_path):
+    from sfm_common.files import check_distinct
+
+    a, b = tmp_path / "a.npz", tmp_path / "b.json"
+    a.write_text("x")
+    check_distinct([a], [b, tmp_path / "c.png"])
+    with pytest.raises(ValueError, match="also an input"):
+        check_distinct([a], [tmp_path / "." / "a.npz"])
+    link = tmp_path / "l.npz"
+    link.symlink_to(a)
+    with pytest.raises(ValueError, match="also an input"):
+        check_distinct([a], [link])
+    with pytest.raises(ValueError, match="two outputs"):
+        check_distinct([], [b, tmp_path / "b.json"])

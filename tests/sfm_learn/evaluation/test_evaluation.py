@@ -358,3 +358,25 @@ def test_plot_is_written(tmp_path, monkeypatch):
     plot_evaluations(two_evaluations(), str(out))
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
     assert [p.name for p in tmp_path.iterdir()] == ["bars.png"]
+
+
+def test_a_killed_worker_is_a_clear_error():
+    """A worker that dies (OOM killer, kill -9) ends the evaluation with one clear error."""
+    psutil = pytest.importorskip("psutil")
+    import signal
+
+    killed = []
+
+    def kill_a_worker(p, i, n):
+        if killed:
+            return
+        me = psutil.Process()
+        for server in me.children():
+            for worker in server.children():  # forkserver -> workers
+                worker.send_signal(signal.SIGKILL)
+                killed.append(worker.pid)
+
+    with pytest.raises(RuntimeError, match="worker process died") as e:
+        evaluate_many("MKVJam-v0", ["random"], 400, seed=0, workers=2,
+                      env_kwargs={"max_episode_steps": 20}, on_episode=kill_a_worker)
+    assert killed and "\n" not in str(e.value)
