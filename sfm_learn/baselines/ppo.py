@@ -154,6 +154,7 @@ def train(
     torch = sb3.import_torch()
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     env_kwargs = dict(env_kwargs or {})
@@ -255,6 +256,8 @@ def train(
             max_grad_norm=hp["max_grad_norm"],
             policy_kwargs={"net_arch": list(hp["net_arch"]), "activation_fn": torch.nn.Tanh},
         )
+        # no logger output: SB3's default logger makes an empty /tmp/SB3-<date> folder per run
+        model.set_logger(Logger(None, []))
         state["start"] = time.perf_counter()
         model.learn(total_timesteps=int(timesteps), callback=_Callback())
         if (

@@ -1,6 +1,7 @@
 """Shared recordings for the sfm_learn tests (recorded once per session; a few seconds)."""
 
 import os
+import tempfile
 
 import pytest
 
@@ -9,6 +10,8 @@ from mkv_env.recorder import record
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("MPLBACKEND", "Agg")
+# plain-SB3 models in the tests log nowhere useful; keep their folders out of /tmp
+os.environ.setdefault("SB3_LOGDIR", os.path.join(tempfile.gettempdir(), "mkv-tests-sb3-logs"))
 
 
 @pytest.fixture(scope="session")
