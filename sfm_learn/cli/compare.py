@@ -33,6 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episode", type=non_negative_int, default=None, metavar="I",
                    help="episode shown in the figure (default: the one with most back-offs)")
     p.add_argument("--json", metavar="OUT.json", help="also write the metrics as JSON")
+    p.add_argument("--mode", choices=("free_running", "teacher_forced"), default="free_running",
+                   help="replay drawn in the figure (default free_running: the policy's own "
+                        "previous commands feed its features; both are in the table and JSON)")
 
 
 def _default_episode(cmp) -> int:
@@ -49,6 +52,7 @@ def _default_episode(cmp) -> int:
 def run(args) -> int:
     from sfm_learn.eigenspace.policy import PolicyFileError, SfMPolicy
     from sfm_learn.evaluation.compare import compare
+    from sfm_learn.reporting.tables import comparison_table
 
     spectrum = args.spectrum
     if args.plot:
@@ -71,29 +75,14 @@ def run(args) -> int:
         raise CliError(str(e).splitlines()[0]) from None
     used = {d.get("sha256") for d in policy.training.get("datasets", [])}
     in_sample = data.metadata.get("content_sha256") in used
-    m = cmp.metrics
-    b = m["baseline"]
-    print(f"{args.policy} replayed on {args.data}: {data.n_episodes} episodes, {m['steps']} steps"
+    print(f"{args.policy} replayed on {args.data}: {data.n_episodes} episodes, "
+          f"{data.n_steps} steps"
           + ("  [WARNING: this dataset was used to fit the policy; agreement is in-sample]"
              if in_sample else ""))
-    print(f"{'agreement':<28}{'SfM':>8}{'constant guess':>16}")
-    print(f"{'drive':<28}{m['drive']:>8.3f}{b['drive']:>16.3f}")
-    print(f"{'steer timing (steer or not)':<28}{m['steer_timing']:>8.3f}{b['steer_timing']:>16.3f}")
-    d, bd = m["steer_direction"], b["steer_direction"]
-    print(f"{'steer direction (both steer)':<28}"
-          + (f"{d:>8.3f}{bd:>16.3f}" if d is not None else f"{'-':>8}{'-':>16}")
-          + f"   over {m['steer_direction_steps']} steps")
-    d = m["steer_direction_onset"]
-    print(f"{'steer direction at onsets':<28}"
-          + (f"{d:>8.3f}{0.5:>16.3f}" if d is not None else f"{'-':>8}{'-':>16}")
-          + f"   over {m['steer_onsets']} teacher steer onsets (0.5 = coin)")
-    d = m["steer_direction_backoff_onset"]
-    print(f"{'  ... of escape turns':<28}"
-          + (f"{d:>8.3f}{0.5:>16.3f}" if d is not None else f"{'-':>8}{'-':>16}")
-          + f"   over {m['steer_backoff_onsets']} onsets while reversing (random side)")
+    print(comparison_table(cmp))
     if args.json:
         doc = {"data": os.path.basename(args.data), "policy": os.path.basename(args.policy),
-               "in_sample": in_sample, "metrics": m, "episodes": cmp.per_episode}
+               "in_sample": in_sample, **cmp.to_dict()}
         atomic_write_text(args.json, json.dumps(doc, indent=2) + "\n")
         print(f"wrote {args.json}")
     if args.plot or spectrum:
@@ -109,11 +98,16 @@ def run(args) -> int:
                 sl = cmp.episode_slices[ep]
                 t = np.arange(sl.stop - sl.start) * cmp.control_period_s
                 bumps = data["bumped"][sl] if "bumped" in data else None
-                plot_figure3(t, cmp.teacher[sl], cmp.policy[sl], args.plot,
-                             metrics=agreement(cmp.teacher[sl], cmp.policy[sl]), bumps=bumps,
+                mine = cmp.actions[args.mode][sl]
+                plot_figure3(t, cmp.teacher[sl], mine, args.plot,
+                             metrics=agreement(cmp.teacher[sl], mine), bumps=bumps,
+                             policy_label=f"SfM policy ({args.mode.replace('_', '-')})",
                              title=f"Teacher vs shape-from-motion commands, held-out "
                                    f"{data.metadata.get('env_id')} run (seed "
-                                   f"{int(data['episode_seeds'][ep])})")
+                                   f"{int(data['episode_seeds'][ep])}); the policy "
+                                   + ("drives its own features (free-running)"
+                                      if args.mode == "free_running" else
+                                      "is fed the teacher's previous command"))
                 print(f"wrote {args.plot}")
             if spectrum:
                 proj = policy.projector

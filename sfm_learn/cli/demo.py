@@ -28,6 +28,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 
+from sfm_common.cli import int_in_range
 from sfm_common.files import atomic_write_text
 from sfm_common.progress import progress
 from sfm_learn.cli.common import CliError, episodes_type, positive_int, seed, timesteps_type
@@ -39,8 +40,12 @@ __all__ = ["add_arguments", "run", "Budget"]
 class Budget:
     """Seeds and sizes of one demo run."""
 
+    train_sets: int = 5
+    """Teacher training sets (different teacher seeds): every closed-loop SfM/BC number is a
+    mean over them, with the range."""
     train_episodes: int = 20
     train_seed: int = 0
+    train_seed_step: int = 100
     held_episodes: int = 5
     held_seed: int = 500
     episode_steps: int | None = None  # None: the env's default (600 steps = 60 s)
@@ -49,13 +54,22 @@ class Budget:
     ppo_eval_episodes: int = 10
     jam_episodes: int = 100
     wander_episodes: int = 20
-    eval_seed: int = 1000
+    eval_seed: int = 2_000_000
+    """Evaluation env seeds: never used while developing the package (development used
+    1000.., 10000.., 777000.. and the training/held-out seeds below 1000)."""
+    study_jam_episodes: int = 50
+    study_wander_episodes: int = 10
+    rank_study_ranks: tuple = (1, 2, 3, 4, 6, 8, 12, 16, 20, 24, 28, 30, 32)
     calib_seeds: int = 200
     workers: int = 2
 
+    def train_seeds(self) -> list[int]:
+        return [self.train_seed + k * self.train_seed_step for k in range(self.train_sets)]
 
-QUICK = Budget(train_episodes=3, held_episodes=1, episode_steps=120, bc_epochs=2,
+
+QUICK = Budget(train_sets=2, train_episodes=3, held_episodes=1, episode_steps=120, bc_epochs=2,
                ppo_timesteps=1024, ppo_eval_episodes=2, jam_episodes=6, wander_episodes=2,
+               study_jam_episodes=4, study_wander_episodes=1, rank_study_ranks=(1, 8, 32),
                calib_seeds=2, workers=2)
 
 
@@ -67,7 +81,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ppo-timesteps", type=timesteps_type, default=None, metavar="T",
                    help=f"PPO budget in env steps (default {Budget.ppo_timesteps})")
     p.add_argument("--train-episodes", type=episodes_type, default=None, metavar="N",
-                   help=f"teacher training episodes (default {Budget.train_episodes})")
+                   help=f"teacher episodes per training set (default {Budget.train_episodes})")
+    p.add_argument("--train-sets", type=int_in_range(1, 100), default=None, metavar="K",
+                   help=f"teacher training sets, seeds S, S+100, ... (default "
+                        f"{Budget.train_sets}); every learned-policy number is over all of them")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="evaluation worker processes (default 2)")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
@@ -85,6 +102,8 @@ def _budget(args) -> Budget:
         over["ppo_timesteps"] = args.ppo_timesteps
     if args.train_episodes is not None:
         over["train_episodes"] = args.train_episodes
+    if args.train_sets is not None:
+        over["train_sets"] = args.train_sets
     if args.workers is not None:
         over["workers"] = args.workers
     else:
@@ -117,6 +136,8 @@ class _Stages:
         t0 = time.perf_counter()
         code = fn()
         wall = time.perf_counter() - t0
+        if code == 130:  # an mkv stage was interrupted (it printed nothing partial)
+            raise KeyboardInterrupt
         if code:
             raise CliError(f"stage {self.i} ({title}) failed with exit status {code}")
         self.log.append((title, shown, wall))
@@ -194,60 +215,117 @@ def _run(args, out: str, final: str) -> None:
         return os.path.join(out, *parts)
 
     t_start = time.perf_counter()
-    st = _Stages(total=11 - bool(args.skip_calib), quiet=args.quiet)
+    st = _Stages(total=12 - bool(args.skip_calib), quiet=args.quiet)
     env_kwargs = [] if b.episode_steps is None else [
         "--env-kwargs", json.dumps({"max_episode_steps": b.episode_steps})]
-    train, held = p("data", "teacher_train.npz"), p("data", "teacher_held_out.npz")
-    sfm, bc, ppo = p("policies", "sfm.npz"), p("policies", "bc.zip"), p("policies", "ppo.zip")
+    sets = range(b.train_sets)
+    trains = [p("data", f"teacher_train_{k}.npz") for k in sets]
+    held = p("data", "teacher_held_out.npz")
+    sfm = [p("policies", f"sfm_{k}.npz") for k in sets]
+    paper = [p("policies", f"sfm_paper_{k}.npz") for k in sets]
+    bc = [p("policies", f"bc_{k}.zip") for k in sets]
+    ppo = p("policies", "ppo.zip")
 
-    st.mkv("record the teacher's training runs", [
-        "record", "--env", "MKV-v0", *env_kwargs, "--policy", "teacher",
-        "--episodes", b.train_episodes, "--seed", b.train_seed, "--out", train])
+    def each(fn):
+        for k in sets:
+            if fn(k):
+                raise CliError(f"stage failed for training set {k}")
+
+    def record_sets():
+        from sfm_learn.cli.app import main
+
+        each(lambda k: main(["record", "--env", "MKV-v0", *env_kwargs, "--policy", "teacher",
+                             "--episodes", str(b.train_episodes), "--seed",
+                             str(b.train_seeds()[k]), "--out", trains[k], "--quiet"]))
+
+    st.call(f"record {b.train_sets} teacher training sets",
+            f"for S in {' '.join(map(str, b.train_seeds()))}: mkv record --env MKV-v0 "
+            f"--policy teacher --episodes {b.train_episodes} --seed S "
+            "--out data/teacher_train_K.npz", record_sets)
     st.mkv("record held-out teacher runs", [
         "record", "--env", "MKV-v0", *env_kwargs, "--policy", "teacher",
         "--episodes", b.held_episodes, "--seed", b.held_seed, "--out", held])
-    st.mkv("fit the shape-from-motion policy", [
-        "fit", train, "--out", sfm, "--spectrum", p("sfm_spectrum.png")])
-    st.mkv("Figure 3: teacher vs SfM on the held-out runs", [
-        "compare", held, sfm, "--plot", p("fig3.png"), "--spectrum", p("sfm_spectrum.png"),
-        "--json", p("compare.json")])
-    study = []
 
-    def run_study():
+    def fit_sets():
+        from sfm_learn.cli.app import main
+
+        each(lambda k: main(["fit", trains[k], "--out", sfm[k]]
+                            + (["--spectrum", p("sfm_spectrum.png")] if k == 0 else [])))
+        each(lambda k: main(["fit", trains[k], "--preset", "paper", "--out", paper[k]]
+                            + (["--spectrum", p("sfm_paper_spectrum.png")] if k == 0 else [])))
+
+    st.call("fit the SfM policy (default and the paper's preset) on every training set",
+            "mkv fit data/teacher_train_K.npz --out policies/sfm_K.npz; "
+            "mkv fit data/teacher_train_K.npz --preset paper --out policies/sfm_paper_K.npz",
+            fit_sets)
+    st.mkv("Figure 3: teacher vs SfM on the held-out runs (free-running)", [
+        "compare", held, sfm[0], "--plot", p("fig3.png"), "--json", p("compare.json")])
+    st.mkv("the same for the paper's configuration", [
+        "compare", held, paper[0], "--json", p("compare_paper.json")])
+    studies = {}
+
+    def run_studies():
         from mkv_env.dataset import load
-        from sfm_learn.evaluation.study import feature_study
+        from sfm_learn.evaluation.study import FEATURE_CONFIGS, rank_configs, run_study
+        from sfm_learn.reporting.plots import plot_rank_study
         from sfm_learn.reporting.tables import study_markdown
 
-        rows = feature_study([load(train)], load(held), jam_episodes=b.jam_episodes,
-                             wander_episodes=b.wander_episodes, seed=b.eval_seed)
-        study.extend(rows)
-        text = study_markdown(rows)
-        atomic_write_text(p("feature_study.md"), text + "\n")
-        print(text)
+        data = [load(t) for t in trains]
+        held_data = load(held)
+        names = data[0].sensor_names
+        jobs = {"features": list(FEATURE_CONFIGS),
+                "rank_default": rank_configs(names, "default", b.rank_study_ranks),
+                "rank_paper": rank_configs(names, "paper")}
+        total = sum(len(c) for c in jobs.values()) * b.train_sets * (
+            b.study_jam_episodes + b.study_wander_episodes)
+        with progress(total, "studies", unit="ep",
+                      enabled=False if args.quiet else None) as bar:
+            for key, configs in jobs.items():
+                studies[key] = run_study(data, held_data, configs,
+                                         jam_episodes=b.study_jam_episodes,
+                                         wander_episodes=b.study_wander_episodes,
+                                         seed=b.eval_seed, workers=b.workers,
+                                         on_episode=lambda: bar.update(1))
+        for key in jobs:
+            text = study_markdown(studies[key])
+            atomic_write_text(p(f"{key}_study.md"), text + "\n")
+            print(text)
+        plot_rank_study({"default": studies["rank_default"], "paper": studies["rank_paper"]},
+                        p("rank_study.png"),
+                        title=f"Kept rank n: mean over {b.train_sets} training sets, "
+                              f"[min, max] shaded; env seeds {b.eval_seed}..")
 
-    st.call("which features the SfM policy needs (feature-set study)",
-            "sfm_learn.evaluation.study.feature_study on the data above "
-            "(standalone: python scripts/sfm_feature_study.py)",
-            run_study)
-    st.mkv("behaviour cloning on the same demonstrations", [
-        "train-bc", train, "--out", bc, "--epochs", b.bc_epochs, "--seed", b.train_seed,
-        "--held-out", "0"])
+    st.call("studies: which features, the paper's configuration, the kept rank",
+            "sfm_learn.evaluation.study.run_study (standalone: python scripts/sfm_study.py)",
+            run_studies)
+
+    def bc_sets():
+        from sfm_learn.cli.app import main
+
+        each(lambda k: main(["train-bc", trains[k], "--out", bc[k], "--epochs",
+                             str(b.bc_epochs), "--seed", str(b.train_seed), "--held-out", "0",
+                             "--quiet"]))
+
+    st.call("behaviour cloning on every training set",
+            f"mkv train-bc data/teacher_train_K.npz --out policies/bc_K.zip --epochs "
+            f"{b.bc_epochs} --held-out 0", bc_sets)
     st.mkv("PPO on the MKV-v0 reward", [
         "train-ppo", "--env", "MKV-v0", "--timesteps", b.ppo_timesteps, "--out", ppo,
         "--seed", b.train_seed, "--eval-episodes", b.ppo_eval_episodes])
 
-    policies = ["teacher", "random", f"sfm:{sfm}", f"bc:{bc}", f"ppo:{ppo}"]
-    names = ["teacher", "random", "SfM", "BC", "PPO"]
+    learners = {"SfM": [f"sfm:{x}" for x in sfm], "SfM paper": [f"sfm:{x}" for x in paper],
+                "BC": [f"bc:{x}" for x in bc]}
     evals = {}
     for env_id, episodes, key in (("MKVJam-v0", b.jam_episodes, "jam"),
                                   ("MKV-v0", b.wander_episodes, "wander")):
-        shown = ("mkv eval --env " + env_id + "".join(f" --policy {s}" for s in policies)
-                 + f" --episodes {episodes} --seed {b.eval_seed} --workers {b.workers}"
-                 + f" --json eval/{key}.json --plot eval/{key}.png")
-        st.call(f"evaluate all policies on {env_id}", shown,
+        shown = (f"mkv eval --env {env_id} --policy teacher --policy random --policy "
+                 "sfm:policies/sfm_K.npz --policy sfm:policies/sfm_paper_K.npz --policy "
+                 f"bc:policies/bc_K.zip --policy ppo:policies/ppo.zip --episodes {episodes} "
+                 f"--seed {b.eval_seed} --workers {b.workers} (each K; pooled over K)")
+        st.call(f"evaluate every policy on {env_id}", shown,
                 lambda env_id=env_id, episodes=episodes, key=key: evals.__setitem__(
-                    key, _evaluate(env_id, policies, names, episodes, b, p("eval", key),
-                                   args.quiet)))
+                    key, _evaluate(env_id, learners, f"ppo:{ppo}", episodes, b,
+                                   p("eval", key), args.quiet)))
     if not args.skip_calib:
         calib = {}
         st.call("calibration: the paper's simulation trials",
@@ -260,27 +338,45 @@ def _run(args, out: str, final: str) -> None:
         from sfm_learn.reporting.report import write_report
 
         write_report(out, b, evals, calib, st.log, time.perf_counter() - t_start,
-                     quick=args.quick, study=study)
+                     quick=args.quick, studies=studies)
 
     st.call("learning-cost plot and report", "(mkv demo) report.md", write)
     print(f"\nfinished in {time.perf_counter() - t_start:.0f} s")
 
 
-def _evaluate(env_id, policies, names, episodes, b: Budget, stem: str, quiet: bool):
+def _evaluate(env_id, learners: dict, ppo_spec: str, episodes, b: Budget, stem: str,
+              quiet: bool) -> dict:
+    """Every policy on the same seeds; each learner's training sets pooled into one evaluation
+    (records of set 0, then set 1, ...; PPO's one run repeated per set so records pair up).
+
+    Returns ``{"table": [Evaluation, ...], "per_set": {learner: [Evaluation per set]},
+    "pooled": {name: Evaluation}}``."""
     from sfm_learn.evaluation import evaluate_many, evaluations_json
+    from sfm_learn.evaluation.runner import pool
     from sfm_learn.reporting.plots import plot_evaluations
     from sfm_learn.reporting.tables import format_markdown
 
-    total = episodes * len(policies)
-    with progress(total, f"eval {env_id}", unit="ep", enabled=False if quiet else None) as bar:
-        result = evaluate_many(env_id, policies, episodes, b.eval_seed, workers=b.workers,
+    specs = ["teacher", "random", *[s for v in learners.values() for s in v], ppo_spec]
+    names = ["teacher", "random", *[f"{n} set {k}" for n, v in learners.items()
+                                    for k in range(len(v))], "PPO"]
+    with progress(episodes * len(specs), f"eval {env_id}", unit="ep",
+                  enabled=False if quiet else None) as bar:
+        result = evaluate_many(env_id, specs, episodes, b.eval_seed, workers=b.workers,
                                on_episode=lambda *a: bar.update(1), policy_names=names)
-    atomic_write_text(stem + ".json", evaluations_json(result))
-    plot_evaluations(result, stem + ".png",
-                     title=f"{env_id}: {episodes} episodes per policy, "
+    by = {e.policy: e for e in result}
+    per_set = {n: [by[f"{n} set {k}"] for k in range(len(v))] for n, v in learners.items()}
+    n_sets = b.train_sets
+    pooled = {n: pool(evs, f"{n} ({n_sets} sets)") for n, evs in per_set.items()}
+    pooled["PPO"] = pool([by["PPO"]] * n_sets, "PPO")
+    table = [by["teacher"], by["random"], *[pooled[n] for n in learners], by["PPO"]]
+    atomic_write_text(stem + ".json", evaluations_json(table + [e for evs in per_set.values()
+                                                                for e in evs]))
+    plot_evaluations(table, stem + ".png",
+                     title=f"{env_id}: {episodes} episodes per policy and training set, "
                            f"seeds {b.eval_seed}..{b.eval_seed + episodes - 1}")
-    print(format_markdown(result))
-    return result
+    print(format_markdown(table))
+    return {"table": table, "per_set": per_set, "pooled": pooled,
+            "teacher": by["teacher"], "random": by["random"], "ppo": by["PPO"]}
 
 
 def _calib(out: str, seeds: int, quiet: bool) -> dict:

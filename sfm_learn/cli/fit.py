@@ -21,7 +21,7 @@ from sfm_learn.cli.common import (
     non_negative_int,
 )
 
-_SOLVERS = ("ppca", "lstsq", "ridge")
+_SOLVERS = ("ppca", "lstsq", "ridge", "ols")
 
 
 def _decays(text: str):
@@ -39,17 +39,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="+", metavar="DATA.npz",
                    help="teacher recordings (mkv record); several are stacked")
     p.add_argument("--out", required=True, metavar="POLICY.npz")
+    p.add_argument("--preset", choices=("default", "paper", "ols"), default="default",
+                   help="default: this package's features and solver (docs/sfm.md); paper: "
+                        "exactly the paper's configuration (raw channels, least-squares "
+                        "projection, fixed +-0.5 quantisation); ols: ordinary least squares on "
+                        "the default features (the baseline). Options below override parts")
     p.add_argument("--rank", type=int, default=None, metavar="N",
                    help="kept eigenvectors (default: the largest adjacent singular-value ratio)")
-    p.add_argument("--solver", choices=_SOLVERS, default="ppca",
-                   help="how the run-time projection solves the coefficients (default ppca: the "
-                        "probabilistic-PCA conditional mean; lstsq is the paper's plain least "
-                        "squares)")
+    p.add_argument("--solver", choices=_SOLVERS, default=None,
+                   help="how the run-time projection solves the coefficients (preset default "
+                        "ppca: the probabilistic-PCA conditional mean; lstsq is the paper's "
+                        "plain least squares; ols skips the eigenspace: the baseline)")
     p.add_argument("--rank-rtol", type=float, default=1e-3, metavar="R",
                    help="singular values below R * s_1 never count for the rank (default 1e-3)")
-    p.add_argument("--features", choices=("default", "raw"), default="default",
+    p.add_argument("--features", choices=("default", "raw"), default=None,
                    help="default: sensors, decaying traces and the previous command; raw: the "
-                        "sensors only. --history/--traces/--prev-action override parts")
+                        "sensors only (default: the preset's). --history/--traces/--prev-action "
+                        "override parts")
     p.add_argument("--history", type=non_negative_int, default=None, metavar="K",
                    help="stack the K previous observations")
     p.add_argument("--traces", type=_decays, default=None, metavar="D,D",
@@ -57,8 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prev-action", choices=("none", "signed", "onehot"), default=None)
     p.add_argument("--encoding", choices=("signed", "onehot"), default="signed",
                    help="command columns of the training matrix (default signed: -1/0/+1)")
-    p.add_argument("--thresholds", choices=("learned", "fixed"), default="learned",
-                   help="quantisation of signed commands (default learned on the training data)")
+    p.add_argument("--thresholds", choices=("learned", "fixed"), default=None,
+                   help="quantisation of signed commands: learned on the training data "
+                        "(preset default) or fixed at -0.5/+0.5 (preset paper)")
     p.add_argument("--spectrum", metavar="PNG", help="also plot the singular-value spectrum")
 
 
@@ -68,8 +75,10 @@ def feature_spec_from_args(args, names):
     from dataclasses import replace
 
     from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
+    from sfm_learn.eigenspace.policy import PRESETS
 
-    spec = (default_feature_spec(names) if args.features == "default"
+    features = args.features or PRESETS[args.preset]["features"]
+    spec = (default_feature_spec(names) if features == "default"
             else FeatureSpec(obs_names=tuple(names)))
     over = {}
     if args.history is not None:
@@ -82,7 +91,7 @@ def feature_spec_from_args(args, names):
 
 
 def run(args) -> int:
-    from sfm_learn.eigenspace.policy import fit_policy
+    from sfm_learn.eigenspace.policy import PRESETS, fit_policy
     from sfm_learn.reporting.tables import spectrum_lines
 
     check_output_path(args.out)
@@ -101,15 +110,17 @@ def run(args) -> int:
     if args.rank is not None and not 1 <= args.rank <= spec.n_features + 2:
         raise CliError(f"--rank must be in [1, {spec.n_features + 2}] for {spec.n_features} "
                        f"features and 2 commands, got {args.rank}")
+    solver = args.solver or PRESETS[args.preset]["solver"]
+    thresholds = args.thresholds or PRESETS[args.preset]["thresholds"]
     try:
-        policy = fit_policy(datasets, spec, n_components=args.rank, solver=args.solver,
+        policy = fit_policy(datasets, spec, n_components=args.rank, solver=solver,
                             rank_rtol=args.rank_rtol, encoding=args.encoding,
-                            thresholds=args.thresholds)
+                            thresholds=thresholds)
     except ValueError as e:
         raise CliError(str(e).splitlines()[0]) from None
     proj = policy.projector
     tr = policy.training
-    print(f"fitted on {tr['rows']} steps ({tr['episodes']} episodes of "
+    print(f"preset {args.preset}: fitted on {tr['rows']} steps ({tr['episodes']} episodes of "
           + ", ".join(sorted({str(d['env_id']) for d in tr['datasets']}))
           + f") in {tr['wall_s']:.3f} s")
     print(f"features ({spec.n_features}): " + ", ".join(spec.feature_names))
@@ -117,7 +128,8 @@ def run(args) -> int:
                                    proj.rank_floor_)))
     how = "given" if args.rank is not None else "largest adjacent ratio"
     print(f"chosen rank n = {proj.n_components_} of {proj.n_features_in_} ({how}); "
-          f"solver {args.solver}; floor {proj.rank_floor_:.3g}")
+          f"solver {solver}; floor {proj.rank_floor_:.3g}"
+          + ("" if solver != "ols" else " (ols ignores the kept components)"))
     if policy.encoding == "signed":
         for name, (lo, hi) in zip(spec.action_names, policy.thresholds, strict=True):
             print(f"{name}: reverse/left below {lo:+.3f}, forward/right above {hi:+.3f}")

@@ -41,7 +41,7 @@ from sfm_learn.eigenspace.features import (
 from sfm_learn.eigenspace.projector import EigenspaceProjector
 
 __all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thresholds",
-           "quantise", "FORMAT"]
+           "quantise", "FORMAT", "PRESETS", "preset"]
 
 FORMAT = "mkv-sfm-policy"
 FORMAT_VERSION = 2  # 2: the complete projector (to_arrays); 1: run-time arrays only
@@ -347,6 +347,28 @@ def _json_default(o):
 def signed_actions(actions, nvec) -> np.ndarray:
     """Action indices -> signed values (index ``a`` of an n-valued command -> ``a - (n-1)/2``)."""
     return np.asarray(actions, dtype=np.float64) - (np.asarray(nvec, dtype=np.float64) - 1) / 2
+
+
+#: Named configurations: the features and :func:`fit_policy` settings each stands for.
+#: ``paper`` is exactly the paper's section 9 (raw sensor channels and commands, standardised,
+#: SVD, rank at the largest adjacent singular-value ratio, least-squares projection, fixed +-0.5
+#: quantisation); ``default`` is this package's choice (docs/sfm.md says why); ``ols`` is the
+#: baseline that explains what the eigenspace adds: ordinary least squares on the default features.
+PRESETS = {
+    "default": {"features": "default", "solver": "ppca", "thresholds": "learned"},
+    "paper": {"features": "raw", "solver": "lstsq", "thresholds": "fixed"},
+    "ols": {"features": "default", "solver": "ols", "thresholds": "learned"},
+}
+
+
+def preset(name: str, sensor_names) -> tuple[FeatureSpec, dict]:
+    """``(feature_spec, fit_policy keyword arguments)`` of preset ``name`` (:data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
+    p = PRESETS[name]
+    spec = (default_feature_spec(sensor_names) if p["features"] == "default"
+            else FeatureSpec(obs_names=tuple(sensor_names)))
+    return spec, {"solver": p["solver"], "thresholds": p["thresholds"]}
 
 
 #: Most columns a fit accepts: its SVD costs O(columns^3) and its statistics O(columns^2) memory.

@@ -30,7 +30,8 @@ from sfm_learn.evaluation.records import (
     aggregate,
 )
 
-__all__ = ["bootstrap_ci", "paired_difference_ci", "resampled_metrics", "resample_rng"]
+__all__ = ["bootstrap_ci", "paired_difference_ci", "proportion_ci", "resampled_metrics",
+           "resample_rng"]
 
 # Fixed entropy of the bootstrap stream (with the number of records): no clock, no OS entropy.
 _BOOT_ENTROPY = 0x5EEDB007
@@ -164,3 +165,15 @@ def paired_difference_ci(a: Sequence[EpisodeRecord], b: Sequence[EpisodeRecord],
     if not np.isfinite(ci[0]).all():
         return d, [d, d]
     return d, [min(float(ci[0, 0]), d), max(float(ci[0, 1]), d)]
+
+
+def proportion_ci(successes, level: float = CI_LEVEL, n_boot: int = N_BOOT) -> list[float] | None:
+    """Percentile-bootstrap interval of the fraction of True in ``successes`` (resampling its
+    entries, the same fixed stream as the episode bootstrap); None when it is empty."""
+    x = np.asarray(successes, dtype=np.float64).reshape(-1)
+    if x.size == 0:
+        return None
+    _, ci = _bootstrap(x.size, lambda idx, axis=-1: x[np.atleast_2d(idx)].mean(axis=-1)[None, :],
+                       level, n_boot)
+    p = float(x.mean())
+    return [min(float(ci[0, 0]), p), max(float(ci[0, 1]), p)]

@@ -126,12 +126,16 @@ class Evaluation:
     """Bootstrap interval per metric (:func:`bootstrap_ci`); ``None`` if not computed."""
     ci_level: float = CI_LEVEL
     n_boot: int = N_BOOT
+    training_sets: int = 1
+    """How many independently trained copies of the policy the records pool (:func:`pool`):
+    ``training_sets x episodes`` records, each seed once per copy."""
 
     def to_dict(self) -> dict:
         """The ``mkv eval --json`` document: exactly env, policy, episodes, seed, metrics and
-        metrics_ci (same keys as metrics, each ``[low, high]`` or ``None``)."""
+        metrics_ci (same keys as metrics, each ``[low, high]`` or ``None``); plus
+        ``training_sets`` for a pooled evaluation."""
         ci = self.metrics_ci or {}
-        return {
+        doc = {
             "env": self.env,
             "policy": self.policy,
             "episodes": self.episodes,
@@ -139,6 +143,9 @@ class Evaluation:
             "metrics": {k: _json_number(self.metrics[k]) for k in METRIC_KEYS},
             "metrics_ci": {k: _json_interval(ci.get(k)) for k in METRIC_KEYS},
         }
+        if self.training_sets != 1:
+            doc["training_sets"] = self.training_sets
+        return doc
 
     def to_json(self) -> str:
         return _dumps(self.to_dict())

@@ -43,7 +43,8 @@ from sfm_learn.evaluation.records import (
     episode_records,
 )
 
-__all__ = ["run_episodes", "evaluate", "evaluate_many", "plan_units", "default_start_method"]
+__all__ = ["run_episodes", "evaluate", "evaluate_many", "plan_units", "default_start_method",
+           "pool"]
 
 
 # ---------------------------------------------------------------------- running episodes
@@ -257,7 +258,8 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
             identical for every worker count.
         on_episode: progress callback ``(policy_index, episode_index, n_steps)``, called in this
             process once per finished episode (in completion order with workers).
-        ci_level, n_boot: bootstrap confidence intervals (:func:`bootstrap_ci`).
+        ci_level, n_boot: bootstrap confidence intervals (:func:`bootstrap_ci`); ``n_boot=0``
+            skips them (``metrics_ci`` is None).
         policy_names: names for reports (default: the spec, or the object's ``spec`` attribute).
 
     Returns:
@@ -311,8 +313,9 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
     out = []
     for name, recs in zip(names, per_policy, strict=True):
         metrics = aggregate(recs)
+        ci = bootstrap_ci(recs, ci_level, n_boot, metrics) if n_boot else None
         out.append(Evaluation(env_id, name, episodes, seed, metrics, recs, dict(env_kwargs),
-                              bootstrap_ci(recs, ci_level, n_boot, metrics), ci_level, n_boot))
+                              ci, ci_level, n_boot))
     return out
 
 
@@ -338,3 +341,24 @@ def evaluate(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict
                          on_episode=cb, ci_level=ci_level, n_boot=n_boot,
                          policy_names=None if policy_name is None else [policy_name])[0]
 
+
+def pool(evaluations: Sequence[Evaluation], name: str) -> Evaluation:
+    """One evaluation from several copies of a learner (one per training set) evaluated on the
+    same env seeds: records concatenated (copy 0's episodes, then copy 1's, ...), metrics over all
+    of them (the mean over copies, for per-episode means), bootstrap intervals resampling
+    (copy, episode) pairs. Two pooled evaluations in the same order pair up for
+    :func:`~sfm_learn.evaluation.bootstrap.paired_difference_ci`."""
+    evaluations = list(evaluations)
+    if not evaluations:
+        raise ValueError("nothing to pool")
+    first = evaluations[0]
+    for e in evaluations[1:]:
+        if (e.env, e.episodes, e.seed, e.env_kwargs) != (first.env, first.episodes, first.seed,
+                                                          first.env_kwargs):
+            raise ValueError("pooled evaluations must share env, episodes and seeds")
+    records = [r for e in evaluations for r in e.records]
+    metrics = aggregate(records)
+    ci = bootstrap_ci(records, first.ci_level, first.n_boot, metrics) if first.n_boot else None
+    return Evaluation(first.env, name, first.episodes, first.seed, metrics, records,
+                      dict(first.env_kwargs), ci, first.ci_level, first.n_boot,
+                      sum(e.training_sets for e in evaluations))

@@ -19,6 +19,7 @@ from sfm_learn.evaluation.records import METRIC_KEYS, Evaluation
 from sfm_learn.reporting.tables import METRIC_LABELS, seed_range, short_name
 
 __all__ = ["plot_figure3", "plot_spectrum", "plot_learning_cost", "plot_evaluations",
+           "plot_rank_study",
            "MatplotlibMissing"]
 
 _COMMAND_TICKS = {
@@ -54,7 +55,8 @@ def _save(fig, path) -> str:
     return path
 
 
-def plot_figure3(time_s, teacher, policy, path, *, title=None, metrics=None, bumps=None) -> str:
+def plot_figure3(time_s, teacher, policy, path, *, title=None, metrics=None, bumps=None,
+                 policy_label="SfM policy") -> str:
     """The paper's Figure 3: teacher vs SfM commands over time, one panel per command.
 
     Args:
@@ -76,7 +78,7 @@ def plot_figure3(time_s, teacher, policy, path, *, title=None, metrics=None, bum
     for j, (ax, name) in enumerate(zip(axes, ("drive", "steer"), strict=True)):
         ta, pa = teacher[:, j] - 1, policy[:, j] - 1
         ax.step(t, ta + 0.06, where="post", color="0.2", lw=2.2, label="teacher")
-        ax.step(t, pa - 0.06, where="post", color="tab:orange", lw=1.4, label="SfM policy")
+        ax.step(t, pa - 0.06, where="post", color="tab:orange", lw=1.4, label=policy_label)
         if name == "drive":
             differ = ta != pa
         else:
@@ -237,3 +239,40 @@ def plot_evaluations(evaluations: Sequence[Evaluation], path: str,
     ext = os.path.splitext(path)[1].lstrip(".").lower() or "png"
     with atomic_path(path, f".{ext}") as tmp:
         fig.savefig(tmp, format=ext)
+
+
+def plot_rank_study(results: dict, path, *, teacher: dict | None = None, title=None) -> str:
+    """Closed-loop and free-running metrics against the kept rank n, one line per preset
+    (``{"default": StudyResult, "paper": StudyResult}``), mean over training sets with the
+    [min, max] band, the rank the largest-ratio rule picks marked. ``teacher`` may hold the
+    teacher's ``escape_rate`` / ``distance_m`` on the same seeds (dashed reference lines)."""
+    plt = _pyplot()
+    panels = (("escape_rate", "MKVJam-v0 escape rate"),
+              ("steer_timing", "free-running steer timing agreement"),
+              ("onset_hit_w2", "teacher steer onsets hit within +-2 steps"),
+              ("distance_m", "MKV-v0 distance per episode [m]"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(16, 4))
+    for color, (preset, res) in zip(("tab:orange", "tab:blue", "tab:green"), results.items(),
+                                    strict=False):
+        n = res.column("rank")[:, 0]
+        rule = int(np.bincount(res.rule_rank.ravel()).argmax())
+        for ax, (key, label) in zip(axes, panels, strict=True):
+            v = res.column(key)
+            ax.plot(n, v.mean(axis=1), "o-", ms=3, color=color, label=preset)
+            ax.fill_between(n, v.min(axis=1), v.max(axis=1), color=color, alpha=0.18, lw=0)
+            if rule in n:
+                i = int(np.flatnonzero(n == rule)[0])
+                ax.plot([rule], [v[i].mean()], "*", ms=13, color=color, mec="k",
+                        label=f"{preset}: rule's pick n = {rule}")
+            ax.set_title(label, fontsize=10)
+            ax.set_xlabel("kept rank n")
+            ax.grid(alpha=0.3)
+    if teacher:
+        for ax, (key, _) in zip(axes, panels, strict=True):
+            if teacher.get(key) is not None:
+                ax.axhline(teacher[key], color="0.3", ls="--", lw=1, label="teacher")
+    axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)

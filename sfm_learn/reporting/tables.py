@@ -129,15 +129,71 @@ def spectrum_lines(singular_values, rank: int, floor: float, limit: int = 60) ->
     return lines
 
 
-def study_markdown(rows) -> str:
-    """The study as a Markdown table (means over training sets; escape-rate range if several)."""
-    several = len(rows[0][1]) > 1
-    head = ("| features / fit | rank n / known | drive agr. | steer timing | MKVJam escape"
-            + (" [min..max]" if several else "") + " | MKV-v0 stuck | MKV-v0 distance [m] |")
-    lines = [head, "|---|---|---|---|---|---|---|"]
-    for config, r in rows:
-        m = r.mean(axis=0)
-        esc = f"{m[4]:.2f}" + (f" [{r[:, 4].min():.2f}..{r[:, 4].max():.2f}]" if several else "")
-        lines.append(f"| {config.label} | {m[0]:.0f} / {m[1]:.0f} | {m[2]:.3f} | {m[3]:.3f} | "
-                     f"{esc} | {m[5]:.3f} | {m[6]:.1f} |")
+def _mean_range(values, digits: int) -> str:
+    v = np.asarray(values, dtype=float)
+    if v.size == 1:
+        return f"{v[0]:.{digits}f}"
+    return f"{v.mean():.{digits}f} [{v.min():.{digits}f}..{v.max():.{digits}f}]"
+
+
+def study_markdown(result) -> str:
+    """A :class:`~sfm_learn.evaluation.study.StudyResult` as a Markdown table: per
+    configuration the mean over training sets, [min..max] where there are several."""
+    from sfm_learn.evaluation.study import COLUMNS
+
+    n_sets = result.values.shape[1]
+    rng = " [min..max]" if n_sets > 1 else ""
+    head = ("| configuration | rank n / known | free-running drive | free-running steer timing"
+            " | onsets hit +-2 | MKVJam escape" + rng + " | MKV-v0 stuck | MKV-v0 distance [m] |")
+    lines = [head, "|---|---|---|---|---|---|---|---|"]
+    for c, config in enumerate(result.configs):
+        r = result.values[c]
+        col = {name: r[:, k] for k, name in enumerate(COLUMNS)}
+        ranks = col["rank"]
+        rank = (f"{ranks[0]:.0f}" if np.all(ranks == ranks[0])
+                else f"{ranks.min():.0f}..{ranks.max():.0f}")
+        lines.append(
+            f"| {config.label} | {rank} / {col['known'][0]:.0f} | {col['drive'].mean():.3f} | "
+            f"{col['steer_timing'].mean():.3f} | {col['onset_hit_w2'].mean():.2f} | "
+            f"{_mean_range(col['escape_rate'], 2)} | {col['stuck_fraction'].mean():.3f} | "
+            f"{col['distance_m'].mean():.1f} |")
+    return "\n".join(lines)
+
+
+#: Rows of :func:`comparison_table`: (label, agreement key, with interval).
+COMPARISON_ROWS = (
+    ("drive", "drive", False),
+    ("steer timing (steer or not)", "steer_timing", False),
+    ("steer direction (both steer)", "steer_direction", False),
+    ("steer onset hit, +-1 step", "onset_hit_w1", True),
+    ("steer onset hit, +-2 steps", "onset_hit_w2", True),
+    ("  ... and same side", "onset_same_side_w2", True),
+    ("  side, among hits", "onset_side_given_hit_w2", True),
+    ("  side, policy first (no leak)", "onset_side_given_early_hit_w2", True),
+    ("escape-turn onset hit, +-2", "onset_hit_w2_backoff", True),
+    ("  side, among hits", "onset_side_given_hit_w2_backoff", True),
+)
+
+
+def comparison_table(cmp) -> str:
+    """A :class:`~sfm_learn.evaluation.compare.Comparison` as a text table: one column per replay
+    mode and baseline, one row per agreement metric (onset rows with 95% bootstrap intervals)."""
+    cols = [("free-running", cmp.modes.get("free_running")),
+            ("teacher-forced", cmp.modes.get("teacher_forced")),
+            ("copy previous", cmp.baselines["copy_previous"]),
+            ("constant", cmp.baselines["constant"])]
+    cols = [(name, m) for name, m in cols if m is not None]
+    width = 31
+    lines = [f"{'agreement with the teacher':<{width}}" + "".join(f"{n:>22}" for n, _ in cols)]
+    for label, key, with_ci in COMPARISON_ROWS:
+        cells = []
+        for _, m in cols:
+            v = m.get(key)
+            ci = m["ci"].get(key) if with_ci else None
+            cells.append(format_cell(v, ci, 2 if ci else 3))
+        lines.append(f"{label:<{width}}" + "".join(f"{c:>22}" for c in cells))
+    first = cols[0][1]
+    lines.append(f"{first['onsets']} teacher steer onsets ({first['backoff_onsets']} while "
+                 "reversing: escape turns, side drawn at random); policy onsets: "
+                 + ", ".join(f"{n} {m['policy_onsets']}" for n, m in cols[:2]))
     return "\n".join(lines)

@@ -18,11 +18,12 @@ def demo_dir(tmp_path_factory):
 
 def test_quick_demo_writes_the_report_and_every_file_it_links(demo_dir):
     report = (demo_dir / "report.md").read_text()
-    for heading in ("## Set-up", "## The shape-from-motion policy and the paper's Figure 3",
-                    "## Closed loop", "## Learning cost", "## Conclusions",
+    for heading in ("## Set-up", "## The paper's Figure 3, replayed honestly",
+                    "## What the paper's own configuration achieves", "## Which features",
+                    "## The kept rank", "## Closed loop", "## Learning cost", "## Conclusions",
                     "## Force-sensor calibration", "## How this report was made"):
         assert heading in report
-    for png in ("fig3.png", "sfm_spectrum.png", "eval/jam.png", "eval/wander.png",
+    for png in ("fig3.png", "rank_study.png", "eval/jam.png", "eval/wander.png",
                 "learning_cost.png"):
         assert f"({png})" in report
         assert (demo_dir / png).read_bytes()[:4] == b"\x89PNG"
@@ -33,13 +34,25 @@ def test_quick_demo_writes_the_report_and_every_file_it_links(demo_dir):
 def test_quick_demo_evaluates_every_policy_on_the_same_seeds(demo_dir):
     for key, env in (("jam", "MKVJam-v0"), ("wander", "MKV-v0")):
         doc = json.loads((demo_dir / "eval" / f"{key}.json").read_text())
-        assert [d["policy"] for d in doc] == ["teacher", "random", "SfM", "BC", "PPO"]
-        assert all(d["env"] == env and d["seed"] == 1000 for d in doc)
+        names = [d["policy"] for d in doc]
+        assert names[:6] == ["teacher", "random", "SfM (2 sets)", "SfM paper (2 sets)",
+                             "BC (2 sets)", "PPO"]
+        # then every training set's own evaluation
+        assert names[6:] == [f"{n} set {k}" for n in ("SfM", "SfM paper", "BC")
+                             for k in range(2)]
+        assert all(d["env"] == env and d["seed"] == 2_000_000 for d in doc)
         assert all(set(d["metrics_ci"]) == set(d["metrics"]) for d in doc)
+        assert [d.get("training_sets", 1) for d in doc[:6]] == [1, 1, 2, 2, 2, 1]
+        # a pooled learner is the mean of its training sets
+        pooled = doc[2]["metrics"]["distance_m"]
+        sets = [d["metrics"]["distance_m"] for d in doc[6:8]]
+        assert abs(pooled - sum(sets) / 2) < 1e-9
     report = (demo_dir / "report.md").read_text()
-    sfm = next(d for d in json.loads((demo_dir / "eval" / "jam.json").read_text())
-               if d["policy"] == "SfM")
-    assert f"| SfM | {sfm['metrics']['escape_rate']:.3f}" in report
+    sfm = json.loads((demo_dir / "eval" / "jam.json").read_text())[2]
+    assert f"| SfM (2 sets) | {sfm['metrics']['escape_rate']:.3f}" in report
+    cmp = json.loads((demo_dir / "compare.json").read_text())
+    assert set(cmp["modes"]) == {"teacher_forced", "free_running"}
+    assert set(cmp["baselines"]) == {"copy_previous", "constant"}
 
 
 def test_demo_refuses_a_file_as_output_dir(tmp_path, capsys):
@@ -79,7 +92,8 @@ def test_conclusions_say_when_a_baseline_beats_sfm_and_when_it_is_a_tie():
 def test_every_policy_kind_gives_the_same_numbers_for_any_worker_count(demo_dir):
     from sfm_learn.evaluation import evaluate_many, evaluations_json
 
-    specs = [f"sfm:{demo_dir / 'policies' / 'sfm.npz'}", f"bc:{demo_dir / 'policies' / 'bc.zip'}",
+    specs = [f"sfm:{demo_dir / 'policies' / 'sfm_0.npz'}",
+             f"bc:{demo_dir / 'policies' / 'bc_0.zip'}",
              f"ppo:{demo_dir / 'policies' / 'ppo.zip'}"]
     one = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=1))
     two = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=2))

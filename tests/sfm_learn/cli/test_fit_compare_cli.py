@@ -59,9 +59,15 @@ def test_compare_prints_metrics_and_writes_figure3_spectrum_and_json(capsys, tmp
     code, text, err = run(capsys, "compare", held, fitted, "--plot", fig, "--json", js)
     assert code == 0, err
     doc = json.loads(js.read_text())
-    m = doc["metrics"]
-    assert f"{m['drive']:>8.3f}" in text and f"{m['steer_timing']:>8.3f}" in text
-    assert 0.0 <= m["drive"] <= 1.0 and m["baseline"]["drive"] > 0
+    assert set(doc["modes"]) == {"teacher_forced", "free_running"}
+    assert set(doc["baselines"]) == {"copy_previous", "constant"}
+    keys = set(doc["modes"]["free_running"])
+    assert all(set(m) == keys for m in [*doc["modes"].values(), *doc["baselines"].values()])
+    m = doc["modes"]["free_running"]
+    assert f"{m['drive']:.3f}" in text and f"{m['steer_timing']:.3f}" in text
+    assert "free-running" in text and "copy previous" in text
+    assert 0.0 <= m["drive"] <= 1.0 and doc["baselines"]["constant"]["drive"] > 0
+    assert m["onsets"] >= 1 and len(m["ci"]["onset_hit_w2"]) == 2
     assert len(doc["episodes"]) == 3 and not doc["in_sample"]
     assert "WARNING" not in text
     for png in (fig, tmp_path / "fig3_spectrum.png"):

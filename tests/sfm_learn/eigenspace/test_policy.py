@@ -270,13 +270,24 @@ def wander_policy(wander_train):
     return fit_policy(wander_train)
 
 
-def test_held_out_agreement_meets_the_targets(wander_policy, wander_held):
-    m = compare(wander_policy, wander_held).metrics
-    # measured 0.968 / 0.909 at the time of writing (issue targets 0.90 / 0.80)
-    assert m["drive"] >= 0.90
-    assert m["steer_timing"] >= 0.80
-    assert m["drive"] > m["baseline"]["drive"] + 0.2
-    assert m["steer_timing"] > m["baseline"]["steer_timing"] + 0.1
+def test_held_out_agreement_in_both_replay_modes(wander_policy, wander_held):
+    """Seeded regression of the honest Figure 3 numbers (20 training episodes, seeds 0..19;
+    held-out seeds 500..502). Teacher-forced, the policy looks good; free-running (how it
+    drives) it does not beat the copy-previous or constant baselines on steer timing."""
+    c = compare(wander_policy, wander_held)
+    tf, fr = c.modes["teacher_forced"], c.modes["free_running"]
+    cp, co = c.baselines["copy_previous"], c.baselines["constant"]
+    measured = [  # at the time of writing
+        ("teacher-forced", tf, "drive", 0.9717), ("teacher-forced", tf, "steer_timing", 0.9156),
+        ("free-running", fr, "drive", 0.9367), ("free-running", fr, "steer_timing", 0.6822),
+        ("free-running", fr, "onset_hit_w2", 0.7164),
+        ("copy previous", cp, "steer_timing", 0.9261), ("constant", co, "steer_timing", 0.6928),
+    ]
+    for name, m, key, value in measured:
+        assert abs(m[key] - value) < 0.01, (name, key, m[key], value)
+    assert tf["steer_timing"] > fr["steer_timing"] + 0.15  # the replay mode matters this much
+    assert fr["drive"] > co["drive"] + 0.2
+    assert tf["onsets"] == fr["onsets"] == 67
 
 
 def test_closed_loop_escape_rate_is_at_least_90_percent_of_the_teachers(wander_policy):
