@@ -25,7 +25,11 @@ Agreement metrics (:func:`agreement`), the same keys for every mode and baseline
   side); ``onset_side_given_hit_w2``: the same side among hits only (0.5 is a coin). A policy
   onset *after* the teacher's reads the recorded steering angle and current, which already show
   the teacher's side, so ``onset_side_given_early_hit_w2`` keeps only hits where the policy
-  starts at or before the teacher (nothing of the teacher's choice recorded yet). The
+  starts at or before the teacher (nothing of the teacher's choice recorded yet), and
+  ``onset_hit_early_w2`` is the fraction of teacher onsets the policy anticipates that way
+  (within 2 steps before, or at, the onset): timing that cannot come from reading the recorded
+  steering back. ``onset_hit_w2_chance`` / ``onset_hit_early_w2_chance`` are what the same
+  number of policy onsets placed at random would hit (a policy that steers often hits often). The
   ``_backoff`` variants count only onsets while the teacher reverses: the start of an escape turn,
   whose side the teacher draws at random (the paper's point: the side cannot be learned).
   ``onsets`` / ``backoff_onsets`` are the counts; ``ci`` holds 95% percentile-bootstrap intervals
@@ -48,7 +52,8 @@ REVERSE = 0
 MODES = ("teacher_forced", "free_running")
 BASELINES = ("copy_previous", "constant")
 ONSET_KEYS = ("onset_hit_w1", "onset_hit_w2", "onset_same_side_w1", "onset_same_side_w2",
-              "onset_side_given_hit_w2", "onset_side_given_early_hit_w2", "onset_hit_w2_backoff",
+              "onset_side_given_hit_w2", "onset_hit_early_w2", "onset_side_given_early_hit_w2",
+              "onset_hit_w2_backoff",
               "onset_same_side_w2_backoff", "onset_side_given_hit_w2_backoff")
 
 
@@ -114,6 +119,7 @@ def agreement(teacher, policy, episode_start=None) -> dict:
         if w == 2:
             fractions["onset_side_given_hit_w2"] = same[hits]
             fractions["onset_side_given_early_hit_w2"] = same[hits & early]
+            fractions["onset_hit_early_w2"] = hits & early
             backoff = teacher[t_on, 0] == REVERSE
             fractions["onset_hit_w2_backoff"] = hits[backoff]
             fractions["onset_same_side_w2_backoff"] = same[backoff]
@@ -121,6 +127,10 @@ def agreement(teacher, policy, episode_start=None) -> dict:
             out["onsets"] = int(t_on.size)
             out["backoff_onsets"] = int(backoff.sum())
             out["policy_onsets"] = int(onsets(policy[:, 1], starts).size)
+            # what onsets placed at random (same number) would hit: the chance level
+            rate = out["policy_onsets"] / n
+            out["onset_hit_w2_chance"] = float(1.0 - (1.0 - rate) ** 5)
+            out["onset_hit_early_w2_chance"] = float(1.0 - (1.0 - rate) ** 3)
     for key in ONSET_KEYS:
         v = fractions[key]
         out[key] = float(v.mean()) if v.size else None

@@ -173,8 +173,11 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
     rows = [("drive", "drive"), ("steer timing (steer or not)", "steer_timing"),
             ("steer onsets hit within +-1 step", "onset_hit_w1"),
             ("steer onsets hit within +-2 steps", "onset_hit_w2"),
+            ("... by chance, onsets placed at random at the policy's rate", "onset_hit_w2_chance"),
             ("... same side, among hits", "onset_side_given_hit_w2"),
-            ("... same side, policy steers first (no leak)", "onset_side_given_early_hit_w2"),
+            ("... of them the policy starts first (no leak)", "onset_hit_early_w2"),
+            ("... by chance at the policy's rate", "onset_hit_early_w2_chance"),
+            ("... same side, policy steers first", "onset_side_given_early_hit_w2"),
             ("escape-turn onsets hit within +-2", "onset_hit_w2_backoff")]
     L += ["## The paper's Figure 3, replayed honestly", "",
           "The policy (training set 0) replays the held-out teacher runs. **Free-running** (the "
@@ -199,10 +202,11 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
            "**it does not beat these baselines**; teacher-forced it scores "
            f"{tf['steer_timing']:.3f}, mostly by echoing the fed command."),
         f"It starts steering within +-2 steps of {fr['onset_hit_w2']:.0%} of the teacher's "
-        f"onsets ({fr['onsets']} onsets, {fr['policy_onsets']} policy onsets). Where it "
-        "starts after the teacher, the recorded steering angle and current already show the "
-        "teacher's side, so the side is only informative where the policy starts first: "
-        f"{_fmt(fr.get('onset_side_given_early_hit_w2'), 2)} (0.5 = a coin).",
+        f"onsets ({fr['onsets']} onsets, {fr['policy_onsets']} policy onsets; "
+        f"{fr['onset_hit_w2_chance']:.0%} by chance at that rate), but it starts *first* at only "
+        f"{fr['onset_hit_early_w2']:.0%} of them (chance {fr['onset_hit_early_w2_chance']:.0%}):"
+        " when it starts after the teacher, the recorded steering angle and current already "
+        "show the teacher's turn, side included, and the policy is reading it back.",
         f"The paper's configuration hits {pf['onset_hit_w2']:.0%} of onsets but starts "
         f"steering {pf['policy_onsets']} times (it dithers)."]), ""]
 

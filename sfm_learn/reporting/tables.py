@@ -167,9 +167,12 @@ COMPARISON_ROWS = (
     ("steer direction (both steer)", "steer_direction", False),
     ("steer onset hit, +-1 step", "onset_hit_w1", True),
     ("steer onset hit, +-2 steps", "onset_hit_w2", True),
+    ("  ... by chance at that rate", "onset_hit_w2_chance", False),
     ("  ... and same side", "onset_same_side_w2", True),
     ("  side, among hits", "onset_side_given_hit_w2", True),
-    ("  side, policy first (no leak)", "onset_side_given_early_hit_w2", True),
+    ("  policy starts first (no leak)", "onset_hit_early_w2", True),
+    ("  ... by chance at that rate", "onset_hit_early_w2_chance", False),
+    ("  side, policy first", "onset_side_given_early_hit_w2", True),
     ("escape-turn onset hit, +-2", "onset_hit_w2_backoff", True),
     ("  side, among hits", "onset_side_given_hit_w2_backoff", True),
 )
