@@ -146,6 +146,10 @@ def run_episodes(env: gym.Env, policy, seeds: Sequence[int], recorder: EpisodeRe
                  max_steps: int | None = None) -> None:
     """Run one episode per seed, feeding every step to ``recorder``.
 
+    The policy is called as SB3 calls it: ``predict(obs, state=state, episode_start=start)``,
+    with the ``state`` it returned at the previous step (``None`` at an episode's first step), so
+    recurrent policies keep their memory within an episode.
+
     ``on_episode(i, n_steps)`` is called after episode ``i``. ``max_steps`` caps an episode
     (needed only for envs without a time limit); capped episodes end with ``truncated`` True.
     """
@@ -158,9 +162,10 @@ def run_episodes(env: gym.Env, policy, seeds: Sequence[int], recorder: EpisodeRe
             reset_policy(seed=policy_seed(seed))
         recorder.begin(seed, info)
         start = True
+        state = None  # a recurrent policy's memory: handed back every step, reset per episode
         k = 0
         while True:
-            action, _ = predict(obs, episode_start=start)
+            action, state = predict(obs, state=state, episode_start=start)
             start = False
             next_obs, reward, terminated, truncated, info = env.step(action)
             k += 1

@@ -76,3 +76,27 @@ def test_policy_seed_is_used_per_episode():
     b = record("MKV-v0", "random", episodes=1, seed=4, env_kwargs={"max_episode_steps": 20})
     assert np.array_equal(a["actions"][20:], b["actions"])
     assert policy_seed(3) != policy_seed(4)
+
+
+class CountingPolicy:
+    """A recurrent-style policy: its state counts the steps of the episode, and it drives forward
+    only when the state handed back to it is the count it returned (reverse otherwise)."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        if episode_start:
+            assert state is None  # a new episode starts without memory
+        count = 0 if state is None else state
+        self.seen = getattr(self, "seen", []) + [count]
+        return np.array([2 if count == len(self.seen) - 1 - self.offset else 0, 1]), count + 1
+
+    def reset(self, seed=None):
+        self.offset = len(getattr(self, "seen", []))
+
+
+def test_the_runner_hands_the_policy_its_state_back():
+    policy = CountingPolicy()
+    data = record("MKVJam-v0", policy, 3, 0, {"max_episode_steps": 30})
+    # every step drove forward: the state came back each step and restarted every episode
+    assert data.n_steps > 3 and np.all(data["actions"][:, 0] == 2)
+    starts = np.flatnonzero(data["step"] == 0)
+    assert [policy.seen[i] for i in starts] == [0, 0, 0]
