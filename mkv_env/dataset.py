@@ -258,8 +258,42 @@ def validate(data: Dataset) -> None:
     scen = meta["episode_scenarios"]
     if scen is not None and (not isinstance(scen, list) or len(scen) != e):
         raise DatasetError("episode_scenarios must be null or one entry per episode")
+    _validate_values(meta, arrays)
     if meta["content_sha256"] != content_sha256(arrays):
         raise DatasetError("array contents do not match the recorded checksum (file altered?)")
+
+
+#: Largest magnitude accepted for a sensor reading: the MK-V's channels stay within +-60 (encoder
+#: ticks per step); anything near float32's range is a damaged or fabricated file, not a reading.
+MAX_ABS_READING = 1e6
+
+
+def _validate_values(meta: dict, arrays: dict) -> None:
+    """The content, not only the layout: finite readings of plausible size, actions in range,
+    finite rewards and poses, a usable control period. (The checksum only proves the file is
+    unchanged since its checksum was computed; anyone can recompute it.)"""
+    for key in ("observations", "final_observations"):
+        a = arrays[key]
+        bad = ~np.isfinite(a) | (np.abs(a) > MAX_ABS_READING)
+        if bad.any():
+            row, col = (int(v[0]) for v in np.nonzero(bad))
+            raise DatasetError(f"{key} row {row}, channel {meta['sensor_names'][col]!r} is "
+                               f"{a[row, col]!r}: readings must be finite and within "
+                               f"+-{MAX_ABS_READING:g}")
+    act = arrays["actions"]
+    if act.size and (act.min() < 0 or act.max() > 2):
+        raise DatasetError(f"actions must be command indices 0..2, found {int(act.min())}.."
+                           f"{int(act.max())}")
+    for key in ("rewards", "distance_m", "pose"):
+        if not np.all(np.isfinite(arrays[key])):
+            raise DatasetError(f"{key} contains NaN or infinite values")
+    if np.any(arrays["episode_seeds"] < 0):
+        raise DatasetError("episode_seeds must be non-negative")
+    dt = meta.get("control_period_s")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (0 < dt < 1e3):
+        raise DatasetError(f"control_period_s must be a positive number of seconds, got {dt!r}")
+    if not isinstance(meta.get("env_kwargs", {}), dict):
+        raise DatasetError("env_kwargs must be a JSON object")
 
 
 # ---------------------------------------------------------------------- save / load

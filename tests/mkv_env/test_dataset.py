@@ -6,6 +6,8 @@ import zipfile
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from mkv_env import dataset as ds
 from mkv_env.recorder import record
@@ -165,3 +167,50 @@ def test_split_by_episode(jam_data):
 def test_split_subset_saves_and_loads(jam_data, tmp_path):
     _, held = jam_data.split(0.5, seed=0)
     assert ds.load(ds.save(held, tmp_path / "h.npz")).equals(held)
+
+
+def _write_unchecked(data, path):
+    """Write a dataset the way save() does, but without validating it, checksum recomputed (as
+    anyone editing a file could): the loader must catch bad content on its own."""
+    import json
+    import zipfile
+
+    from mkv_env.dataset import _write_entry, content_sha256
+
+    meta = dict(data.metadata, content_sha256=content_sha256(data.arrays))
+    with zipfile.ZipFile(path, "w") as zf:
+        _write_entry(zf, "metadata", np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
+        for key, a in data.arrays.items():
+            _write_entry(zf, key, a)
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=st.sampled_from(["observations", "final_observations", "rewards", "pose",
+                            "actions"]),
+       value=st.sampled_from([np.nan, np.inf, -np.inf, 3e38, -1e7, 7, -1]),
+       where=st.floats(0, 1))
+def test_damaged_values_with_a_recomputed_checksum_are_refused(tmp_path, key, value, where):
+    from mkv_env.dataset import Dataset, DatasetError, load
+
+    data = record("MKVJam-v0", "random", 2, 0, {"max_episode_steps": 20})
+    arrays = {k: v.copy() for k, v in data.arrays.items()}
+    a = arrays[key]
+    if a.dtype.kind == "i" and not (np.isfinite(value) and abs(value) < 1e9):
+        value = 99
+    i = min(int(where * a.size), a.size - 1)
+    flat = a.reshape(-1)
+    ok_value = key != "actions" and np.isfinite(value) and abs(value) <= 1e6
+    if key == "actions":
+        ok_value = 0 <= value <= 2
+    if key in ("rewards", "pose"):
+        ok_value = np.isfinite(value)
+    flat[i] = value
+    path = tmp_path / "d.npz"
+    _write_unchecked(Dataset(arrays, data.metadata), path)
+    if ok_value:
+        load(path)
+    else:
+        with pytest.raises(DatasetError) as e:
+            load(path)
+        assert "\n" not in str(e.value)

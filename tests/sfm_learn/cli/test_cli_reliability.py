@@ -3,6 +3,7 @@
 import hashlib
 import os
 
+import numpy as np
 import pytest
 
 from sfm_learn.cli import main
@@ -85,3 +86,27 @@ def test_demo_interrupted_leaves_the_previous_output_untouched(tmp_path, capsys,
     assert os.listdir(out) == ["report.md"]
     assert (out / "report.md").read_text() == "the previous report\n"
     assert sorted(os.listdir(tmp_path)) == ["demo"]  # no temporary folder left
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 3e38])
+def test_datasets_with_impossible_readings_are_refused_by_every_command(
+        tmp_path, capsys, small_train, files, value):
+    import json
+    import zipfile
+
+    from mkv_env.dataset import _write_entry, content_sha256
+
+    arrays = {k: v.copy() for k, v in small_train.arrays.items()}
+    arrays["observations"][5, 2] = value
+    meta = dict(small_train.metadata, content_sha256=content_sha256(arrays))
+    bad = tmp_path / "bad.npz"
+    with zipfile.ZipFile(bad, "w") as zf:
+        _write_entry(zf, "metadata", np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
+        for key, a in arrays.items():
+            _write_entry(zf, key, a)
+    for argv in (["fit", bad, "--out", tmp_path / "p.npz"],
+                 ["train-bc", bad, "--out", tmp_path / "b.zip"],
+                 ["compare", bad, files["policy"]]):
+        code, _, err = run(capsys, *argv)
+        assert code == 2 and err.count("\n") == 1 and "finite" in err, err
+    assert sorted(os.listdir(tmp_path)) == ["bad.npz"]
