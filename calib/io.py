@@ -91,7 +91,18 @@ def load_calibration(path: str) -> tuple[Calibration, list[str] | None]:
         raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
     except json.JSONDecodeError as e:
         raise CalibrationError(f"{path} is not valid JSON (line {e.lineno})") from None
+    except (UnicodeDecodeError, ValueError):
+        raise CalibrationError(f"{path} is not a text JSON file") from None
     if not isinstance(d, dict):
         raise CalibrationError(f"{path} does not hold a calibration object")
-    cal = Calibration.from_dict(d)
-    return cal, d.get("channels")
+    try:
+        cal = Calibration.from_dict(d)
+    except CalibrationError as e:
+        raise CalibrationError(f"{path}: {e}") from None
+    channels = d.get("channels")
+    if channels is not None and not (
+            isinstance(channels, list) and all(isinstance(c, str) for c in channels)
+            and len(set(channels)) == len(channels) == cal.n_channels):
+        raise CalibrationError(f"{path}: channels must be {cal.n_channels} distinct names, one "
+                               "per column of C")
+    return cal, channels

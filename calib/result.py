@@ -100,16 +100,41 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, d: dict) -> Calibration:
+        """A calibration from its JSON form, validated: ``dof`` 2, 3 or 6; ``C`` a finite
+        (dof, p) matrix; ``offset`` p finite numbers; ``diagnostics`` an object. Anything else is
+        a one-line :class:`CalibrationError` (a CAL.json is data from elsewhere: check it)."""
+        if not isinstance(d, dict):
+            raise CalibrationError("a calibration must be a JSON object")
         missing = [k for k in ("C", "offset", "dof") if k not in d]
         if missing:
             raise CalibrationError(f"calibration file lacks key(s) {missing}")
-        return cls(
-            C=np.asarray(d["C"], dtype=float),
-            offset=np.asarray(d["offset"], dtype=float),
-            dof=int(d["dof"]),
-            method=str(d.get("method", "unknown")),
-            diagnostics=dict(d.get("diagnostics", {})),
-        )
+        dof = d["dof"]
+        if isinstance(dof, bool) or not isinstance(dof, int) or dof not in (2, 3, 6):
+            raise CalibrationError(f"dof must be 2, 3 or 6, got {dof!r}")
+        C = _finite_array(d["C"], "C", ndim=2)
+        offset = _finite_array(d["offset"], "offset", ndim=1)
+        if C.shape[0] != dof:
+            raise CalibrationError(f"C has {C.shape[0]} rows but dof is {dof}")
+        diagnostics = d.get("diagnostics", {})
+        if not isinstance(diagnostics, dict):
+            raise CalibrationError("diagnostics must be a JSON object")
+        return cls(C=C, offset=offset, dof=dof, method=str(d.get("method", "unknown")),
+                   diagnostics=dict(diagnostics))
+
+
+def _finite_array(value, name: str, ndim: int) -> np.ndarray:
+    """``value`` as a finite float array of ``ndim`` dimensions, or a one-line error."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name} must be {'a matrix' if ndim == 2 else 'a list'} of "
+                               "numbers") from None
+    if a.ndim != ndim or a.size == 0:
+        raise CalibrationError(f"{name} must be a {ndim}-D array of numbers, got shape "
+                               f"{a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{name} contains NaN, infinite or missing values")
+    return a
 
 
 def _jsonable(x):
