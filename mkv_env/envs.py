@@ -154,7 +154,7 @@ class MKVEnv(gym.Env):
                         ("collision_penalty", collision_penalty)):
             _check(_num(v), f"{name} must be a finite number, got {v!r}")
         try:
-            self.robot_params = RobotParams(**(robot_params or {}))
+            self.robot_params = RobotParams.from_overrides(robot_params)
         except TypeError as e:
             raise ValueError(f"bad robot_params: {e}") from None
         self.channel_specs = channel_specs(sensor_params, sensor_noise)
@@ -352,7 +352,9 @@ class MKVJamEnv(MKVEnv):
             if _drive_until_jammed(world, self, rng):
                 self.scenario = kind
                 return world
-        raise RuntimeError("could not build a jam scenario; check arena_size_m and n_clutter")
+        raise ValueError("could not build a jam scenario: the robot could not be driven into a "
+                         "jam with these parameters (arena_size_m, n_clutter, robot_params: is "
+                         "the drive motor too weak or the robot too large?)")
 
     def _reset_tracker(self) -> None:
         self.tracker.reset(self._pose(), True, self.world.contacts[0])

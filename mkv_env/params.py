@@ -13,6 +13,23 @@ from dataclasses import asdict, dataclass, fields, replace
 GRAVITY_MPS2 = 9.81
 
 
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+def _real(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _in(name: str, v, low: float, high: float, *, low_open: bool = False,
+        unit: str = "") -> None:
+    """ValueError unless ``low (<|<=) v <= high`` for a finite real ``v``."""
+    ok = _real(v) and (v > low if low_open else v >= low) and v <= high
+    bracket = "(" if low_open else "["
+    _require(ok, f"{name} must be a number in {bracket}{low:g}, {high:g}]{unit}, got {v!r}")
+
+
 @dataclass(frozen=True)
 class DCMotor:
     """A permanent-magnet DC motor seen at the wheel (gearbox folded in).
@@ -31,6 +48,13 @@ class DCMotor:
     """Viscous friction at the output shaft [N m s / rad]."""
     inertia_kgm2: float
     """Rotor + gearbox inertia reflected to the output shaft [kg m^2]."""
+
+    def __post_init__(self) -> None:
+        _in("supply_v", self.supply_v, 0.5, 48.0, unit=" V")
+        _in("resistance_ohm", self.resistance_ohm, 0.1, 1e4, unit=" ohm")
+        _in("k_nm_per_a", self.k_nm_per_a, 1e-3, 100.0, unit=" N m/A")
+        _in("viscous_nms", self.viscous_nms, 0.0, 10.0, unit=" N m s/rad")
+        _in("inertia_kgm2", self.inertia_kgm2, 1e-6, 10.0, unit=" kg m^2")
 
     @property
     def stall_current_a(self) -> float:
@@ -88,8 +112,67 @@ class RobotParams:
     chassis_friction: float = 0.4
     """Coulomb friction of the chassis/bumpers against obstacles."""
 
+    def __post_init__(self) -> None:
+        """Every value physically meaningful (a negative mass or NaN friction would abort
+        Chipmunk, the C physics engine, and take the interpreter with it)."""
+        _in("mass_kg", self.mass_kg, 0.1, 100.0, unit=" kg")
+        _in("length_m", self.length_m, 0.05, 5.0, unit=" m")
+        _in("width_m", self.width_m, 0.05, 5.0, unit=" m")
+        _in("bumper_gap_m", self.bumper_gap_m, 0.0, 0.2, unit=" m")
+        half = self.length_m / 2
+        _in("drive_x_m", self.drive_x_m, -half, half, unit=" m (inside the chassis)")
+        _in("steer_x_m", self.steer_x_m, -half, half, unit=" m (inside the chassis)")
+        _require(self.steer_x_m - self.drive_x_m > 0.01,
+                 f"steer_x_m ({self.steer_x_m!r}) must lie ahead of drive_x_m "
+                 f"({self.drive_x_m!r})")
+        _require(isinstance(self.caster_xy_m, (tuple, list)) and len(self.caster_xy_m) == 2
+                 and all(_real(v) for v in self.caster_xy_m),
+                 f"caster_xy_m must be two finite numbers [m], got {self.caster_xy_m!r}")
+        _in("drive_wheel_radius_m", self.drive_wheel_radius_m, 0.005, 0.5, unit=" m")
+        _in("steer_wheel_radius_m", self.steer_wheel_radius_m, 0.005, 0.5, unit=" m")
+        _in("drive_load_fraction", self.drive_load_fraction, 0.05, 1.0)
+        _in("steer_load_fraction", self.steer_load_fraction, 0.05, 1.0)
+        _require(self.drive_load_fraction + self.steer_load_fraction <= 1.0,
+                 "drive_load_fraction + steer_load_fraction must be at most 1 (the caster "
+                 f"carries the rest), got {self.drive_load_fraction + self.steer_load_fraction:g}")
+        _in("tire_friction", self.tire_friction, 0.01, 5.0)
+        _in("steer_limit_rad", self.steer_limit_rad, 0.01, 1.5, unit=" rad")
+        _in("steer_coulomb_nm", self.steer_coulomb_nm, 0.0, 10.0, unit=" N m")
+        _in("chassis_friction", self.chassis_friction, 0.0, 5.0)
+        for name in ("drive_motor", "steer_motor"):
+            _require(isinstance(getattr(self, name), DCMotor),
+                     f"{name} must be a DCMotor (or a dict of its fields)")
+
     def replace(self, **changes) -> RobotParams:
         return replace(self, **changes)
+
+    @classmethod
+    def from_overrides(cls, overrides) -> RobotParams:
+        """Defaults with ``overrides`` (a dict of field values; motors as dicts of
+        :class:`DCMotor` fields) applied; ValueError with one line for anything else."""
+        if overrides is None:
+            return cls()
+        _require(isinstance(overrides, dict),
+                 f"robot_params must be a dict of RobotParams fields, got {overrides!r}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"unknown robot_params field {unknown[0]!r}; known: "
+                             f"{', '.join(sorted(known))}")
+        changes = dict(overrides)
+        base = cls()
+        for name in ("drive_motor", "steer_motor"):
+            if isinstance(changes.get(name), dict):
+                motor = changes[name]
+                motor_known = {f.name for f in fields(DCMotor)}
+                bad = sorted(set(motor) - motor_known)
+                if bad:
+                    raise ValueError(f"unknown {name} field {bad[0]!r}; known: "
+                                     f"{', '.join(sorted(motor_known))}")
+                changes[name] = replace(getattr(base, name), **motor)
+        if isinstance(changes.get("caster_xy_m"), list):
+            changes["caster_xy_m"] = tuple(changes["caster_xy_m"])
+        return replace(base, **changes)
 
 
 @dataclass(frozen=True)
@@ -103,6 +186,15 @@ class ChannelSpec:
     bias: float = 0.0
     unit: str = ""
     doc: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("low", "high", "noise_std", "quantum", "bias"):
+            _require(_real(getattr(self, name)),
+                     f"sensor {name} must be a finite number, got {getattr(self, name)!r}")
+        _require(self.low < self.high, f"sensor low ({self.low!r}) must be below high "
+                                       f"({self.high!r})")
+        _require(self.noise_std >= 0, f"sensor noise_std must be >= 0, got {self.noise_std!r}")
+        _require(self.quantum >= 0, f"sensor quantum must be >= 0, got {self.quantum!r}")
 
 
 #: Default sensor suite, in observation order. Readings are clipped to [low, high].
@@ -133,8 +225,11 @@ def channel_specs(overrides=None, noise_scale: float = 1.0) -> dict[str, Channel
     ``overrides`` maps a channel name to a dict of :class:`ChannelSpec` fields, e.g.
     ``{"compass": {"bias": 0.1, "noise_std": 0.0}}``.
     """
-    if not (math.isfinite(noise_scale) and noise_scale >= 0):
+    if not (_real(noise_scale) and noise_scale >= 0):
         raise ValueError(f"sensor_noise must be a finite number >= 0, got {noise_scale!r}")
+    if overrides is not None and not isinstance(overrides, dict):
+        raise ValueError("sensor_params must map channel names to dicts of ChannelSpec fields, "
+                         f"e.g. {{\"compass\": {{\"bias\": 0.1}}}}; got {overrides!r}")
     specs = dict(DEFAULT_CHANNELS)
     allowed = {f.name for f in fields(ChannelSpec)} - {"unit", "doc"}
     for name, change in (overrides or {}).items():
@@ -144,6 +239,10 @@ def channel_specs(overrides=None, noise_scale: float = 1.0) -> dict[str, Channel
             raise ValueError(
                 f"sensor_params[{name!r}] must be a dict with keys among {sorted(allowed)}"
             )
+        bad = [k for k, v in change.items() if not _real(v)]
+        if bad:
+            raise ValueError(f"sensor_params[{name!r}][{bad[0]!r}] must be a finite number, "
+                             f"got {change[bad[0]]!r}")
         specs[name] = replace(specs[name], **{k: float(v) for k, v in change.items()})
     return {
         n: replace(s, noise_std=s.noise_std * noise_scale) for n, s in specs.items()
