@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/eval_workers.py
 	$(BIN)/python benchmarks/recorder_overhead.py
 	$(BIN)/python benchmarks/calib_speed.py
+	$(BIN)/python benchmarks/calib_csv_speed.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo_out

@@ -13,17 +13,16 @@ import warnings
 
 import numpy as np
 
+from sfm_common.cli import OneLineParser, UsageError, int_in_range, one_line, positive_float
+from sfm_common.files import check_distinct, check_writable_target
+
 from .result import CalibrationError, CalibrationWarning
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line instead of usage + message
-        raise CalibrationError(f"{self.prog}: {message}")
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="calib", description="Least-squares and shape-from-motion calibration.")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    p = OneLineParser(prog="calib",
+                      description="Least-squares and shape-from-motion calibration.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     f = sub.add_parser("fit", help="calibrate from raw readings of a load moved over orientations")
     f.add_argument("raw", metavar="RAW.csv")
@@ -42,7 +41,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--magnitude",
-        type=float,
+        type=positive_float,
         help="load magnitude, sets the scale when no known loads are given",
     )
     f.add_argument(
@@ -60,7 +59,8 @@ def _parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("trials", help="the paper's Trials 1-4, Table 1 and figures")
     t.add_argument("--out", metavar="DIR", default="calib_trials")
-    t.add_argument("--seeds", type=int, default=200, help="seeds per trial (default 200)")
+    t.add_argument("--seeds", type=int_in_range(1, 100_000), default=200,
+                   help="seeds per trial (default 200)")
     t.add_argument("--no-plots", action="store_true")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -83,8 +83,11 @@ def main(argv=None) -> int:
                 print(f"calib: warning: {w.message}", file=sys.stderr)
         print(msg)
         return 0
-    except CalibrationError as e:
-        print(f"calib: error: {e}", file=sys.stderr)
+    except UsageError as e:
+        print(f"calib: error: {e.prog}: {one_line(e)}", file=sys.stderr)
+        return 2
+    except (CalibrationError, ValueError) as e:
+        print(f"calib: error: {one_line(e)}", file=sys.stderr)
         return 2
     except OSError as e:
         print(f"calib: error: {e.filename or ''}: {e.strerror}", file=sys.stderr)
@@ -94,12 +97,22 @@ def main(argv=None) -> int:
         return 130
 
 
+def _check_outputs(inputs, out) -> None:
+    """The output must not be an input, nor an existing non-regular file (one-line error)."""
+    try:
+        check_distinct(inputs, [out])
+        check_writable_target(out)
+    except ValueError as e:
+        raise CalibrationError(one_line(e)) from None
+
+
 def _fit(args) -> str:
     from .bias import fit_bias
     from .ft6 import fit_ft6
     from .io import read_csv, save_calibration, split_known
     from .sfm import fit_sfm
 
+    _check_outputs([args.raw, args.known], args.out)
     channels, Z = read_csv(args.raw)
     known_Z = known_M = None
     if args.known:
@@ -153,6 +166,7 @@ def _apply(args) -> str:
     from ._validate import check_matrix
     from .io import load_calibration, load_columns, read_csv, write_csv
 
+    _check_outputs([args.cal, args.raw], args.out)
     cal, cal_channels = load_calibration(args.cal)
     header, Z = read_csv(args.raw)
     if cal_channels:

@@ -4,6 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 
+from sfm_common.files import atomic_path
+
+
+def _save(fig, path: str) -> str:
+    """Write ``fig`` to ``path`` atomically (no half-written PNG on an error or Ctrl-C)."""
+    plt = _plt()
+    try:
+        with atomic_path(path, ".png") as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+    finally:
+        plt.close(fig)
+    return path
+
 
 def _plt():
     import matplotlib
@@ -27,9 +40,7 @@ def plot_spectra(spec: dict, path: str) -> str:
     ax.set_title("Singular-value spectrum of the raw data (one seed)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_noise_sweep(noise: dict, paper_points: dict, path: str) -> str:
@@ -52,9 +63,7 @@ def plot_noise_sweep(noise: dict, paper_points: dict, path: str) -> str:
     ax.set_yscale("symlog", linthresh=0.1)
     ax.legend(loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_cap_sweep(caps: dict, path: str) -> str:
@@ -73,6 +82,4 @@ def plot_cap_sweep(caps: dict, path: str) -> str:
     ax.set_title(f"Offset error vs coverage (Trial {caps['trial']} noise)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

@@ -17,7 +17,8 @@ import warnings
 
 import numpy as np
 
-from ._progress import Progress
+from sfm_common.progress import progress as progress_bar
+
 from .bias import fit_bias, fit_paper
 from .least_squares import fit_least_squares
 from .result import CalibrationWarning
@@ -56,7 +57,7 @@ def run_trial(
     cap_half_angle_deg=None,
     noise_scale: float = 1.0,
     methods=METHODS,
-    progress: Progress | None = None,
+    progress=None,
 ) -> dict:
     """Run one trial over ``seeds``; returns per-seed arrays keyed by method.
 
@@ -364,7 +365,7 @@ def write_report(
     """
     import os
 
-    from .io import atomic_write_text
+    from sfm_common.files import atomic_write_text
 
     os.makedirs(out_dir, exist_ok=True)
     seed_list = list(range(seeds))
@@ -372,7 +373,8 @@ def write_report(
     n_caps, n_noise = 8, 9
     total = 4 * seeds + (n_caps + n_noise) * len(sweep_list)
     results = {}
-    with Progress(total, "calib trials", enabled=progress) as bar:
+    with progress_bar(total, "calib trials", unit="fit",
+                      enabled=None if progress else False) as bar:
         for t in PAPER_TRIALS:
             results[t] = run_trial(t, seed_list, progress=bar)
         caps = cap_sweep(sweep_list)

@@ -185,7 +185,8 @@ def bad_cases(tmp_path, raw3):
             ["apply", tmp_path / "cal_bad.json", tmp_path / "raw.csv", "--out", out],
             "not valid JSON",
         ),
-        (["trials", "--seeds", 0, "--out", tmp_path / "tr"], "--seeds must be >= 1"),
+        (["trials", "--seeds", 0, "--out", tmp_path / "tr"],
+         "argument --seeds: expected a positive integer"),
         ([], "required"),
     ]
 
