@@ -35,12 +35,26 @@ def check_matrix(Z, name: str = "Z", drop_nonfinite: bool = False) -> tuple[np.n
                 "clean the data or opt in to dropping them (--drop-nonfinite)"
             )
         Z = Z[~bad]
+    big = float(np.max(np.abs(Z))) if Z.size else 0.0
+    if big > 1e150:
+        raise CalibrationError(f"{name} has values of magnitude {big:.3g}: beyond what a fit in "
+                               "double precision can square; rescale the readings")
+    nonzero = np.abs(Z[Z != 0])
+    if nonzero.size and float(nonzero.max()) < 1e-150:
+        raise CalibrationError(f"{name} has no value above {float(nonzero.max()):.3g} in "
+                               "magnitude: too small to fit in double precision; rescale")
     return Z, nbad
 
 
-def check_samples(Z: np.ndarray, n_params: int, name: str = "Z") -> None:
-    """Too few samples, or constant channels."""
+def check_samples(Z: np.ndarray, n_params: int, name: str = "Z",
+                  rows_per_channel: bool = True) -> None:
+    """Too few samples (fewer than ``n_params``, or with ``rows_per_channel`` fewer than
+    channels), or constant channels."""
     n, p = Z.shape
+    if rows_per_channel and n < p:
+        raise CalibrationError(
+            f"{name} has {n} samples for {p} channels: a calibration needs at least as many "
+            "samples as channels")
     if n < n_params:
         raise CalibrationError(
             f"{name} has {n} samples, at least {n_params} are needed for this fit"

@@ -108,8 +108,9 @@ def _finish(
         "n_samples": len(Z),
         "n_dropped_nonfinite": nbad,
         "singular_values": s,
-        "rank": r,
-        "rank_gap": rank_gap(s, r),
+        # the paper route factors the raw data (offset included): its rank is r + 1
+        "rank": r + (method == "paper"),
+        "rank_gap": rank_gap(s, r + (method == "paper")),
         "coverage": cov,
         "condition_number_C": float(np.linalg.cond(C_unit)),
         "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),

@@ -41,7 +41,7 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
         raise CalibrationError(
             f"least squares needs at least {need} known loads for dof={dof}, got {n}"
         )
-    check_samples(Z, need, "known data")
+    check_samples(Z, need, "known data", rows_per_channel=False)
     X = np.hstack([Z, np.ones((n, 1))]) if bias else Z
     s = np.linalg.svd(X, compute_uv=False)
     # the loads must span dof dimensions, else C is not determined in the missing directions

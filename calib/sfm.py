@@ -67,11 +67,22 @@ def principal(Z: np.ndarray, center: np.ndarray | None = None) -> tuple[np.ndarr
     return s, V
 
 
+#: Below this rank gap the data show no rank-r structure: the paper's noisiest trial still has
+#: 9, pure noise about 1.
+MIN_RANK_GAP = 2.0
+
+
 def rank_gap(s: np.ndarray, r: int) -> float:
-    """``s[r-1] / s[r]``: how far the r-th singular value stands above the noise floor."""
+    """``s[r-1] / s[r]``: how far the r-th singular value stands above the noise floor. Warns
+    (CalibrationWarning) below :data:`MIN_RANK_GAP`."""
     if len(s) <= r:
         return float("inf")
-    return float(s[r - 1] / s[r]) if s[r] > 0 else float("inf")
+    gap = float(s[r - 1] / s[r]) if s[r] > 0 else float("inf")
+    if gap < MIN_RANK_GAP:
+        warn(f"rank gap {gap:.3g} < {MIN_RANK_GAP:g}: the readings show no rank-{r} structure "
+             "(is a load really moving through orientations? noise or unrelated channels?); "
+             "the calibration is unreliable")
+    return gap
 
 
 def quadric_design(X: np.ndarray) -> np.ndarray:

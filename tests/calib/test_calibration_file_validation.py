@@ -54,3 +54,34 @@ def test_a_good_file_applies_to_finite_loads(tmp_path):
     cal, channels = load_calibration(str(path))
     loads = cal.apply(np.array([[1.0, 2.0, 3.0]]))
     assert channels == ["a", "b", "c"] and np.all(np.isfinite(loads))
+
+
+@pytest.mark.parametrize("scale, message", [(1e300, "beyond what a fit"),
+                                            (1e-300, "too small to fit")])
+def test_readings_beyond_double_precision_are_one_line(tmp_path, capsys, scale, message):
+    rng = np.random.default_rng(0)
+    raw = tmp_path / "raw.csv"
+    np.savetxt(raw, rng.normal(size=(100, 4)) * scale, delimiter=",", header="a,b,c,d",
+               comments="")
+    for extra in ([], ["--bias"]):
+        code = main(["fit", str(raw), "--dof", "3", *extra, "--out", str(tmp_path / "c.json")])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and err.count("\n") == 1, err
+
+
+def test_fewer_samples_than_channels_is_refused(tmp_path, capsys):
+    raw = tmp_path / "raw.csv"
+    np.savetxt(raw, np.random.default_rng(0).normal(size=(20, 50)), delimiter=",",
+               header=",".join(f"c{i}" for i in range(50)), comments="")
+    code = main(["fit", str(raw), "--dof", "3", "--out", str(tmp_path / "c.json")])
+    assert code == 2 and "20 samples for 50 channels" in capsys.readouterr().err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_pure_noise_warns_that_there_is_no_structure(tmp_path, capsys):
+    raw = tmp_path / "raw.csv"
+    np.savetxt(raw, np.random.default_rng(0).normal(size=(200, 8)), delimiter=",",
+               header=",".join(f"c{i}" for i in range(8)), comments="")
+    code = main(["fit", str(raw), "--dof", "3", "--magnitude", "9",
+                 "--out", str(tmp_path / "c.json")])
+    assert code == 0 and "no rank-3 structure" in capsys.readouterr().err
