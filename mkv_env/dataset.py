@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mkv_env.params import MAX_READING
 from sfm_common.files import atomic_path
 
 FORMAT = "mkv-dataset"
@@ -265,7 +266,7 @@ def validate(data: Dataset) -> None:
 
 #: Largest magnitude accepted for a sensor reading: the MK-V's channels stay within +-60 (encoder
 #: ticks per step); anything near float32's range is a damaged or fabricated file, not a reading.
-MAX_ABS_READING = 1e6
+MAX_ABS_READING = MAX_READING
 
 
 def _validate_values(meta: dict, arrays: dict) -> None:

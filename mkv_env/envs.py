@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from mkv_env.actions import action_space
 from mkv_env.jams import SCENARIOS, build_scenario
 from mkv_env.params import RobotParams, channel_specs
 from mkv_env.sensors import SensorSuite
@@ -173,7 +174,7 @@ class MKVEnv(gym.Env):
             self.sensors.low.astype(np.float32), self.sensors.high.astype(np.float32),
             dtype=np.float32,
         )
-        self.action_space = spaces.MultiDiscrete([3, 3])
+        self.action_space = action_space()
         self.tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
                                      escape_distance_m, float(escape_forward_m))
         self.world: World | None = None

@@ -18,45 +18,86 @@ SCENARIOS = ("wall", "corner", "dead_end", "wedge")
 """Kinds of jam: head-on/angled into the arena wall; into an arena corner; inside a U-shaped dead
 end; wedged in a gap between two cylinders narrower than the robot."""
 
+# wall: approach a random point of an arena wall
+WALL_END_MARGIN_M = 0.7
+"""The contact point keeps this far from the wall's ends [m]."""
+WALL_APPROACH_M = 0.36
+"""Start this far from the wall, facing it [m]."""
+WALL_HEADING_JITTER_RAD = 0.7
+"""Heading off the wall normal, uniform +- [rad]."""
+WALL_CLEAR_RADIUS_M = 0.55
+"""Clutter keeps out of this circle around the start [m]."""
+# corner: approach an arena corner along its diagonal
+CORNER_APPROACH_M = 0.5
+"""Start this far from each wall of the corner [m]."""
+CORNER_HEADING_JITTER_RAD = 0.4
+CORNER_CLEAR_RADIUS_M = 0.6
+# dead_end: drive into a U narrower than the turning circle
+DEAD_END_GAP_M = (0.30, 0.40)
+"""Inner width, uniform [m]."""
+DEAD_END_DEPTH_M = (0.55, 0.8)
+"""Depth, uniform [m]."""
+DEAD_END_MARGIN_M = 0.6
+"""The U keeps this far (plus its depth) from the arena walls [m]."""
+DEAD_END_START_M = 0.30
+"""Start this far inside the U's mouth [m]."""
+DEAD_END_HEADING_JITTER_RAD = 0.1
+DEAD_END_CLEAR_PAD_M = 0.7
+"""Clutter keeps out of the U's half-depth circle plus this [m]."""
+# wedge: drive into a gap between two cylinders narrower than the robot (0.22 m)
+WEDGE_RADIUS_M = (0.08, 0.18)
+"""Cylinder radii, uniform [m]."""
+WEDGE_GAP_M = (0.12, 0.19)
+"""Gap between the cylinders, uniform [m]."""
+WEDGE_MARGIN_M = 0.9
+"""The gap keeps this far from the arena walls [m]."""
+WEDGE_START_M = 0.33
+"""Start this far before the gap, facing it [m]."""
+WEDGE_HEADING_JITTER_RAD = 0.25
+WEDGE_CLEAR_RADIUS_M = 0.8
+
 
 def build_scenario(kind: str, rng: np.random.Generator, W: float, H: float):
     if kind == "wall":
         side = int(rng.integers(4))
-        t = rng.uniform(0.7, (W if side % 2 == 0 else H) - 0.7)
+        t = rng.uniform(WALL_END_MARGIN_M, (W if side % 2 == 0 else H) - WALL_END_MARGIN_M)
         # inward normal n and the wall point for sides bottom, right, top, left
         pts = [((t, 0.0), (0, 1)), ((W, t), (-1, 0)), ((t, H), (0, -1)), ((0.0, t), (1, 0))]
         (px, py), (nx, ny) = pts[side]
-        heading = math.atan2(-ny, -nx) + rng.uniform(-0.7, 0.7)
-        x, y = px + 0.36 * nx, py + 0.36 * ny
-        return [], [], [], [(x, y, 0.55)], (x, y, heading)
+        heading = math.atan2(-ny, -nx) + rng.uniform(-WALL_HEADING_JITTER_RAD,
+                                                     WALL_HEADING_JITTER_RAD)
+        x, y = px + WALL_APPROACH_M * nx, py + WALL_APPROACH_M * ny
+        return [], [], [], [(x, y, WALL_CLEAR_RADIUS_M)], (x, y, heading)
     if kind == "corner":
         cx, cy = [(0.0, 0.0), (W, 0.0), (W, H), (0.0, H)][int(rng.integers(4))]
         dx, dy = (1 if cx == 0 else -1), (1 if cy == 0 else -1)
-        d = 0.5
+        d = CORNER_APPROACH_M
         x, y = cx + dx * d, cy + dy * d
-        heading = math.atan2(-dy, -dx) + rng.uniform(-0.4, 0.4)
-        return [], [], [], [(x, y, 0.6)], (x, y, heading)
+        heading = math.atan2(-dy, -dx) + rng.uniform(-CORNER_HEADING_JITTER_RAD,
+                                                     CORNER_HEADING_JITTER_RAD)
+        return [], [], [], [(x, y, CORNER_CLEAR_RADIUS_M)], (x, y, heading)
     if kind == "dead_end":
-        gap, depth = rng.uniform(0.30, 0.40), rng.uniform(0.55, 0.8)
+        gap, depth = rng.uniform(*DEAD_END_GAP_M), rng.uniform(*DEAD_END_DEPTH_M)
         ang = rng.uniform(-math.pi, math.pi)
-        m = depth + 0.6
+        m = depth + DEAD_END_MARGIN_M
         cx, cy = rng.uniform(m, W - m), rng.uniform(m, H - m)
         walls = dead_end_walls(cx, cy, ang, gap, depth)
-        x, y = cx + 0.30 * math.cos(ang), cy + 0.30 * math.sin(ang)
-        heading = ang + math.pi + rng.uniform(-0.1, 0.1)
+        x, y = cx + DEAD_END_START_M * math.cos(ang), cy + DEAD_END_START_M * math.sin(ang)
+        heading = ang + math.pi + rng.uniform(-DEAD_END_HEADING_JITTER_RAD,
+                                              DEAD_END_HEADING_JITTER_RAD)
         mx, my = cx + 0.5 * depth * math.cos(ang), cy + 0.5 * depth * math.sin(ang)
-        return walls, [], [], [(mx, my, 0.5 * depth + 0.7)], (x, y, heading)
+        return walls, [], [], [(mx, my, 0.5 * depth + DEAD_END_CLEAR_PAD_M)], (x, y, heading)
     if kind == "wedge":
-        r1, r2 = rng.uniform(0.08, 0.18), rng.uniform(0.08, 0.18)
-        gap = rng.uniform(0.12, 0.19)
+        r1, r2 = rng.uniform(*WEDGE_RADIUS_M), rng.uniform(*WEDGE_RADIUS_M)
+        gap = rng.uniform(*WEDGE_GAP_M)
         ang = rng.uniform(-math.pi, math.pi)
-        m = 0.9
+        m = WEDGE_MARGIN_M
         gx, gy = rng.uniform(m, W - m), rng.uniform(m, H - m)
         px, py = -math.sin(ang), math.cos(ang)  # across the gap
         c1 = (gx + px * (gap / 2 + r1), gy + py * (gap / 2 + r1), r1)
         c2 = (gx - px * (gap / 2 + r2), gy - py * (gap / 2 + r2), r2)
-        back = 0.33
+        back = WEDGE_START_M
         x, y = gx - back * math.cos(ang), gy - back * math.sin(ang)
-        heading = ang + rng.uniform(-0.25, 0.25)
-        return [], [], [c1, c2], [(gx, gy, 0.8)], (x, y, heading)
+        heading = ang + rng.uniform(-WEDGE_HEADING_JITTER_RAD, WEDGE_HEADING_JITTER_RAD)
+        return [], [], [c1, c2], [(gx, gy, WEDGE_CLEAR_RADIUS_M)], (x, y, heading)
     raise ValueError(f"unknown jam scenario {kind!r}; known: {', '.join(SCENARIOS)}")

@@ -175,6 +175,11 @@ class RobotParams:
         return replace(base, **changes)
 
 
+#: Largest magnitude a reading, its range, noise or bias may have (the datasets refuse larger
+#: readings as damaged; mkv_env.dataset.MAX_ABS_READING).
+MAX_READING = 1e6
+
+
 @dataclass(frozen=True)
 class ChannelSpec:
     """How one sensor channel turns truth into a reading: bias, Gaussian noise, quantisation."""
@@ -191,10 +196,13 @@ class ChannelSpec:
         for name in ("low", "high", "noise_std", "quantum", "bias"):
             _require(_real(getattr(self, name)),
                      f"sensor {name} must be a finite number, got {getattr(self, name)!r}")
+        _in("sensor low", self.low, -MAX_READING, MAX_READING)
+        _in("sensor high", self.high, -MAX_READING, MAX_READING)
         _require(self.low < self.high, f"sensor low ({self.low!r}) must be below high "
                                        f"({self.high!r})")
-        _require(self.noise_std >= 0, f"sensor noise_std must be >= 0, got {self.noise_std!r}")
-        _require(self.quantum >= 0, f"sensor quantum must be >= 0, got {self.quantum!r}")
+        _in("sensor noise_std", self.noise_std, 0.0, MAX_READING)
+        _in("sensor quantum", self.quantum, 0.0, self.high - self.low)
+        _in("sensor bias", self.bias, -MAX_READING, MAX_READING)
 
 
 #: Default sensor suite, in observation order. Readings are clipped to [low, high].
@@ -217,6 +225,10 @@ DEFAULT_CHANNELS: dict[str, ChannelSpec] = {
     "battery": ChannelSpec(0.0, 8.0, 0.02, 0.0078, 0.0, "V",
                            "battery voltage, sags with load (a superfluous channel)"),
 }
+
+
+#: The sensor channels in observation order: the one tuple every module reads.
+SENSOR_NAMES: tuple[str, ...] = tuple(DEFAULT_CHANNELS)
 
 
 def channel_specs(overrides=None, noise_scale: float = 1.0) -> dict[str, ChannelSpec]:

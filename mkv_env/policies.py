@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from mkv_env.actions import ACTION_NVEC
 from mkv_env.script import ScriptError, ScriptPolicy
 from mkv_env.teacher import ScriptedTeacher
 
@@ -98,7 +99,7 @@ def describe(policy) -> str:
 class RandomPolicy:
     """Uniformly random actions of a ``MultiDiscrete`` space, from a seeded numpy stream."""
 
-    def __init__(self, nvec=(3, 3), seed: int | None = None):
+    def __init__(self, nvec=ACTION_NVEC, seed: int | None = None):
         self.nvec = np.asarray(nvec, dtype=np.int64).reshape(-1)
         self.rng = np.random.default_rng(seed)
 
@@ -151,7 +152,7 @@ def _load_teacher(arg: str, env, seed):
 def _load_random(arg: str, env, seed):
     if arg:
         raise PolicySpecError(f"'random' takes no argument, got 'random:{arg}'")
-    nvec = getattr(getattr(env, "action_space", None), "nvec", (3, 3))
+    nvec = getattr(getattr(env, "action_space", None), "nvec", ACTION_NVEC)
     policy = RandomPolicy(nvec, seed)
     policy.spec = "random"
     return policy

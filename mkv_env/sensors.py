@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from mkv_env.params import ChannelSpec
+from mkv_env.params import SENSOR_NAMES, ChannelSpec
 from mkv_env.world import World
 
 _NOISE_BLOCK = 256
@@ -32,12 +32,8 @@ class SensorSuite:
     """
 
     def __init__(self, specs: dict[str, ChannelSpec]):
-        expected = (
-            "drive_ticks", "roller_ticks", "steer_angle", "compass", "bump_front_left",
-            "bump_front_right", "bump_rear", "drive_current", "steer_current", "battery",
-        )
-        if tuple(specs) != expected:
-            raise ValueError(f"sensor channels must be {expected}, got {tuple(specs)}")
+        if tuple(specs) != SENSOR_NAMES:
+            raise ValueError(f"sensor channels must be {SENSOR_NAMES}, got {tuple(specs)}")
         self.specs = specs
         self.names = list(specs)
         self.low = np.array([s.low for s in specs.values()], dtype=np.float64)

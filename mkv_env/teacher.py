@@ -46,21 +46,21 @@ import math
 
 import numpy as np
 
+from mkv_env.actions import FORWARD, LEFT, OFF, REVERSE, RIGHT
+from mkv_env.params import SENSOR_NAMES
+
 # Observation indices (the env's fixed channel order; checked by ScriptedTeacher.check_env).
-SENSOR_NAMES = (
-    "drive_ticks", "roller_ticks", "steer_angle", "compass", "bump_front_left",
-    "bump_front_right", "bump_rear", "drive_current", "steer_current", "battery",
-)
-_DRIVE_TICKS, _ROLLER_TICKS, _STEER_ANGLE = 0, 1, 2
-_BUMP_FL, _BUMP_FR, _BUMP_REAR = 4, 5, 6
-_DRIVE_CURRENT = 7
+_DRIVE_TICKS, _ROLLER_TICKS, _STEER_ANGLE = (SENSOR_NAMES.index(n) for n in (
+    "drive_ticks", "roller_ticks", "steer_angle"))
+_BUMP_FL, _BUMP_FR, _BUMP_REAR = (SENSOR_NAMES.index(n) for n in (
+    "bump_front_left", "bump_front_right", "bump_rear"))
+_DRIVE_CURRENT = SENSOR_NAMES.index("drive_current")
 
 # Teacher modes.
 CRUISE, BACKOFF, TURN = 0, 1, 2
 
-# Action values of MultiDiscrete([3, 3]) = [drive, steer].
-_REVERSE, _OFF, _FORWARD = 0, 1, 2
-_LEFT, _RIGHT = 0, 2
+_REVERSE, _OFF, _FORWARD = REVERSE, OFF, FORWARD
+_LEFT, _RIGHT = LEFT, RIGHT
 
 
 class ScriptedTeacher:

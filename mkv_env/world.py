@@ -62,6 +62,33 @@ def dead_end_walls(cx, cy, angle, gap_m, depth_m) -> list[tuple[float, float, fl
     return [(*back_l, *back_r), (*back_l, *open_l), (*back_r, *open_r)]
 
 
+# ---------------------------------------------------------------------- clutter generator
+CLUTTER_KINDS = ("box", "cylinder", "wall", "corner", "dead_end")
+CLUTTER_PROBS = (0.32, 0.24, 0.16, 0.16, 0.12)
+"""Chance of each clutter kind per placed item."""
+CLUTTER_TRIES = 30
+"""Placement attempts per item before it is given up."""
+CLUTTER_MARGIN_M = 0.35
+"""Item centres keep this far from the arena walls [m]."""
+BOX_SIDE_M = (0.15, 0.5)
+"""Box side lengths, uniform [m]."""
+CYLINDER_RADIUS_M = (0.06, 0.2)
+"""Cylinder radius, uniform [m]."""
+WALL_PIECE_LENGTH_M = (0.4, 1.1)
+"""Free-standing wall piece length, uniform [m]."""
+CORNER_ARM_M = (0.35, 0.8)
+"""Arm lengths of an L corner, uniform [m]."""
+DEAD_END_GAP_M = (0.3, 0.45)
+"""Inner width of a U dead end, uniform [m] (the robot is 0.22 m wide, turns on ~0.5 m)."""
+DEAD_END_DEPTH_M = (0.4, 0.75)
+"""Depth of a U dead end, uniform [m]."""
+CLUTTER_GAP_M = (0.1, 0.6)
+"""Clearance between an item and everything placed before it, uniform [m]: some gaps are
+narrower than the robot, so wandering robots wedge themselves."""
+PATCH_SIDE_M = (0.5, 1.0)
+"""Side lengths of a slippery floor patch, uniform [m]."""
+
+
 def generate_layout(
     rng: np.random.Generator,
     width_m: float = 4.0,
@@ -81,33 +108,34 @@ def generate_layout(
     W, H = width_m, height_m
     lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
     circles = list(reserved or [])
-    kinds = ("box", "cylinder", "wall", "corner", "dead_end")
-    probs = (0.32, 0.24, 0.16, 0.16, 0.12)
+    kinds, probs, margin = CLUTTER_KINDS, CLUTTER_PROBS, CLUTTER_MARGIN_M
     for _ in range(n_clutter):
-        for _attempt in range(30):
+        for _attempt in range(CLUTTER_TRIES):
             kind = kinds[rng.choice(len(kinds), p=probs)]
-            cx, cy = rng.uniform(0.35, W - 0.35), rng.uniform(0.35, H - 0.35)
+            cx, cy = rng.uniform(margin, W - margin), rng.uniform(margin, H - margin)
             ang = rng.uniform(-math.pi, math.pi)
             if kind == "box":
-                items = [("box", (cx, cy, rng.uniform(0.15, 0.5), rng.uniform(0.15, 0.5), ang))]
+                items = [("box", (cx, cy, rng.uniform(*BOX_SIDE_M), rng.uniform(*BOX_SIDE_M),
+                                  ang))]
             elif kind == "cylinder":
-                items = [("cylinder", (cx, cy, rng.uniform(0.06, 0.2)))]
+                items = [("cylinder", (cx, cy, rng.uniform(*CYLINDER_RADIUS_M)))]
             elif kind == "wall":
-                half = 0.5 * rng.uniform(0.4, 1.1)
+                half = 0.5 * rng.uniform(*WALL_PIECE_LENGTH_M)
                 dx, dy = half * math.cos(ang), half * math.sin(ang)
                 items = [("wall", (cx - dx, cy - dy, cx + dx, cy + dy))]
             elif kind == "corner":
-                la, lb = rng.uniform(0.35, 0.8), rng.uniform(0.35, 0.8)
+                la, lb = rng.uniform(*CORNER_ARM_M), rng.uniform(*CORNER_ARM_M)
                 ex, ey = cx + la * math.cos(ang), cy + la * math.sin(ang)
                 fx, fy = cx - lb * math.sin(ang), cy + lb * math.cos(ang)
                 items = [("wall", (cx, cy, ex, ey)), ("wall", (cx, cy, fx, fy))]
             else:
-                segs = dead_end_walls(cx, cy, ang, rng.uniform(0.3, 0.45), rng.uniform(0.4, 0.75))
+                segs = dead_end_walls(cx, cy, ang, rng.uniform(*DEAD_END_GAP_M),
+                                      rng.uniform(*DEAD_END_DEPTH_M))
                 items = [("wall", sg) for sg in segs]
             bounds = [_bounding(k, sp) for k, sp in items]
             if not all(_inside(b, W, H) for b in bounds):
                 continue
-            gap = rng.uniform(0.1, 0.6)
+            gap = rng.uniform(*CLUTTER_GAP_M)
             if any(
                 math.hypot(bx - ox, by - oy) < br + orad + gap
                 for bx, by, br in bounds[:1] + bounds[1:]
@@ -121,7 +149,7 @@ def generate_layout(
             circles += bounds
             break
     for _ in range(n_patches):
-        pw, ph = rng.uniform(0.5, 1.0), rng.uniform(0.5, 1.0)
+        pw, ph = rng.uniform(*PATCH_SIDE_M), rng.uniform(*PATCH_SIDE_M)
         x0, y0 = rng.uniform(0, W - pw), rng.uniform(0, H - ph)
         lay.patches.append((x0, y0, x0 + pw, y0 + ph, float(patch_friction_scale)))
     return lay

@@ -49,14 +49,12 @@ import io
 import os
 import time
 
+from mkv_env.actions import ACTION_NAMES, ACTION_NVEC, VALUE_NAMES
 from sfm_common.files import atomic_write_bytes
 from sfm_learn.baselines import sb3
 
 FORMAT = "mkv-bc"
 FORMAT_VERSION = 1
-ACTION_NAMES = ("drive", "steer")
-ACTION_NVEC = (3, 3)
-VALUE_NAMES = {"drive": ("reverse", "off", "forward"), "steer": ("left", "off", "right")}
 DEFAULT_NET_ARCH = {"pi": [64, 64], "vf": []}
 DEFAULTS = {"epochs": 30, "batch_size": 256, "lr": 1e-3, "held_out": 0.2}
 

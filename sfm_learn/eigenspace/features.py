@@ -34,6 +34,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from mkv_env.actions import ACTION_NAMES, ACTION_NVEC
+
 __all__ = ["FeatureSpec", "FeatureBuilder", "OnlineFeatures"]
 
 PREV_ACTION_MODES = ("none", "signed", "onehot")
@@ -85,8 +87,8 @@ class FeatureSpec:
     trace_decays: tuple = ()
     trace_channels: tuple | None = None
     prev_action: str = "none"
-    action_nvec: tuple = (3, 3)
-    action_names: tuple = ("drive", "steer")
+    action_nvec: tuple = ACTION_NVEC
+    action_names: tuple = ACTION_NAMES
     _version: int = field(default=SPEC_VERSION, repr=False)
 
     def __post_init__(self):
@@ -442,7 +444,7 @@ class OnlineFeatures:
             self._prev[i] = a
 
 
-def default_feature_spec(obs_names, action_nvec=(3, 3), action_names=("drive", "steer")):
+def default_feature_spec(obs_names, action_nvec=ACTION_NVEC, action_names=ACTION_NAMES):
     """The feature set the ``mkv fit`` / ``mkv train-bc`` defaults use (see docs/sfm.md for the
     feature-set study that chose it): every channel now, decaying traces of all channels, and the
     previous command (signed).

@@ -31,6 +31,7 @@ import zipfile
 
 import numpy as np
 
+from mkv_env.actions import ACTION_NVEC
 from sfm_common.files import atomic_path
 from sfm_learn.eigenspace.features import (
     FeatureBuilder,
@@ -426,9 +427,8 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
         if list(d.sensor_names) != names:
             raise ValueError(f"datasets have different sensor layouts: {names} vs "
                              f"{list(d.sensor_names)}")
-    nvec = (3, 3)
     if feature_spec is None:
-        feature_spec = default_feature_spec(names, nvec)
+        feature_spec = default_feature_spec(names, ACTION_NVEC)
     elif tuple(feature_spec.obs_names) != tuple(names):
         raise ValueError("the feature spec's obs_names differ from the dataset's sensor names")
     n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"

@@ -42,13 +42,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mkv_env.actions import OFF, REVERSE
 from sfm_learn.eigenspace.policy import episode_starts
 from sfm_learn.evaluation.bootstrap import proportion_ci
 
 __all__ = ["MODES", "Comparison", "agreement", "compare", "replay", "onsets"]
 
-OFF = 1
-REVERSE = 0
 MODES = ("teacher_forced", "free_running")
 BASELINES = ("copy_previous", "constant")
 ONSET_KEYS = ("onset_hit_w1", "onset_hit_w2", "onset_same_side_w1", "onset_same_side_w2",

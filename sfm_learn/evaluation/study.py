@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mkv_env.params import SENSOR_NAMES
 from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
 from sfm_learn.eigenspace.policy import fit_policy
 from sfm_learn.evaluation.compare import compare
@@ -32,10 +33,8 @@ from sfm_learn.evaluation.runner import evaluate_many
 __all__ = ["COLUMNS", "FEATURE_CONFIGS", "StudyConfig", "rank_configs", "run_study",
            "study_by_key", "StudyResult"]
 
-_NO_CURRENTS = ("drive_ticks", "roller_ticks", "steer_angle", "compass", "bump_front_left",
-                "bump_front_right", "bump_rear", "battery")
-_NO_BUMPS = ("drive_ticks", "roller_ticks", "steer_angle", "compass", "drive_current",
-             "steer_current", "battery")
+_NO_CURRENTS = tuple(n for n in SENSOR_NAMES if not n.endswith("_current"))
+_NO_BUMPS = tuple(n for n in SENSOR_NAMES if not n.startswith("bump_"))
 _T = (0.5, 0.8)
 _DEFAULT = {"trace_decays": _T, "prev_action": "signed"}
 _PAPER_FIT = {"solver": "lstsq", "thresholds": "fixed"}
