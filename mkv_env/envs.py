@@ -213,6 +213,13 @@ class MKVEnv(gym.Env):
             self.render()
         return obs, reward, terminated, False, self._info(stuck, collision)
 
+    def get_keys_to_action(self) -> dict:
+        """Arrow keys for :func:`gymnasium.utils.play.play`: up forward, down reverse, left /
+        right steer, combinations allowed; no key is ``mkv_env.teleop.NOOP`` (both off)."""
+        from mkv_env.teleop import keys_to_action
+
+        return keys_to_action()
+
     def render(self):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode= to make()")

@@ -180,6 +180,21 @@ def run_episodes(env: gym.Env, policy, seeds: Sequence[int], recorder: EpisodeRe
             on_episode(i, k)
 
 
+def recording_metadata(env, env_id: str, env_kwargs: dict | None, policy: str,
+                       seed: int) -> dict:
+    """The metadata of a recording (besides what :meth:`EpisodeRecorder.to_dataset` adds)."""
+    return {
+        "format": ds.FORMAT,
+        "schema_version": ds.SCHEMA_VERSION,
+        "env_id": env_id,
+        "env_kwargs": dict(env_kwargs or {}),
+        "policy": policy,
+        "seed": int(seed),
+        "control_period_s": float(getattr(env.unwrapped, "control_period_s", 0.1)),
+        "package_version": mkv_env.__version__,
+    }
+
+
 def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict | None = None,
            on_episode: Callable[[int, int], None] | None = None,
            max_steps: int | None = None, first_seed: int | None = None) -> ds.Dataset:
@@ -206,17 +221,7 @@ def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict |
         recorder = EpisodeRecorder(env.unwrapped.sensor_names)
         seeds = [int(seed) + i for i in range(int(episodes))]
         run_episodes(env, policy, seeds, recorder, on_episode, max_steps)
-        meta = {
-            "format": ds.FORMAT,
-            "schema_version": ds.SCHEMA_VERSION,
-            "env_id": env_id,
-            "env_kwargs": dict(env_kwargs or {}),
-            "policy": spec,
-            "seed": int(seed),
-            "control_period_s": float(getattr(env.unwrapped, "control_period_s", 0.1)),
-            "package_version": mkv_env.__version__,
-        }
-        return recorder.to_dataset(meta)
+        return recorder.to_dataset(recording_metadata(env, env_id, env_kwargs, spec, seed))
     finally:
         env.close()
 

@@ -46,6 +46,8 @@ COMMANDS: list[Command] = [
     Command("eval", "evaluate policies on the same seeded episodes", "sfm_learn.cli.eval"),
     Command("play", "render an episode of a policy (window, or frames headless)",
             "sfm_learn.cli.play"),
+    Command("teleop", "drive the robot with the arrow keys and record the run",
+            "sfm_learn.cli.teleop"),
     Command("fit", "fit a shape-from-motion (eigenspace) policy to a dataset",
             "sfm_learn.cli.fit"),
     Command("compare", "teacher vs SfM commands on held-out runs (the paper's Figure 3)",

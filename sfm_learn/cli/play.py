@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 from sfm_common.files import atomic_path
 from sfm_learn.cli.common import (
@@ -35,18 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "window; the default without a display is play_frames/")
 
 
-def has_display() -> bool:
-    """Whether a pygame window can be opened (not SDL's dummy driver, an X/Wayland display)."""
-    if os.environ.get("SDL_VIDEODRIVER", "") in ("dummy", "offscreen"):
-        return False
-    if sys.platform.startswith("linux"):
-        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-    return True
-
-
 def run(args) -> int:
     from mkv_env.policies import make_policy
     from mkv_env.recorder import make_env, policy_seed
+    from mkv_env.teleop import has_display
 
     out = args.out
     if out is None and not has_display():
