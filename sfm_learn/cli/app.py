@@ -56,6 +56,10 @@ COMMANDS: list[Command] = [
     Command("train-bc", "behaviour-clone an SB3 policy from a dataset", "sfm_learn.cli.train_bc"),
     Command("demo", "the main job end to end on defaults; writes DIR/report.md",
             "sfm_learn.cli.demo"),
+    Command("export", "write a dataset file into Minari (offline-RL dataset standard)",
+            "sfm_learn.cli.export"),
+    Command("import-minari", "read a Minari dataset written by mkv export into a dataset file",
+            "sfm_learn.cli.import_minari"),
 ]
 
 
