@@ -39,6 +39,10 @@ from mkv_env.actions import ACTION_NAMES, ACTION_NVEC
 __all__ = ["FeatureSpec", "FeatureBuilder", "OnlineFeatures"]
 
 PREV_ACTION_MODES = ("none", "signed", "onehot")
+#: Longest history window and most trace decays a spec accepts (a feature vector of thousands of
+#: columns is a typo, and the fit refuses more than 10,000 columns anyway).
+MAX_HISTORY = 1000
+MAX_TRACES = 16
 HISTORY_PADS = ("edge", "zero")
 SPEC_VERSION = 1
 
@@ -107,12 +111,16 @@ class FeatureSpec:
             if unknown:
                 raise ValueError(f"{attr} has unknown channel(s) {unknown}; valid channels are "
                                  f"{list(obs_names)}")
-        if isinstance(self.history, bool) or int(self.history) != self.history or self.history < 0:
-            raise ValueError(f"history must be an int >= 0; got {self.history!r}")
+        if (isinstance(self.history, bool) or int(self.history) != self.history
+                or not 0 <= self.history <= MAX_HISTORY):
+            raise ValueError(f"history must be an int in [0, {MAX_HISTORY}]; got "
+                             f"{self.history!r}")
         set_(self, "history", int(self.history))
         if self.history_pad not in HISTORY_PADS:
             raise ValueError(f"history_pad must be one of {HISTORY_PADS}; got {self.history_pad!r}")
         decays = tuple(float(d) for d in self.trace_decays)
+        if len(decays) > MAX_TRACES:
+            raise ValueError(f"at most {MAX_TRACES} trace decays; got {len(decays)}")
         bad = [d for d in decays if not 0 <= d < 1]
         if bad:
             raise ValueError(f"trace_decays must be in [0, 1); got {bad}")
@@ -149,8 +157,14 @@ class FeatureSpec:
 
     @property
     def n_features(self):
-        """Length of the feature vector."""
-        return len(self.feature_names)
+        """Length of the feature vector (counted, not built: cheap for any spec)."""
+        n = len(self.channels) + self.history * len(self.history_channels)
+        n += len(self.trace_decays) * len(self.trace_channels)
+        if self.prev_action == "signed":
+            n += len(self.action_names)
+        elif self.prev_action == "onehot":
+            n += sum(self.action_nvec)
+        return n
 
     def _index(self, names):
         pos = {n: i for i, n in enumerate(self.obs_names)}

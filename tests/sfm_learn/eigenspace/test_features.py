@@ -151,7 +151,7 @@ def test_online_prev_action_is_ignored_right_after_reset():
 @pytest.mark.parametrize("kwargs, match", [
     ({"channels": ["nope"]}, r"channels has unknown channel\(s\) \['nope'\]; valid channels"),
     ({"trace_channels": ["x"]}, r"trace_channels has unknown channel"),
-    ({"history": -1}, r"history must be an int >= 0; got -1"),
+    ({"history": -1}, r"history must be an int in \[0, 1000\]; got -1"),
     ({"trace_decays": [1.0]}, r"trace_decays must be in \[0, 1\); got \[1.0\]"),
     ({"prev_action": "last"}, r"prev_action must be one of"),
     ({"history_pad": "mirror"}, r"history_pad must be one of"),

@@ -1,0 +1,211 @@
+"""A bad-input campaign through the ``mkv`` and ``calib`` commands, counting outcomes.
+
+    .venv/bin/python scripts/fuzz_cli.py [--cases 500] [--seed 0]
+
+Every case runs the command in this process and records: exit status 0 (accepted), 2 (refused
+with one line), anything else; an exception escaping ``main`` (a traceback); stderr lines beyond
+one; and whether any input file changed or an output appeared on a refusal. Categories: random,
+truncated and damaged files (datasets, policies, CAL.json, CSV), out-of-range numbers, malformed
+``--env-kwargs``, and outputs colliding with inputs. The counts go into the issue notes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import io
+import json
+import math
+import os
+import random
+import sys
+import tempfile
+from collections import Counter
+
+
+def snapshot(d):
+    return {p: hashlib.sha256(open(os.path.join(d, p), "rb").read()).hexdigest()
+            for p in sorted(os.listdir(d)) if os.path.isfile(os.path.join(d, p))}
+
+
+def run(main, argv):
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            code = main([str(a) for a in argv])
+    except BaseException as e:  # noqa: BLE001  (what we count)
+        return "traceback", f"{type(e).__name__}: {e}"
+    text = err.getvalue()
+    if code not in (0, 2, 130):
+        return f"exit {code}", text
+    if code == 2 and text.count("\n") != 1:
+        return "multi-line error", text
+    return ("accepted" if code == 0 else "refused"), text
+
+
+def main_() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=500)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    from calib.cli import main as calib
+    from calib.io import write_csv
+    from calib.simulate import paper_trial
+    from mkv_env.dataset import save
+    from mkv_env.recorder import record
+    from sfm_learn.cli import main as mkv
+    from sfm_learn.eigenspace.policy import fit_policy
+
+    rng = random.Random(args.seed)
+    d = tempfile.mkdtemp(prefix="mkv-fuzz-")
+    data = record("MKV-v0", "teacher", 2, 0, {"max_episode_steps": 60})
+    save(data, os.path.join(d, "data.npz"))
+    fit_policy(data).save(os.path.join(d, "policy.npz"))
+    write_csv(os.path.join(d, "raw.csv"), [f"g{i}" for i in range(8)], paper_trial(2, rng=0).Z)
+    assert calib(["fit", os.path.join(d, "raw.csv"), "--dof", "3", "--magnitude", "9",
+                  "--out", os.path.join(d, "cal.json")]) == 0
+    originals = {n: open(os.path.join(d, n), "rb").read() for n in os.listdir(d)}
+    odd = ["-1", "0", "nan", "inf", "1e20", "99999999999999999999999", "abc", "", "2.5",
+           "-0", "1e-300", "0x10"]
+    odd_json = [-1, 0, math.nan, math.inf, 1e300, "x", None, [1], {}, True, -1e-9]
+
+    def damaged(name):
+        raw = bytearray(originals[name])
+        kind = rng.choice(["random", "truncate", "flip", "empty"])
+        if kind == "random":
+            return bytes(rng.getrandbits(8) for _ in range(rng.randint(1, 600)))
+        if kind == "truncate":
+            return bytes(raw[:rng.randint(0, len(raw) - 1)])
+        if kind == "flip":
+            for _ in range(rng.randint(1, 20)):
+                i = rng.randrange(len(raw))
+                raw[i] = rng.getrandbits(8)
+            return bytes(raw)
+        return b""
+
+    def case():
+        """(main, argv, inputs) for one random bad-input case."""
+        p = lambda n: os.path.join(d, n)  # noqa: E731
+        cat = rng.choice(["file", "number", "kwargs", "collision", "csv", "caljson"])
+        if cat == "file":
+            name = rng.choice(["data.npz", "policy.npz"])
+            with open(p("bad_" + name), "wb") as f:
+                f.write(damaged(name))
+            bad = p("bad_" + name)
+            return cat, rng.choice([
+                (mkv, ["fit", bad, "--out", p("o.npz")]),
+                (mkv, ["train-bc", bad, "--out", p("o.zip"), "--epochs", "1"]),
+                (mkv, ["compare", bad if name == "data.npz" else p("data.npz"),
+                       p("policy.npz") if name == "data.npz" else bad]),
+                (mkv, ["eval", "--env", "MKVJam-v0", "--policy", f"sfm:{bad}", "--episodes",
+                       "1"]),
+                (mkv, ["record", "--env", "MKVJam-v0", "--policy", f"sfm:{bad}",
+                       "--episodes", "1", "--out", p("o.npz")]),
+            ])
+        if cat == "number":
+            v = rng.choice(odd)
+            return cat, rng.choice([
+                (mkv, ["record", "--env", "MKVJam-v0", "--policy", "random", "--episodes", v,
+                       "--out", p("o.npz")]),
+                (mkv, ["eval", "--env", "MKVJam-v0", "--policy", "random", "--episodes", "1",
+                       "--seed", v]),
+                (mkv, ["train-ppo", "--env", "MKVJam-v0", "--timesteps", v, "--out",
+                       p("o.zip")]),
+                (mkv, ["fit", p("data.npz"), "--out", p("o.npz"), "--history", v]),
+                (mkv, ["fit", p("data.npz"), "--out", p("o.npz"), "--rank", v]),
+                (calib, ["trials", "--seeds", v, "--out", p("tr")]),
+                (calib, ["fit", p("raw.csv"), "--dof", "3", "--magnitude", v, "--out",
+                         p("o.json")]),
+            ])
+        if cat == "kwargs":
+            group = rng.choice(["robot_params", "sensor_params", "env"])
+            if group == "robot_params":
+                field = rng.choice(["mass_kg", "tire_friction", "chassis_friction", "length_m",
+                                    "steer_limit_rad", "drive_load_fraction",
+                                    "drive_wheel_radius_m", "nope"])
+                kw = {"robot_params": {field: rng.choice(odd_json)}}
+            elif group == "sensor_params":
+                kw = {"sensor_params": rng.choice(
+                    [5, [1], {"compass": {"noise_std": rng.choice(odd_json)}},
+                     {"battery": {"quantum": rng.choice(odd_json)}}, {"nope": {}}])}
+            else:
+                kw = {rng.choice(["n_clutter", "substeps", "control_period_s", "sensor_noise",
+                                  "arena_size_m"]): rng.choice(odd_json)}
+            try:
+                text = json.dumps(kw)
+            except ValueError:
+                text = "{bad"
+            return cat, (mkv, ["record", "--env", "MKVJam-v0", "--env-kwargs", text,
+                               "--policy", "random", "--episodes", "1", "--out", p("o.npz")])
+        if cat == "collision":
+            return cat, rng.choice([
+                (mkv, ["fit", p("data.npz"), "--out", p("data.npz")]),
+                (mkv, ["train-bc", p("data.npz"), "--out", p("data.npz")]),
+                (mkv, ["compare", p("data.npz"), p("policy.npz"), "--json", p("data.npz")]),
+                (mkv, ["eval", "--env", "MKVJam-v0", "--policy", f"sfm:{p('policy.npz')}",
+                       "--episodes", "1", "--json", p("policy.npz")]),
+                (mkv, ["record", "--env", "MKVJam-v0", "--policy", "random", "--episodes", "1",
+                       "--out", "/dev/null"]),
+                (calib, ["fit", p("raw.csv"), "--dof", "3", "--out", p("raw.csv")]),
+                (calib, ["apply", p("cal.json"), p("raw.csv"), "--out", p("cal.json")]),
+            ])
+        if cat == "csv":
+            z = paper_trial(2, rng=rng.randrange(100)).Z
+            z[rng.randrange(len(z)), rng.randrange(8)] = rng.choice(
+                [math.nan, math.inf, 1e308, -1e308])
+            write_csv(p("bad.csv"), [f"g{i}" for i in range(8)], z)
+            if rng.random() < 0.5:
+                with open(p("bad.csv"), "wb") as f:
+                    f.write(damaged("raw.csv"))
+            return cat, rng.choice([
+                (calib, ["fit", p("bad.csv"), "--dof", "3", "--bias", "--out", p("o.json")]),
+                (calib, ["apply", p("cal.json"), p("bad.csv"), "--out", p("o.csv")]),
+            ])
+        doc = json.loads(originals["cal.json"])
+        doc[rng.choice(["C", "offset", "dof", "channels", "diagnostics"])] = rng.choice(
+            odd_json + [[[1, 2], [3]], "abc", [[math.nan] * 8] * 3])
+        with open(p("bad.json"), "w") as f:
+            f.write(json.dumps(doc))
+        if rng.random() < 0.3:
+            with open(p("bad.json"), "wb") as f:
+                f.write(damaged("cal.json"))
+        return cat, (calib, ["apply", p("bad.json"), p("raw.csv"), "--out", p("o.csv")])
+
+    counts, by_cat, problems = Counter(), Counter(), []
+    for _ in range(args.cases):
+        for n, b in originals.items():
+            with open(os.path.join(d, n), "wb") as f:
+                f.write(b)
+        for n in ("o.npz", "o.zip", "o.json", "o.csv"):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(os.path.join(d, n))
+        cat, (main, argv) = case()
+        before = {n: hashlib.sha256(originals[n]).hexdigest() for n in originals}
+        outcome, text = run(main, argv)
+        after = {n: hashlib.sha256(open(os.path.join(d, n), "rb").read()).hexdigest()
+                 for n in originals}
+        if after != before:
+            outcome = "input destroyed"
+        if outcome == "refused" and any(os.path.exists(os.path.join(d, n))
+                                        for n in ("o.npz", "o.zip", "o.json", "o.csv")):
+            outcome = "partial output"
+        if outcome == "accepted" and cat in ("file", "collision", "caljson"):
+            outcome = "accepted (check)"
+        counts[outcome] += 1
+        by_cat[(cat, outcome)] += 1
+        if outcome not in ("refused", "accepted"):
+            problems.append((outcome, " ".join(str(a) for a in argv)[:160], text.strip()[:200]))
+    print(f"{args.cases} cases: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    for (cat, outcome), v in sorted(by_cat.items()):
+        print(f"  {cat:<10} {outcome:<18} {v}")
+    for p_ in problems[:30]:
+        print("PROBLEM", *p_, sep="\n   ")
+    return 1 if any(o in counts for o in ("traceback", "input destroyed", "partial output",
+                                          "multi-line error")) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_())
