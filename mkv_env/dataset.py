@@ -339,7 +339,7 @@ def load(path, check: bool = True) -> Dataset:
         with np.load(path, allow_pickle=False) as npz:
             raw = {k: npz[k] for k in npz.files}
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
-            NotImplementedError) as e:
+            NotImplementedError, RuntimeError) as e:  # RuntimeError: "encrypted" member
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise DatasetError(f"{path}: not a readable dataset (truncated or corrupt: {reason})") \
             from None

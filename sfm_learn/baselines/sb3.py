@@ -19,6 +19,7 @@ import io
 import json
 import os
 import zipfile
+import zlib
 
 import gymnasium as gym
 import numpy as np
@@ -123,6 +124,8 @@ def read_policy_zip(path: str, fmt: str, members: tuple[str, ...] = ()) -> tuple
     except (
         zipfile.BadZipFile,
         zipfile.LargeZipFile,
+        zlib.error,
+        RuntimeError,  # zipfile: a member flagged as encrypted
         EOFError,
         OSError,
         KeyError,

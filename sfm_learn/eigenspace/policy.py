@@ -28,6 +28,7 @@ import json
 import os
 import time
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -238,8 +239,9 @@ class SfMPolicy:
                           for n in names if n.endswith(".npy")}
         except PolicyFileError:
             raise
-        except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError,
-                UnicodeDecodeError) as e:
+        except (zipfile.BadZipFile, zlib.error, KeyError, ValueError, OSError, EOFError,
+                UnicodeDecodeError, NotImplementedError, RuntimeError) as e:
+            # (zipfile raises RuntimeError for a member flagged as encrypted)
             why = str(e).splitlines()[0] if str(e) else ""
             raise PolicyFileError(f"{path} is not a readable SfM policy file "
                                   f"({type(e).__name__}: {why})") from None

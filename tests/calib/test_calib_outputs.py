@@ -88,3 +88,60 @@ def test_csv_fast_path_and_the_line_of_a_bad_row(tmp_path, capsys):
     bad.write_text("a,b,c\n1,2,3\n4,x,6\n")
     code = main(["fit", str(bad), "--dof", "2", "--out", str(tmp_path / "c.json")])
     assert code == 2 and "line 3: non-numeric value" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("text, message", [
+    ("a,b\n1,2\n#3,4\n5,6\n", "line 3: non-numeric value"),  # '#' is not a comment: no row lost
+    ("a,b\n1,2 # note\n", "line 2: non-numeric value"),
+    ("a,b\n\n\n1,2\nx,3\n", "line 5: non-numeric value"),  # file lines, blank ones counted
+    ("\n\na,b,c\n1,2,3\n\n1,2\n", "line 6: 2 fields, header has 3"),
+    ('a,b\n"1,2\n3,4\n', "line 2: 1 fields, header has 2"),  # where the bad row starts
+    ("a,b\n1," + "1" * 200_000 + "\nx,2\n", "line 2: field larger than field limit"),
+    ("a,a\n1,2\n", "duplicate column names"),
+    ("\n , \n", "is empty"),
+])
+def test_csv_errors_name_the_file_line(tmp_path, text, message):
+    from calib.result import CalibrationError
+
+    p = tmp_path / "f.csv"
+    p.write_text(text)
+    with pytest.raises(CalibrationError, match=message) as e:
+        read_csv(str(p))
+    assert "\n" not in str(e.value)
+
+
+def test_csv_fallback_reads_what_numpy_refuses_and_agrees_with_the_fast_path(tmp_path):
+    from calib.io import _read_rows_slowly
+
+    data = np.random.default_rng(1).normal(0, 100, (500, 4))
+    data[3, 1], data[7, 2], data[9, 0] = np.nan, np.inf, -np.inf
+    p = tmp_path / "f.csv"
+    write_csv(p, list("abcd"), data)
+    header, fast = read_csv(str(p))
+    np.testing.assert_array_equal(fast, data)
+    np.testing.assert_array_equal(_read_rows_slowly(str(p), 4, 1), data)
+    q = tmp_path / "q.csv"
+    q.write_text('a,b\n"1.5", 2\n1_000,-Infinity\n')  # numpy's parser rejects both lines
+    np.testing.assert_array_equal(read_csv(str(q))[1], [[1.5, 2.0], [1000.0, -np.inf]])
+
+
+def test_trials_progress_draws_no_carriage_returns_off_a_terminal(tmp_path, capsys):
+    assert main(["trials", "--seeds", "1", "--no-plots", "--out", str(tmp_path / "t")]) == 0
+    err = capsys.readouterr().err
+    assert "\r" not in err and "calib trials" not in err, err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["trials", "--seeds", "-5"], "argument --seeds: expected a positive integer"),
+    (["trials", "--seeds", "1.5"], "argument --seeds: expected a positive integer"),
+    (["fit", "r.csv", "--dof", "3", "--magnitude", "0"], "argument --magnitude: expected a "
+                                                         "positive number, got '0'"),
+    (["fit", "r.csv", "--dof", "3", "--magnitude", "-1"], "argument --magnitude"),
+    (["fit", "r.csv", "--dof", "3", "--magnitude", "nan"], "argument --magnitude"),
+    (["fit", "r.csv", "--dof", "3", "--magnitude", "inf"], "argument --magnitude"),
+])
+def test_bad_numbers_are_one_line_usage_errors(tmp_path, capsys, argv, message):
+    code = main(argv + ["--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("calib: error: ") and err.count("\n") == 1, err
+    assert message in err and not os.path.exists(tmp_path / "o")

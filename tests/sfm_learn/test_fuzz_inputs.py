@@ -132,3 +132,26 @@ def test_commands_on_fuzzed_files_are_one_line(tmp_path, capsys, good_policy, da
         assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, (argv, err)
     assert hashlib.sha256(bad.read_bytes()).hexdigest() == before
     assert not (tmp_path / "o.npz").exists() and not (tmp_path / "o.zip").exists()
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.floats(0, 1), st.integers(0, 255)), min_size=1, max_size=30))
+def test_flipped_bytes_in_policy_and_dataset_files(tmp_path, good_policy, small_train, flips):
+    """Damage inside the zip's compressed streams (zlib errors, 'encrypted' member flags)."""
+    from mkv_env.dataset import DatasetError, load, save
+
+    data_path = tmp_path / "d_ok.npz"
+    if not data_path.exists():
+        save(small_train, data_path)
+    for path, loader, error in ((good_policy, SfMPolicy.load, PolicyFileError),
+                                (data_path, load, DatasetError)):
+        raw = bytearray(open(path, "rb").read())
+        for where, byte in flips:
+            raw[min(int(where * len(raw)), len(raw) - 1)] = byte
+        bad = tmp_path / "flipped.npz"
+        bad.write_bytes(bytes(raw))
+        try:
+            loader(bad)
+        except error as e:
+            assert "\n" not in str(e)
