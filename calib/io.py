@@ -6,9 +6,11 @@ from __future__ import annotations
 import csv
 import json
 import warnings
+from array import array
 
 import numpy as np
 
+from sfm_common.cli import one_line
 from sfm_common.files import atomic_write_text
 
 from .result import Calibration, CalibrationError
@@ -24,13 +26,15 @@ def load_columns(dof: int) -> list[str]:
 def read_csv(path: str) -> tuple[list[str], np.ndarray]:
     """Header names and float data (n, k). Unparseable cells are an error; 'nan'/'inf' parse.
 
-    Well-formed files go through numpy's C parser (``np.loadtxt``; 2M rows x 8 columns in under
-    a second); a file it rejects is read again row by row only to name the first bad line.
+    Well-formed files go through numpy's C parser (``np.loadtxt``, about its speed and memory:
+    ``benchmarks/calib_csv_speed.py``); a file it rejects is read again row by row, to name the
+    first bad line (its line number in the file) or to accept what Python's ``csv``/``float``
+    accept and numpy does not (quoted numbers, ``1_000``).
     """
     try:
         with open(path, newline="", encoding="utf-8") as f:
             header_line = ""
-            skipped = 0
+            skipped = 0  # physical lines up to and including the header
             for header_line in f:
                 skipped += 1
                 if header_line.strip(" \t\r\n,"):
@@ -43,33 +47,48 @@ def read_csv(path: str) -> tuple[list[str], np.ndarray]:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-                    data = np.loadtxt(f, delimiter=",", dtype=float, ndmin=2)
-            except ValueError:
+                    # comments=None: a '#' is a bad value, as in the row-by-row reader, not a
+                    # silently dropped row
+                    data = np.loadtxt(f, delimiter=",", dtype=float, ndmin=2, comments=None)
+            except ValueError:  # includes UnicodeDecodeError: the careful reader reports it
                 data = None
+        if data is not None and data.size == 0:
+            data = data.reshape(0, len(header))
+        if data is None or data.shape[1] != len(header):
+            data = _read_rows_slowly(path, len(header), skipped)
     except OSError as e:
         raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
     except UnicodeDecodeError:
         raise CalibrationError(f"{path} is not a text CSV file") from None
-    if data is not None and data.size == 0:
-        data = data.reshape(0, len(header))
-    if data is None or data.shape[1] != len(header):
-        return header, _read_rows_slowly(path, header)
+    except csv.Error as e:  # e.g. a field over csv.field_size_limit()
+        raise CalibrationError(f"{path}: not a readable CSV file ({one_line(e)})") from None
     return header, data
 
 
-def _read_rows_slowly(path: str, header: list[str]) -> np.ndarray:
-    """The careful reader: one Python row at a time, for the line number of the first bad row."""
+def _read_rows_slowly(path: str, k: int, skipped: int) -> np.ndarray:
+    """The careful reader: one Python row at a time after the header's ``skipped`` lines, for the
+    file line number of the first bad row. Values go to a flat ``array('d')`` (8 bytes each), so
+    a large file read this way costs its data, not a list of Python rows."""
+    values = array("d")
     with open(path, newline="", encoding="utf-8") as f:
-        rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
-    data = np.empty((len(rows) - 1, len(header)))
-    for i, r in enumerate(rows[1:], start=2):
-        if len(r) != len(header):
-            raise CalibrationError(f"{path} line {i}: {len(r)} fields, header has {len(header)}")
+        for _ in range(skipped):
+            next(f)
+        reader = csv.reader(f)
+        line = skipped + 1  # where the next row starts (a quoted field may span lines)
         try:
-            data[i - 2] = [float(c) for c in r]
-        except ValueError:
-            raise CalibrationError(f"{path} line {i}: non-numeric value") from None
-    return data
+            for r in reader:
+                if any(c.strip() for c in r):  # else a blank line (or only commas/spaces)
+                    if len(r) != k:
+                        raise CalibrationError(f"{path} line {line}: {len(r)} fields, header "
+                                               f"has {k}")
+                    try:
+                        values.extend([float(c) for c in r])
+                    except ValueError:
+                        raise CalibrationError(f"{path} line {line}: non-numeric value") from None
+                line = skipped + reader.line_num + 1
+        except csv.Error as e:
+            raise CalibrationError(f"{path} line {line}: {one_line(e)}") from None
+    return np.frombuffer(values, dtype=float).reshape(-1, k)
 
 
 def write_csv(path: str, header, data: np.ndarray) -> None:
