@@ -45,7 +45,8 @@ CASES = [
     ("record --env MKV-v0 --policy teacher --episodes 99999999999999999999999 --out {dir}/x.npz",
      "at most"),
     ("train-ppo --env MKV-v0 --timesteps 100000000000000000000 --out {dir}/p.zip", "at most"),
-    ("fit {data} --out {dir}/p.npz --history 100000", "feature columns"),
+    ("fit {data} --out {dir}/p.npz --history 100000", "history must be an int in [0, 1000]"),
+    ("fit {data} --out {dir}/p.npz --history 1000 --traces 0.5,0.6", "feature columns"),
 ]
 
 
