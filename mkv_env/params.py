@@ -178,6 +178,8 @@ class RobotParams:
 #: Largest magnitude a reading, its range, noise or bias may have (the datasets refuse larger
 #: readings as damaged; mkv_env.dataset.MAX_ABS_READING).
 MAX_READING = 1e6
+#: Smallest non-zero quantisation step (a subnormal step overflows 1/step).
+MIN_QUANTUM = 1e-9
 
 
 @dataclass(frozen=True)
@@ -202,6 +204,9 @@ class ChannelSpec:
                                        f"({self.high!r})")
         _in("sensor noise_std", self.noise_std, 0.0, MAX_READING)
         _in("sensor quantum", self.quantum, 0.0, self.high - self.low)
+        _require(self.quantum == 0 or self.quantum >= MIN_QUANTUM,
+                 f"sensor quantum must be 0 (none) or at least {MIN_QUANTUM:g}, got "
+                 f"{self.quantum!r}")
         _in("sensor bias", self.bias, -MAX_READING, MAX_READING)
 
 
