@@ -74,7 +74,8 @@ def profile(env_id: str, steps: int) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=100_000)
-    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds; the median of each is reported")
+    ap.add_argument("--rounds", type=int, default=5,
+                    help="alternating rounds; the median of each is reported")
     ap.add_argument("--no-profile", action="store_true")
     args = ap.parse_args(argv)
     mkv, ll, jam = [], [], []
