@@ -131,8 +131,11 @@ def run(args) -> int:
           f"solver {solver}; floor {proj.rank_floor_:.3g}"
           + ("" if solver != "ols" else " (ols ignores the kept components)"))
     if policy.encoding == "signed":
+        from mkv_env.actions import VALUE_NAMES
+
         for name, (lo, hi) in zip(spec.action_names, policy.thresholds, strict=True):
-            print(f"{name}: reverse/left below {lo:+.3f}, forward/right above {hi:+.3f}")
+            low, _, high = VALUE_NAMES.get(name, ("reverse/left", "off", "forward/right"))
+            print(f"{name}: {low} below {lo:+.3f}, {high} above {hi:+.3f}")
     policy.save(args.out)
     print(f"wrote {args.out}")
     if args.spectrum:
