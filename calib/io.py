@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import warnings
 from array import array
 
@@ -31,8 +32,11 @@ def read_csv(path: str) -> tuple[list[str], np.ndarray]:
     first bad line (its line number in the file) or to accept what Python's ``csv``/``float``
     accept and numpy does not (quoted numbers, ``1_000``).
     """
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
     try:
-        with open(path, newline="", encoding="utf-8") as f:
+        # utf-8-sig: a byte-order mark (CSV saved by Excel) is not part of the first name
+        with open(path, newline="", encoding="utf-8-sig") as f:
             header_line = ""
             skipped = 0  # physical lines up to and including the header
             for header_line in f:
@@ -70,7 +74,7 @@ def _read_rows_slowly(path: str, k: int, skipped: int) -> np.ndarray:
     file line number of the first bad row. Values go to a flat ``array('d')`` (8 bytes each), so
     a large file read this way costs its data, not a list of Python rows."""
     values = array("d")
-    with open(path, newline="", encoding="utf-8") as f:
+    with open(path, newline="", encoding="utf-8-sig") as f:
         for _ in range(skipped):
             next(f)
         reader = csv.reader(f)

@@ -145,3 +145,19 @@ def test_bad_numbers_are_one_line_usage_errors(tmp_path, capsys, argv, message):
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("calib: error: ") and err.count("\n") == 1, err
     assert message in err and not os.path.exists(tmp_path / "o")
+
+
+def test_a_byte_order_mark_is_not_part_of_the_first_name(tmp_path):
+    p = tmp_path / "excel.csv"
+    p.write_bytes("\ufeffa,b\n1,2\n".encode("utf-8"))
+    header, data = read_csv(str(p))
+    assert header == ["a", "b"] and data.tolist() == [[1.0, 2.0]]
+
+
+def test_a_fifo_or_directory_input_is_refused_without_waiting(tmp_path, capsys):
+    fifo = tmp_path / "pipe.csv"
+    os.mkfifo(fifo)
+    for raw in (fifo, tmp_path):
+        code = main(["fit", str(raw), "--dof", "3", "--out", str(tmp_path / "c.json")])
+        err = capsys.readouterr().err
+        assert code == 2 and "not a regular file" in err and err.count("\n") == 1, err
