@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mkv_env.actions import ACTION_NVEC
 from mkv_env.params import MAX_READING
 from sfm_common.files import atomic_path
 
@@ -59,7 +60,7 @@ SCHEMA_VERSION = 1
 STEP_FIELDS: dict[str, tuple[str, tuple]] = {
     # key: (dtype, trailing shape); "C" = number of sensor channels
     "observations": ("float32", ("C",)),
-    "actions": ("int64", (2,)),
+    "actions": ("int64", (len(ACTION_NVEC),)),
     "rewards": ("float64", ()),
     "terminated": ("bool", ()),
     "truncated": ("bool", ()),
@@ -282,9 +283,9 @@ def _validate_values(meta: dict, arrays: dict) -> None:
                                f"{a[row, col]!r}: readings must be finite and within "
                                f"+-{MAX_ABS_READING:g}")
     act = arrays["actions"]
-    if act.size and (act.min() < 0 or act.max() > 2):
-        raise DatasetError(f"actions must be command indices 0..2, found {int(act.min())}.."
-                           f"{int(act.max())}")
+    if act.size and (act.min() < 0 or np.any(act >= np.asarray(ACTION_NVEC))):
+        raise DatasetError(f"actions must be command indices 0..{max(ACTION_NVEC) - 1}, found "
+                           f"{int(act.min())}..{int(act.max())}")
     for key in ("rewards", "distance_m", "pose"):
         if not np.all(np.isfinite(arrays[key])):
             raise DatasetError(f"{key} contains NaN or infinite values")
@@ -335,6 +336,8 @@ def load(path, check: bool = True) -> Dataset:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise DatasetError(f"{path}: no such file")
+    if not os.path.isfile(path):
+        raise DatasetError(f"{path} is not a regular file (a directory, FIFO or device)")
     try:
         with np.load(path, allow_pickle=False) as npz:
             raw = {k: npz[k] for k in npz.files}

@@ -94,8 +94,9 @@ def read_policy_zip(path: str, fmt: str, members: tuple[str, ...] = ()) -> tuple
         raise PolicySpecError(f"'{prefix}' needs a file: {prefix}:PATH")
     if not os.path.exists(path):
         raise PolicySpecError(f"{path}: no such file")
-    if os.path.isdir(path):
-        raise PolicySpecError(f"{path} is a directory, not {what} zip")
+    if not os.path.isfile(path):
+        raise PolicySpecError(f"{path} is not a regular file (a directory, FIFO or device), "
+                              f"not {what} zip")
     try:
         with zipfile.ZipFile(path) as zf:
             names = set(zf.namelist())

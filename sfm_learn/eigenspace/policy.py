@@ -223,8 +223,8 @@ class SfMPolicy:
         path = os.fspath(path)
         if not os.path.exists(path):
             raise PolicyFileError(f"policy file {path} does not exist")
-        if os.path.isdir(path):
-            raise PolicyFileError(f"{path} is a directory, not a policy file")
+        if not os.path.isfile(path):
+            raise PolicyFileError(f"{path} is not a regular file (a directory, FIFO or device)")
         try:
             with zipfile.ZipFile(path) as zf:
                 names = zf.namelist()

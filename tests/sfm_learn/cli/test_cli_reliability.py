@@ -111,3 +111,13 @@ def test_datasets_with_impossible_readings_are_refused_by_every_command(
         code, _, err = run(capsys, *argv)
         assert code == 2 and err.count("\n") == 1 and "finite" in err, err
     assert sorted(os.listdir(tmp_path)) == ["bad.npz"]
+
+
+def test_a_fifo_as_an_input_file_is_refused_without_waiting(tmp_path, capsys, files):
+    fifo = tmp_path / "pipe.npz"
+    os.mkfifo(fifo)
+    for argv in (["fit", fifo, "--out", tmp_path / "p.npz"],
+                 ["compare", files["data"], fifo],
+                 ["eval", "--env", "MKVJam-v0", "--policy", f"bc:{fifo}", "--episodes", "1"]):
+        code, _, err = run(capsys, *argv)
+        assert code == 2 and "not a regular file" in err and err.count("\n") == 1, err
