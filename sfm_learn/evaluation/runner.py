@@ -197,14 +197,24 @@ def _run_parallel(env_id, env_kwargs, specs, seed, units, workers, start_method,
         ctx.set_forkserver_preload(["sfm_learn.evaluation.runner"])
     progress_q = ctx.Queue()
 
-    def drain():
-        while True:
+    expected = sum(count for _, _, count in units)
+    reported = [0]
+
+    def drain(wait_s: float = 0.0):
+        """Deliver the progress messages that have arrived; with ``wait_s``, wait up to that
+        long for the rest (a worker's last message can still be in its queue's feeder thread
+        when the unit's result is already here)."""
+        deadline = time.monotonic() + wait_s
+        while reported[0] < expected:
             try:
-                uid, done = progress_q.get_nowait()
+                left = deadline - time.monotonic()
+                uid, done = (progress_q.get(timeout=left) if left > 0
+                             else progress_q.get_nowait())
             except queue.Empty:
                 return
             for i, n in done:
                 on_unit_episode(uid, i, n)
+            reported[0] += len(done)
 
     pool = futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
                                        initializer=_init_worker, initargs=(progress_q,))
@@ -225,7 +235,7 @@ def _run_parallel(env_id, env_kwargs, specs, seed, units, workers, start_method,
                         "an evaluation worker process died unexpectedly (killed, or out of "
                         "memory); a script that starts workers must guard its main code with "
                         "if __name__ == '__main__':") from None
-        drain()
+        drain(wait_s=10.0)
         pool.shutdown(wait=True)
     except BaseException:
         _stop_workers(pool)
