@@ -21,6 +21,8 @@ VALUE_NAMES: dict[str, tuple[str, str, str]] = {
 #: Value indices.
 REVERSE, OFF, FORWARD = 0, 1, 2
 LEFT, RIGHT = 0, 2
+#: Both motors off (the action before any command, and teleop's "no key pressed").
+NOOP_ACTION: tuple[int, int] = (OFF, OFF)
 
 
 def action_space() -> spaces.MultiDiscrete:
@@ -28,5 +30,5 @@ def action_space() -> spaces.MultiDiscrete:
     return spaces.MultiDiscrete(list(ACTION_NVEC))
 
 
-__all__ = ["ACTION_NAMES", "ACTION_NVEC", "FORWARD", "LEFT", "OFF", "REVERSE", "RIGHT",
-           "VALUE_NAMES", "action_space"]
+__all__ = ["ACTION_NAMES", "ACTION_NVEC", "FORWARD", "LEFT", "NOOP_ACTION", "OFF", "REVERSE",
+           "RIGHT", "VALUE_NAMES", "action_space"]

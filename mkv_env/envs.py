@@ -9,12 +9,22 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mkv_env.actions import action_space
+from mkv_env.actions import ACTION_NVEC, NOOP_ACTION, OFF, action_space
 from mkv_env.jams import SCENARIOS, build_scenario
 from mkv_env.params import RobotParams, channel_specs
 from mkv_env.sensors import SensorSuite
 from mkv_env.tracker import MotionTracker
 from mkv_env.world import World, generate_layout, random_free_pose
+
+LAYOUT_ATTEMPTS = 20
+"""Fresh layouts tried per reset of ``MKV-v0`` before giving up on a free start pose."""
+JAM_ATTEMPTS = 50
+"""Scenario geometries tried per reset of ``MKVJam-v0`` before the jam counts as unbuildable."""
+JAM_DRIVE_MAX_STEPS = 40
+"""Control periods of driving forward from the approach pose to get stuck (4 s at 0.1 s)."""
+TRAIL_MAX_POINTS = 600
+"""Robot positions kept for drawing the trail; the oldest ``TRAIL_DROP_POINTS`` go at once."""
+TRAIL_DROP_POINTS = 100
 
 
 def _check(cond: bool, msg: str) -> None:
@@ -180,7 +190,7 @@ class MKVEnv(gym.Env):
         self.world: World | None = None
         self.trail: list[tuple[float, float]] = []
         self._renderer = None
-        self._last_action = (1, 1)
+        self._last_action = NOOP_ACTION
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -189,7 +199,7 @@ class MKVEnv(gym.Env):
         self.sensors.reset(self.np_random, self.world)
         self._reset_tracker()
         self.trail = [self._pose()[:2]]
-        self._last_action = (1, 1)
+        self._last_action = NOOP_ACTION
         obs = self.sensors.read(self.world)
         if self.render_mode == "human":
             self.render()
@@ -207,15 +217,22 @@ class MKVEnv(gym.Env):
         reward = self._reward(progress, stuck, collision, escaped)
         terminated = self._terminated(escaped)
         self.trail.append(pose[:2])
-        if len(self.trail) > 600:
-            del self.trail[:100]
+        if len(self.trail) > TRAIL_MAX_POINTS:
+            del self.trail[:TRAIL_DROP_POINTS]
         if self.render_mode == "human":
             self.render()
         return obs, reward, terminated, False, self._info(stuck, collision)
 
     def get_keys_to_action(self) -> dict:
         """Arrow keys for :func:`gymnasium.utils.play.play`: up forward, down reverse, left /
-        right steer, combinations allowed; no key is ``mkv_env.teleop.NOOP`` (both off)."""
+        right steer, combinations allowed (opposite arrows cancel).
+
+        Returns a dict from sorted tuples of pygame key codes to ``[drive, steer]`` actions of
+        shape (2,) (:func:`mkv_env.teleop.keys_to_action`). No key held is
+        ``mkv_env.teleop.NOOP`` (both off): pass it as play()'s ``noop``::
+
+            play(env, keys_to_action=env.unwrapped.get_keys_to_action(), noop=teleop.NOOP)
+        """
         from mkv_env.teleop import keys_to_action
 
         return keys_to_action()
@@ -240,7 +257,8 @@ class MKVEnv(gym.Env):
         try:
             a0, a1 = action
             a0, a1 = int(a0), int(a1)
-            ok = a0 == action[0] and a1 == action[1] and 0 <= a0 <= 2 and 0 <= a1 <= 2
+            ok = (a0 == action[0] and a1 == action[1]
+                  and 0 <= a0 < ACTION_NVEC[0] and 0 <= a1 < ACTION_NVEC[1])
         except (TypeError, ValueError):
             ok = False
         if not ok:
@@ -248,11 +266,12 @@ class MKVEnv(gym.Env):
                 f"invalid action {action!r}: expected [drive, steer] with each in {{0, 1, 2}}"
             )
         self._last_action = (a0, a1)
-        return a0 - 1, 1 - a1  # steer: 0 = left = +1 (counter-clockwise)
+        # motor commands -1/0/+1; steer: 0 = left = +1 (counter-clockwise)
+        return a0 - OFF, OFF - a1
 
     def _build_world(self) -> World:
         rng = self.np_random
-        for _ in range(20):
+        for _ in range(LAYOUT_ATTEMPTS):
             layout = generate_layout(rng, self.arena_size_m, self.arena_size_m, self.n_clutter,
                                      self.n_patches, self.patch_friction)
             world = World(layout, self.robot_params, (0.0, 0.0, 0.0))
@@ -347,7 +366,7 @@ class MKVJamEnv(MKVEnv):
         # the kind is drawn once, only its geometry is retried: kinds that need more attempts
         # to jam must not come up less often
         kind = self.scenarios[int(rng.integers(len(self.scenarios)))]
-        for _ in range(50):
+        for _ in range(JAM_ATTEMPTS):
             walls, boxes, cylinders, reserved, pose = build_scenario(kind, rng, W, W)
             layout = generate_layout(rng, W, W, self.n_clutter, self.n_patches,
                                      self.patch_friction, reserved=reserved)
@@ -380,7 +399,8 @@ class MKVJamEnv(MKVEnv):
         return info
 
 
-def _drive_until_jammed(world: World, env: MKVEnv, rng, max_steps: int = 40) -> bool:
+def _drive_until_jammed(world: World, env: MKVEnv, rng,
+                        max_steps: int = JAM_DRIVE_MAX_STEPS) -> bool:
     """Drive forward (steering held at a random command) until stuck for jam_steps steps."""
     steer = int(rng.integers(-1, 2))
     limit = env.tracker.stuck_speed_mps * env.control_period_s

@@ -31,7 +31,9 @@ WALL_CLEAR_RADIUS_M = 0.55
 CORNER_APPROACH_M = 0.5
 """Start this far from each wall of the corner [m]."""
 CORNER_HEADING_JITTER_RAD = 0.4
+"""Heading off the corner's diagonal, uniform +- [rad]."""
 CORNER_CLEAR_RADIUS_M = 0.6
+"""Clutter keeps out of this circle around the start [m]."""
 # dead_end: drive into a U narrower than the turning circle
 DEAD_END_GAP_M = (0.30, 0.40)
 """Inner width, uniform [m]."""
@@ -42,6 +44,7 @@ DEAD_END_MARGIN_M = 0.6
 DEAD_END_START_M = 0.30
 """Start this far inside the U's mouth [m]."""
 DEAD_END_HEADING_JITTER_RAD = 0.1
+"""Heading off the U's axis (facing its closed end), uniform +- [rad]."""
 DEAD_END_CLEAR_PAD_M = 0.7
 """Clutter keeps out of the U's half-depth circle plus this [m]."""
 # wedge: drive into a gap between two cylinders narrower than the robot (0.22 m)
@@ -54,7 +57,9 @@ WEDGE_MARGIN_M = 0.9
 WEDGE_START_M = 0.33
 """Start this far before the gap, facing it [m]."""
 WEDGE_HEADING_JITTER_RAD = 0.25
+"""Heading off the line through the gap, uniform +- [rad]."""
 WEDGE_CLEAR_RADIUS_M = 0.8
+"""Clutter keeps out of this circle around the gap [m]."""
 
 
 def build_scenario(kind: str, rng: np.random.Generator, W: float, H: float):

@@ -27,6 +27,7 @@ from collections.abc import Callable
 import numpy as np
 
 from mkv_env.actions import ACTION_NVEC
+from mkv_env.batching import as_batch, env_rng, episode_starts
 from mkv_env.script import ScriptError, ScriptPolicy
 from mkv_env.teacher import ScriptedTeacher
 
@@ -97,21 +98,49 @@ def describe(policy) -> str:
 
 
 class RandomPolicy:
-    """Uniformly random actions of a ``MultiDiscrete`` space, from a seeded numpy stream."""
+    """Uniformly random actions of a ``MultiDiscrete`` space, from seeded numpy streams.
+
+    Args:
+        nvec: values per command, shape (n_commands,) (default the MK-V's ``ACTION_NVEC``).
+        seed: seed of the streams; :meth:`reset` re-seeds them.
+
+    ``predict`` takes one observation (obs_dim,) or a batch (n_envs, obs_dim) and returns int64
+    actions of shape (n_commands,) or (n_envs, n_commands). Env 0 (and a single observation)
+    draws from ``self.rng`` = ``numpy.random.default_rng(seed)``, env ``i >= 1`` from its own
+    stream ``default_rng(SeedSequence(seed).spawn(i + 1)[i])`` (:mod:`mkv_env.batching`), so an
+    env's actions do not depend on the batch size. ``episode_start`` is accepted and changes
+    nothing (the streams run on across episodes).
+    """
 
     def __init__(self, nvec=ACTION_NVEC, seed: int | None = None):
         self.nvec = np.asarray(nvec, dtype=np.int64).reshape(-1)
-        self.rng = np.random.default_rng(seed)
+        self._seed_streams(seed)
 
     def reset(self, seed: int | None = None) -> None:
+        """With ``seed``, restart every env's stream from it (without, nothing to forget)."""
         if seed is not None:
-            self.rng = np.random.default_rng(seed)
+            self._seed_streams(seed)
+
+    @property
+    def rng(self) -> np.random.Generator:
+        """Env 0's random stream."""
+        return self._rngs[0]
+
+    def _seed_streams(self, seed: int | None) -> None:
+        self._seed_seq = np.random.SeedSequence(seed)
+        self._rngs = [env_rng(self._seed_seq, 0)]
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
-        obs = np.asarray(observation)
-        n = 1 if obs.ndim == 1 else obs.shape[0]
-        a = self.rng.integers(0, self.nvec, size=(n, len(self.nvec)), dtype=np.int64)
-        return (a[0] if obs.ndim == 1 else a), None
+        """``(actions, None)`` for one observation or a batch (see the class docstring)."""
+        obs, single = as_batch(observation)
+        n = obs.shape[0]
+        episode_starts(episode_start, n)  # validated only
+        while len(self._rngs) < n:
+            self._rngs.append(env_rng(self._seed_seq, len(self._rngs)))
+        k = len(self.nvec)
+        a = np.concatenate([rng.integers(0, self.nvec, size=(1, k), dtype=np.int64)
+                            for rng in self._rngs[:n]])
+        return (a[0] if single else a), None
 
 
 def _control_period(env) -> float:

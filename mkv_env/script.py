@@ -21,8 +21,13 @@ import os
 
 import numpy as np
 
-DRIVE_WORDS = {"reverse": 0, "off": 1, "forward": 2}
-STEER_WORDS = {"left": 0, "off": 1, "right": 2}
+from mkv_env.actions import ACTION_NVEC, NOOP_ACTION, VALUE_NAMES
+from mkv_env.batching import as_batch, episode_starts
+
+#: Words of the drive and steer columns -> action values (``reverse``/``off``/``forward``,
+#: ``left``/``off``/``right``: :data:`mkv_env.actions.VALUE_NAMES`).
+DRIVE_WORDS = {word: i for i, word in enumerate(VALUE_NAMES["drive"])}
+STEER_WORDS = {word: i for i, word in enumerate(VALUE_NAMES["steer"])}
 
 # Half a microsecond of slack so "0.3" lands on step 3 despite 3 * 0.1 = 0.30000000000000004.
 _EPS_S = 5e-7
@@ -73,10 +78,12 @@ def _value(token: str, words: dict[str, int], what: str, where: str) -> int:
     key = token.lower()
     if key in words:
         return words[key]
-    if key in ("0", "1", "2"):
+    numbers = [str(i) for i in range(len(words))]
+    if key in numbers:
         return int(key)
     raise ScriptError(
-        f"{where}: {what} must be one of {', '.join(words)} or 0, 1, 2; got {token!r}"
+        f"{where}: {what} must be one of {', '.join(words)} or {', '.join(numbers)}; "
+        f"got {token!r}"
     )
 
 
@@ -121,7 +128,7 @@ class ScriptPolicy:
             raise ValueError("times_s and commands must be non-empty and of equal length")
         if np.any(np.diff(times_s) <= 0) or times_s[0] < 0:
             raise ValueError("times_s must be >= 0 and strictly increasing")
-        if np.any((commands < 0) | (commands > 2)):
+        if np.any((commands < 0) | (commands >= np.asarray(ACTION_NVEC))):
             raise ValueError("commands must be action values 0, 1 or 2")
         if not control_period_s > 0:
             raise ValueError(f"control_period_s must be > 0, got {control_period_s!r}")
@@ -129,7 +136,7 @@ class ScriptPolicy:
         self.commands = commands
         self.control_period_s = float(control_period_s)
         self.source: str | None = None
-        self._steps = np.zeros(0, dtype=np.int64)
+        self._steps = np.zeros(1, dtype=np.int64)  # per env: control steps since its start
 
     @classmethod
     def from_file(cls, path, control_period_s: float = 0.1) -> ScriptPolicy:
@@ -153,22 +160,28 @@ class ScriptPolicy:
 
     def reset(self, seed: int | None = None) -> None:
         """Restart every env's script from time 0 (``seed`` is accepted and unused)."""
-        self._steps = np.zeros(0, dtype=np.int64)
+        self._steps[:] = 0
 
     def action_at(self, step: int) -> np.ndarray:
         """The command in force at control step ``step`` (time ``step * control_period_s``)."""
         k = np.searchsorted(self.times_s, step * self.control_period_s + _EPS_S, side="right")
-        return self.commands[k - 1].copy() if k > 0 else np.array([1, 1], dtype=np.int64)
+        if k > 0:
+            return self.commands[k - 1].copy()
+        return np.array(NOOP_ACTION, dtype=np.int64)
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
-        obs = np.asarray(observation)
-        single = obs.ndim == 1
-        n = 1 if single else obs.shape[0]
-        if len(self._steps) != n:
-            self._steps = np.zeros(n, dtype=np.int64)
-        if episode_start is not None:
-            starts = np.broadcast_to(np.asarray(episode_start, dtype=bool).reshape(-1), (n,))
-            self._steps[starts] = 0
-        actions = np.stack([self.action_at(int(k)) for k in self._steps])
-        self._steps += 1
+        """The commands in force for one observation (obs_dim,) or a batch (n_envs, obs_dim).
+
+        Each env index keeps its own step counter (created at 0 the first time a batch reaches
+        it); ``episode_start`` (bool or bool array (n_envs,)) restarts the script of those envs.
+        Returns ``(actions, None)``, int64 actions of shape (2,) or (n_envs, 2).
+        """
+        obs, single = as_batch(observation)
+        n = obs.shape[0]
+        if len(self._steps) < n:
+            self._steps = np.concatenate([self._steps, np.zeros(n - len(self._steps), np.int64)])
+        steps = self._steps[:n]  # a view: the counters advance in place
+        steps[episode_starts(episode_start, n)] = 0
+        actions = np.stack([self.action_at(int(k)) for k in steps])
+        steps += 1
         return (actions[0] if single else actions), None

@@ -47,6 +47,7 @@ import math
 import numpy as np
 
 from mkv_env.actions import FORWARD, LEFT, OFF, REVERSE, RIGHT
+from mkv_env.batching import as_batch, env_rng, episode_starts
 from mkv_env.params import SENSOR_NAMES
 
 # Observation indices (the env's fixed channel order; checked by ScriptedTeacher.check_env).
@@ -61,6 +62,27 @@ CRUISE, BACKOFF, TURN = 0, 1, 2
 
 _REVERSE, _OFF, _FORWARD = REVERSE, OFF, FORWARD
 _LEFT, _RIGHT = LEFT, RIGHT
+
+
+class _EnvState:
+    """The teacher's memory of one env: its mode, timers and its own random stream."""
+
+    __slots__ = ("mode", "timer", "side", "wander", "evidence", "since_change", "last_drive",
+                 "rng")
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the timers (a new episode); the random stream goes on."""
+        self.mode = CRUISE
+        self.timer = 0               # periods left in back off / turn / wander
+        self.side = _LEFT            # escape steer action (0 left, 2 right)
+        self.wander = _OFF           # current wander steer action
+        self.evidence = 0            # consecutive periods of stall evidence
+        self.since_change = 0        # periods since the drive direction changed
+        self.last_drive = _OFF
 
 
 class ScriptedTeacher:
@@ -80,8 +102,8 @@ class ScriptedTeacher:
         centre_rad: dead band of the steering re-centring while cruising [rad].
         grace_steps: periods after a change of drive direction during which stalls are ignored.
         control_period_s: the env's control period [s] (0.1 for ``MKV-v0``).
-        seed: seed of the teacher's own random stream (escape and wander directions, wander
-            timing). :meth:`reset` re-seeds it.
+        seed: seed of the teacher's random streams (escape and wander directions, wander
+            timing). :meth:`reset` re-seeds them.
 
     Use it like any SB3 policy::
 
@@ -89,11 +111,18 @@ class ScriptedTeacher:
         obs, info = env.reset(seed=0)
         action, _ = teacher.predict(obs, episode_start=True)
 
-    ``predict`` takes one observation of shape (10,) or a batch (n_envs, 10) and returns actions
-    of shape (2,) or (n_envs, 2), int64. The teacher keeps its per-env timers itself (it is not a
-    recurrent policy, so the returned ``state`` is ``None``); pass ``episode_start`` (bool or
-    array of shape (n_envs,)) to reset the timers of envs that start a new episode. A change in
-    the batch size also resets every timer.
+    ``predict`` takes one observation of shape (10,) or a batch (n_envs, 10) from a vector env and
+    returns actions of shape (2,) or (n_envs, 2), int64. A single observation is env 0. The
+    teacher keeps one state (mode, timers, random stream) per env index itself, created the first
+    time a batch reaches that index (it is not a recurrent policy, so the returned ``state`` is
+    ``None``); pass ``episode_start`` (bool, or array of shape (n_envs,)) to reset the timers of
+    the envs that start a new episode.
+
+    Random streams (:mod:`mkv_env.batching`): env 0 draws from ``self.rng`` =
+    ``numpy.random.default_rng(seed)``; env ``i >= 1`` from
+    ``default_rng(SeedSequence(seed).spawn(i + 1)[i])``. Each env's escape and wander choices thus
+    depend only on the seed and that env's own observations, not on the other envs or the batch
+    size.
     """
 
     def __init__(
@@ -143,16 +172,17 @@ class ScriptedTeacher:
         self.grace_steps = int(grace_steps)
         self.control_period_s = float(control_period_s)
         self.seed = seed
-        self.rng = np.random.default_rng(seed)
-        self._n = 0
+        self._seed_streams(seed)
 
     # ------------------------------------------------------------------ public API
     def reset(self, seed: int | None = None) -> None:
-        """Forget every timer; with ``seed``, restart the random stream from it."""
+        """Forget every env's timers; with ``seed``, restart every env's random stream from it."""
         if seed is not None:
             self.seed = seed
-            self.rng = np.random.default_rng(seed)
-        self._n = 0
+            self._seed_streams(seed)
+        else:
+            for env in self._envs:
+                env.reset()
 
     def check_env(self, env) -> None:
         """Raise ValueError unless ``env`` has the MK-V's sensor channels in the expected order."""
@@ -161,130 +191,124 @@ class ScriptedTeacher:
             raise ValueError(f"ScriptedTeacher needs sensor channels {SENSOR_NAMES}, got {names}")
 
     @property
+    def rng(self) -> np.random.Generator:
+        """Env 0's random stream (the only one a single-env user ever touches)."""
+        return self._envs[0].rng
+
+    @property
     def mode(self) -> np.ndarray:
-        """Current mode per env (0 cruise, 1 back off, 2 turn), shape (n_envs,)."""
-        return self._mode.copy() if self._n else np.zeros(0, dtype=np.int64)
+        """Current mode per env index seen so far (0 cruise, 1 back off, 2 turn), (n_envs,)."""
+        return np.array([env.mode for env in self._envs[:self._n]], dtype=np.int64)
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
-        """Actions for one observation (10,) or a batch (n_envs, 10). Returns ``(action, None)``.
+        """Actions for one observation (10,) or a batch (n_envs, 10).
 
-        ``deterministic`` is accepted for SB3 compatibility and ignored: the teacher's random
-        choices (escape side, wander) come from its own seeded stream either way.
+        Args:
+            observation: sensor readings in ``SENSOR_NAMES`` order, shape (10,) or (n_envs, 10).
+            state: ignored (SB3's recurrent state; the teacher keeps its own per-env state).
+            episode_start: None, a bool, or bool array (n_envs,): envs whose episode begins with
+                this observation (their timers are reset first).
+            deterministic: accepted for SB3 compatibility and ignored: the random choices
+                (escape side, wander) come from the seeded per-env streams either way.
+
+        Returns:
+            ``(actions, None)``, actions int64 of shape (2,) or (n_envs, 2) = [drive, steer].
         """
-        obs = np.asarray(observation, dtype=np.float64)
-        single = obs.ndim == 1
-        if single:
-            obs = obs[None, :]
-        if obs.ndim != 2 or obs.shape[1] != len(SENSOR_NAMES):
-            raise ValueError(
-                f"observation must have shape ({len(SENSOR_NAMES)},) or "
-                f"(n_envs, {len(SENSOR_NAMES)}), got {np.shape(observation)}"
-            )
+        obs, single = as_batch(observation, len(SENSOR_NAMES), np.float64)
         n = obs.shape[0]
-        if n != self._n:
-            self._allocate(n)
-        if episode_start is not None:
-            starts = np.broadcast_to(np.asarray(episode_start, dtype=bool).reshape(-1), (n,))
-            for i in np.flatnonzero(starts):
-                self._reset_env(i)
+        starts = episode_starts(episode_start, n)
+        while len(self._envs) < n:
+            self._envs.append(_EnvState(env_rng(self._seed_seq, len(self._envs))))
+        self._n = n
         actions = np.empty((n, 2), dtype=np.int64)
         for i in range(n):
-            actions[i] = self._act(i, obs[i])
+            env = self._envs[i]
+            if starts[i]:
+                env.reset()
+            actions[i] = self._act(env, obs[i])
         return (actions[0] if single else actions), None
 
     # ------------------------------------------------------------------ internals
-    def _allocate(self, n: int) -> None:
-        self._n = n
-        self._mode = np.zeros(n, dtype=np.int64)
-        self._timer = np.zeros(n, dtype=np.int64)       # periods left in back off / turn / wander
-        self._side = np.zeros(n, dtype=np.int64)        # escape steer action (0 left, 2 right)
-        self._wander = np.full(n, _OFF, dtype=np.int64)  # current wander steer action
-        self._evidence = np.zeros(n, dtype=np.int64)    # consecutive periods of stall evidence
-        self._since_change = np.zeros(n, dtype=np.int64)  # periods since drive direction changed
-        self._last_drive = np.full(n, _OFF, dtype=np.int64)
-
-    def _reset_env(self, i: int) -> None:
-        self._mode[i] = CRUISE
-        self._timer[i] = 0
-        self._side[i] = _LEFT
-        self._wander[i] = _OFF
-        self._evidence[i] = 0
-        self._since_change[i] = 0
-        self._last_drive[i] = _OFF
+    def _seed_streams(self, seed: int | None) -> None:
+        """Fresh per-env states (timers cleared) whose streams start from ``seed``."""
+        self._seed_seq = np.random.SeedSequence(seed)
+        n = max(1, len(getattr(self, "_envs", ())))
+        self._envs = [_EnvState(env_rng(self._seed_seq, i)) for i in range(n)]
+        self._n = getattr(self, "_n", 0)  # the batch size of the last predict
 
     def _periods(self, seconds: float) -> int:
         return max(1, round(seconds / self.control_period_s))
 
-    def _blocked(self, i: int, o: np.ndarray) -> bool:
+    def _blocked(self, env: _EnvState, o: np.ndarray) -> bool:
         """Bump, stall, still wheel or wheel spin while the last command drove forward."""
-        if self._last_drive[i] != _FORWARD:
-            self._evidence[i] = 0
+        if env.last_drive != _FORWARD:
+            env.evidence = 0
             return False
         if o[_BUMP_FL] > 0.5 or o[_BUMP_FR] > 0.5:
             return True
-        if self._since_change[i] < self.grace_steps:
-            self._evidence[i] = 0
+        if env.since_change < self.grace_steps:
+            env.evidence = 0
             return False
         ticks, roller = o[_DRIVE_TICKS], o[_ROLLER_TICKS]
         stalled = o[_DRIVE_CURRENT] >= self.stall_current_a
         still = ticks <= self.still_ticks
         spinning = ticks >= 3 and abs(roller) < self.spin_ratio * ticks
-        self._evidence[i] = self._evidence[i] + 1 if (stalled or still or spinning) else 0
-        return self._evidence[i] >= self.stall_steps
+        env.evidence = env.evidence + 1 if (stalled or still or spinning) else 0
+        return env.evidence >= self.stall_steps
 
-    def _start_backoff(self, i: int) -> None:
-        self._mode[i] = BACKOFF
-        self._timer[i] = self._periods(self.backoff_s)
-        self._side[i] = _LEFT if self.rng.random() < 0.5 else _RIGHT
-        self._evidence[i] = 0
+    def _start_backoff(self, env: _EnvState) -> None:
+        env.mode = BACKOFF
+        env.timer = self._periods(self.backoff_s)
+        env.side = _LEFT if env.rng.random() < 0.5 else _RIGHT
+        env.evidence = 0
 
-    def _act(self, i: int, o: np.ndarray) -> tuple[int, int]:
-        blocked = self._blocked(i, o)
-        mode = self._mode[i]
+    def _act(self, env: _EnvState, o: np.ndarray) -> tuple[int, int]:
+        blocked = self._blocked(env, o)
+        mode = env.mode
         if mode != BACKOFF and blocked:
-            self._start_backoff(i)
+            self._start_backoff(env)
             mode = BACKOFF
         elif mode == BACKOFF:
-            self._timer[i] -= 1
-            if self._timer[i] <= 0 or o[_BUMP_REAR] > 0.5:
-                mode = self._mode[i] = TURN
-                self._timer[i] = self._periods(self.turn_s)
+            env.timer -= 1
+            if env.timer <= 0 or o[_BUMP_REAR] > 0.5:
+                mode = env.mode = TURN
+                env.timer = self._periods(self.turn_s)
         elif mode == TURN:
-            self._timer[i] -= 1
-            if self._timer[i] <= 0:
-                mode = self._mode[i] = CRUISE
-                self._timer[i] = 0
-                self._wander[i] = _OFF
+            env.timer -= 1
+            if env.timer <= 0:
+                mode = env.mode = CRUISE
+                env.timer = 0
+                env.wander = _OFF
 
         if mode == BACKOFF:
-            elapsed = self._periods(self.backoff_s) - self._timer[i]
+            elapsed = self._periods(self.backoff_s) - env.timer
             if elapsed < round(self.straight_s / self.control_period_s):
                 action = (_REVERSE, self._centre(o))
             else:
-                action = (_REVERSE, int(self._side[i]))
+                action = (_REVERSE, env.side)
         elif mode == TURN:
-            action = (_FORWARD, _LEFT + _RIGHT - int(self._side[i]))
+            action = (_FORWARD, _LEFT + _RIGHT - env.side)
         else:
-            action = (_FORWARD, self._wander_steer(i, o))
+            action = (_FORWARD, self._wander_steer(env, o))
 
         drive = action[0]
-        if drive != self._last_drive[i]:
-            self._since_change[i] = 0
-            self._evidence[i] = 0
+        if drive != env.last_drive:
+            env.since_change = 0
+            env.evidence = 0
         else:
-            self._since_change[i] += 1
-        self._last_drive[i] = drive
+            env.since_change += 1
+        env.last_drive = drive
         return action
 
-    def _wander_steer(self, i: int, o: np.ndarray) -> int:
-        if self._timer[i] > 0:
-            self._timer[i] -= 1
-            return int(self._wander[i])
+    def _wander_steer(self, env: _EnvState, o: np.ndarray) -> int:
+        if env.timer > 0:
+            env.timer -= 1
+            return env.wander
         p = 1.0 - math.exp(-self.wander_rate_hz * self.control_period_s)
-        if self.rng.random() < p:
-            self._wander[i] = _LEFT if self.rng.random() < 0.5 else _RIGHT
-            self._timer[i] = self._periods(self.rng.uniform(0.2, self.wander_turn_s)) - 1
-            return int(self._wander[i])
+        if env.rng.random() < p:
+            env.wander = _LEFT if env.rng.random() < 0.5 else _RIGHT
+            env.timer = self._periods(env.rng.uniform(0.2, self.wander_turn_s)) - 1
+            return env.wander
         return self._centre(o)
 
     def _centre(self, o: np.ndarray) -> int:

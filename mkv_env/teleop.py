@@ -12,8 +12,10 @@ or ``mkv teleop --env MKV-v0 --episodes 3 --out run.npz``, which records every s
 run like ``mkv record`` does for a policy (the paper's teleoperated demonstrations, by a person).
 
 Keys: up = drive forward, down = reverse, left / right = steer; combinations drive and steer at
-once; no key = both motors off. Escape (or closing the window) ends the run. Needs a display;
-headless machines drive the robot with command scripts (``script:PATH``) instead.
+once; opposite arrows cancel (up + down = drive off); no key = both motors off (:data:`NOOP`,
+the ``noop`` to give :func:`gymnasium.utils.play.play`, whose own default 0 is no MK-V action).
+Escape (or closing the window) ends the run. Needs a display; headless machines drive the robot
+with command scripts (``script:PATH``) instead.
 
 The only modules that import pygame are this one and :mod:`mkv_env.render` (both draw).
 """
@@ -23,42 +25,68 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable, Sequence
+from itertools import combinations
 
 import numpy as np
 
-from mkv_env.actions import FORWARD, LEFT, OFF, REVERSE, RIGHT
+from mkv_env.actions import FORWARD, LEFT, NOOP_ACTION, OFF, REVERSE, RIGHT
 
-__all__ = ["NOOP", "TeleopError", "drive_episodes", "has_display", "keys_to_action",
-           "record_keyboard"]
+__all__ = ["NOOP", "TeleopError", "action_for", "drive_episodes", "has_display",
+           "keys_to_action", "record_keyboard"]
 
-#: The action when no key is pressed: both motors off.
-NOOP = np.array([OFF, OFF], dtype=np.int64)
+#: The action when no key is pressed: both motors off, shape (2,).
+NOOP = np.array(NOOP_ACTION, dtype=np.int64)
 
-# (drive, steer) per arrow-key combination, by key name (pygame.K_<name>)
-_COMBOS = {
-    ("UP",): (FORWARD, OFF), ("DOWN",): (REVERSE, OFF),
-    ("LEFT",): (OFF, LEFT), ("RIGHT",): (OFF, RIGHT),
-    ("UP", "LEFT"): (FORWARD, LEFT), ("UP", "RIGHT"): (FORWARD, RIGHT),
-    ("DOWN", "LEFT"): (REVERSE, LEFT), ("DOWN", "RIGHT"): (REVERSE, RIGHT),
-}
+_ARROWS = ("UP", "DOWN", "LEFT", "RIGHT")
+
+
+def _arrow_action(keys: frozenset[str]) -> tuple[int, int]:
+    """(drive, steer) for a set of held arrow names; opposite arrows cancel."""
+    def axis(plus: str, minus: str, plus_value: int, minus_value: int) -> int:
+        if (plus in keys) == (minus in keys):
+            return OFF
+        return plus_value if plus in keys else minus_value
+    return (axis("UP", "DOWN", FORWARD, REVERSE), axis("LEFT", "RIGHT", LEFT, RIGHT))
+
+
+# (drive, steer) for every non-empty combination of arrow keys, by key name (pygame.K_<name>):
+# every combination a player can hold maps, so play()'s noop is used only with no key held.
+_COMBOS = {combo: _arrow_action(frozenset(combo))
+           for n in range(1, len(_ARROWS) + 1) for combo in combinations(_ARROWS, n)}
 
 
 class TeleopError(RuntimeError):
     """Keyboard teleoperation is not possible here (no display, no pygame); one line."""
 
 
+def _no_display_reason() -> str | None:
+    """Why no pygame window can be opened here, or None when one can."""
+    driver = os.environ.get("SDL_VIDEODRIVER", "")
+    if driver in ("dummy", "offscreen"):
+        return f"SDL_VIDEODRIVER is {driver}"
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                 or os.environ.get("WAYLAND_DISPLAY")):
+        return "neither DISPLAY nor WAYLAND_DISPLAY is set"
+    return None
+
+
 def has_display() -> bool:
-    """Whether a pygame window can be opened (not SDL's dummy driver; an X/Wayland display)."""
-    if os.environ.get("SDL_VIDEODRIVER", "") in ("dummy", "offscreen"):
-        return False
-    if sys.platform.startswith("linux"):
-        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-    return True
+    """Whether a pygame window can be opened: False under SDL's ``dummy``/``offscreen`` video
+    drivers and, on Linux, when neither ``DISPLAY`` nor ``WAYLAND_DISPLAY`` is set."""
+    return _no_display_reason() is None
 
 
 def keys_to_action() -> dict[tuple[int, ...], np.ndarray]:
-    """The arrow-key mapping in the form :func:`gymnasium.utils.play.play` takes: sorted tuples
-    of pygame key codes -> ``[drive, steer]`` actions (``NOOP`` when nothing is pressed)."""
+    """The arrow-key mapping in the form :func:`gymnasium.utils.play.play` takes.
+
+    Returns:
+        dict from a sorted tuple of pygame key codes (every non-empty combination of the four
+        arrows, 15 in all) to an int64 ``[drive, steer]`` action of shape (2,). No key held is
+        not in the dict (play() refuses an empty tuple): it is :data:`NOOP`.
+
+    Raises:
+        TeleopError: pygame is not installed.
+    """
     try:
         import pygame
     except ImportError:
@@ -68,15 +96,12 @@ def keys_to_action() -> dict[tuple[int, ...], np.ndarray]:
 
 
 def action_for(pressed, mapping: dict) -> np.ndarray:
-    """The action for a set of pressed key codes (unknown combinations: the closest subset of
-    arrow keys that maps, else ``NOOP``)."""
-    relevant = tuple(sorted(k for k in pressed if any(k in combo for combo in mapping)))
-    if relevant in mapping:
-        return mapping[relevant].copy()
-    for k in relevant:  # e.g. up+down: take the first key alone
-        if (k,) in mapping:
-            return mapping[(k,)].copy()
-    return NOOP.copy()
+    """The action, shape (2,), for a set of held key codes, as play() picks it: keys that appear
+    in no combination of ``mapping`` are ignored; a combination not in ``mapping`` (or none held)
+    is ``NOOP``."""
+    keys = {k for combo in mapping for k in combo}
+    relevant = tuple(sorted(k for k in pressed if k in keys))
+    return np.array(mapping.get(relevant, NOOP), dtype=np.int64)
 
 
 def drive_episodes(env, seeds: Sequence[int], recorder, read_keys: Callable[[], set | None],
@@ -113,14 +138,36 @@ def drive_episodes(env, seeds: Sequence[int], recorder, read_keys: Callable[[], 
 
 def record_keyboard(env_id: str, episodes: int, seed: int = 0, env_kwargs: dict | None = None,
                     fps: int = 10, zoom: float = 1.0):
-    """Drive ``episodes`` episodes of ``env_id`` with the arrow keys in a window; returns the
-    :class:`~mkv_env.dataset.Dataset` (episode ``i`` uses env seed ``seed + i``), with
-    ``policy`` = ``"human:keyboard"`` in its metadata. Raises :class:`TeleopError` (one line)
-    when there is no display or no pygame."""
-    if not has_display():
-        raise TeleopError("mkv teleop needs a display (none here: SDL_VIDEODRIVER is dummy or "
-                          "DISPLAY is unset); drive headless with a command script "
-                          "(--policy script:PATH) instead")
+    """Drive ``episodes`` episodes of ``env_id`` with the arrow keys in a window.
+
+    Args:
+        env_id: a registered env id (``"MKV-v0"``); ``env_kwargs`` go to ``gymnasium.make``.
+        episodes: episodes to drive; episode ``i`` resets the env with seed ``seed + i``.
+        fps: control steps per second of wall time (10 = real time for ``MKV-v0``).
+        zoom: window scale.
+
+    Returns:
+        the :class:`~mkv_env.dataset.Dataset` of the finished episodes, exactly as
+        :func:`mkv_env.recorder.record` would store the same actions, with ``policy`` =
+        ``"human:keyboard"`` in its metadata. Escape or closing the window ends the run (an
+        unfinished episode is dropped).
+
+    Raises:
+        TeleopError: (one line) no display, no pygame, or no episode finished.
+        ValueError: a bad argument or env id.
+    """
+    if not (_integer(episodes) and episodes >= 1):
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if not (_integer(seed) and 0 <= seed < 2**63 - episodes):
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    for name, v in (("fps", fps), ("zoom", zoom)):
+        if not (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                and 0 < v < float("inf")):
+            raise ValueError(f"{name} must be a positive number, got {v!r}")
+    reason = _no_display_reason()
+    if reason is not None:
+        raise TeleopError(f"mkv teleop needs a display ({reason}); use a command script "
+                          "(script:PATH) for keyboard-less teleop")
     mapping = keys_to_action()
     import pygame
 
@@ -164,3 +211,7 @@ def record_keyboard(env_id: str, episodes: int, seed: int = 0, env_kwargs: dict 
     finally:
         env.close()
         pygame.display.quit()
+
+
+def _integer(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)

@@ -20,6 +20,15 @@ WALL_RADIUS_M = 0.04
 """Half thickness of arena walls and wall pieces [m]; far above the <1 cm a substep moves."""
 ROBOT_CLEARANCE_M = 0.26
 """Free radius required around a start position [m] (robot circumradius 0.19 m + margin)."""
+START_POSE_TRIES = 200
+"""Random positions tried per layout for a clear start pose."""
+OBSTACLE_FRICTION = 0.6
+"""Coulomb friction coefficient of obstacles and walls (against the chassis and bumpers)."""
+OBSTACLE_ELASTICITY = 0.0
+"""Restitution of obstacles: bumps do not bounce."""
+SPACE_DAMPING = 0.6
+"""Fraction of velocity kept per second by every body: the rolling resistance of the caster and
+wheels (40 % of the speed lost per second)."""
 
 
 @dataclass
@@ -186,7 +195,7 @@ class World:
         self.robot_params = robot_params
         self.space = space = pymunk.Space()
         space.iterations = iterations
-        space.damping = 0.6  # rolling resistance of the caster and wheels: 40 % speed lost per s
+        space.damping = SPACE_DAMPING
         sb = space.static_body
         shapes = []
         for ax, ay, bx, by in layout.walls:
@@ -199,8 +208,8 @@ class World:
             shapes.append(pymunk.Circle(sb, r, (cx, cy)))
         for s in shapes:
             s.collision_type = OBSTACLE
-            s.friction = 0.6
-            s.elasticity = 0.0
+            s.friction = OBSTACLE_FRICTION
+            s.elasticity = OBSTACLE_ELASTICITY
         space.add(*shapes)
         self.contacts = [0] * 5
         for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
@@ -253,7 +262,7 @@ class World:
         return (c[CHASSIS] + c[BUMP_FL] + c[BUMP_FR] + c[BUMP_REAR]) > 0
 
 
-def random_free_pose(world: World, rng: np.random.Generator, tries: int = 200):
+def random_free_pose(world: World, rng: np.random.Generator, tries: int = START_POSE_TRIES):
     """A uniformly random pose whose footprint is clear of obstacles, or None."""
     W, H = world.layout.width_m, world.layout.height_m
     m = ROBOT_CLEARANCE_M + WALL_RADIUS_M

@@ -1,70 +1,158 @@
-"""Keyboard teleop: the arrow-key mapping, gymnasium's play() accepting it, the recording loop
-(driven by scripted key presses) and the one-line refusal without a display."""
+"""Keyboard teleop: the arrow-key mapping, gymnasium's play() driving the robot with it, the
+recording loop (driven by scripted key events) and the one-line refusal without a display."""
 
 import os
+import sys
 
 import gymnasium as gym
 import numpy as np
 import pytest
 
 import mkv_env  # noqa: F401
-from mkv_env.recorder import EpisodeRecorder, record
+from mkv_env.recorder import EpisodeRecorder, record, recording_metadata
 
 pygame = pytest.importorskip("pygame")
 from mkv_env import teleop  # noqa: E402
+
+UP, DOWN, LEFT, RIGHT = pygame.K_UP, pygame.K_DOWN, pygame.K_LEFT, pygame.K_RIGHT
+
+
+def key(kind, code):
+    return pygame.event.Event(kind, key=code)
+
+
+def press(code):
+    return key(pygame.KEYDOWN, code)
+
+
+def release(code):
+    return key(pygame.KEYUP, code)
+
+
+def scripted_events(monkeypatch, frames):
+    """Make pygame.event.get return ``frames[k]`` on its k-th call (then QUIT forever)."""
+    it = iter(frames)
+    monkeypatch.setattr(pygame.event, "get",
+                        lambda *a, **k: next(it, [pygame.event.Event(pygame.QUIT)]))
+
+
+class Replay:
+    """Sends the given actions in order (an SB3-style policy)."""
+
+    def __init__(self, actions):
+        self.actions = iter(np.asarray(actions))
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True):
+        return next(self.actions), None
 
 
 def test_the_arrows_reach_all_nine_actions_and_no_key_is_off():
     env = gym.make("MKV-v0", render_mode="rgb_array")
     mapping = env.unwrapped.get_keys_to_action()
+    assert len(mapping) == 15  # every combination of the four arrows a player can hold
+    assert all(k == tuple(sorted(k)) and k for k in mapping)
+    assert all(a in env.action_space for a in mapping.values())
     actions = {tuple(a) for a in mapping.values()} | {tuple(teleop.NOOP)}
     assert actions == {(d, s) for d in range(3) for s in range(3)}
     assert tuple(teleop.NOOP) == (1, 1)
-    assert mapping[(pygame.K_UP,)].tolist() == [2, 1]
-    assert mapping[tuple(sorted((pygame.K_DOWN, pygame.K_LEFT)))].tolist() == [0, 0]
-    assert all(k == tuple(sorted(k)) for k in mapping)
+
+    def act(*keys):
+        return mapping[tuple(sorted(keys))].tolist()
+
+    assert act(UP) == [2, 1] and act(DOWN) == [0, 1] and act(LEFT) == [1, 0]
+    assert act(RIGHT) == [1, 2] and act(DOWN, LEFT) == [0, 0] and act(UP, RIGHT) == [2, 2]
+    assert act(UP, DOWN) == [1, 1] and act(LEFT, RIGHT) == [1, 1]  # opposites cancel
+    assert act(UP, DOWN, LEFT) == [1, 0] and act(UP, LEFT, RIGHT) == [2, 1]
+    assert teleop.action_for(set(), mapping).tolist() == [1, 1]
+    assert teleop.action_for({UP, pygame.K_a}, mapping).tolist() == [2, 1]  # other keys ignored
     env.close()
 
 
-def test_gymnasium_play_accepts_the_mapping(monkeypatch):
-    """play() finds the env's mapping itself (no MissingKeysToAction) and runs until the window
-    closes; here a QUIT event closes it at once."""
+def test_gymnasium_play_drives_the_robot_with_the_envs_own_mapping(monkeypatch):
+    """play() finds get_keys_to_action itself (no MissingKeysToAction) and steps the env with
+    the arrows held; with no key held it sends the noop."""
     from gymnasium.utils import play as play_module
 
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
-    env = gym.make("MKV-v0", render_mode="rgb_array", max_episode_steps=5)
-    real_get = pygame.event.get
-    monkeypatch.setattr(pygame.event, "get", lambda: [pygame.event.Event(pygame.QUIT)]
-                        + list(real_get()))
-    play_module.play(env, noop=teleop.NOOP, fps=1000)
+    env = gym.make("MKV-v0", render_mode="rgb_array", max_episode_steps=50)
+    # one list of events per frame; play() steps once per frame after the first
+    scripted_events(monkeypatch, [[press(UP)], [press(LEFT)], [release(UP)], [release(LEFT)],
+                                  [press(DOWN), press(RIGHT)], []])
+    sent = []
+    play_module.play(env, noop=teleop.NOOP, fps=1000,
+                     callback=lambda o0, o1, a, *rest: sent.append(np.asarray(a).tolist()))
+    assert sent == [[2, 1], [2, 0], [1, 0], [1, 1], [0, 2], [0, 2]]
     env.close()
 
 
 def test_a_keyboard_run_records_exactly_what_the_keys_commanded():
-    keys = [{pygame.K_UP}] * 8 + [{pygame.K_DOWN, pygame.K_RIGHT}] * 5 + [set()] * 3 \
-        + [{pygame.K_LEFT}] * 100
+    keys = [{UP}] * 8 + [{DOWN, RIGHT}] * 5 + [set()] * 3 + [{LEFT}] * 100
     env = gym.make("MKVJam-v0", render_mode="rgb_array", max_episode_steps=12)
     stream = iter(keys)
     recorder = EpisodeRecorder(env.unwrapped.sensor_names)
     n = teleop.drive_episodes(env, [3, 4], recorder, lambda: next(stream))
     assert n == 2
-    from mkv_env.recorder import recording_metadata
-
     data = recorder.to_dataset(recording_metadata(env, "MKVJam-v0", {"max_episode_steps": 12},
                                                   "human:keyboard", 3))
     expect = np.array([[2, 1]] * 8 + [[0, 2]] * 4)
     np.testing.assert_array_equal(data["actions"][:12], expect)
-    # the same actions replayed by the recorder's own runner give the same dataset rows
-    script = iter(data["actions"])
-
-    class Replay:
-        def predict(self, obs, state=None, episode_start=None, deterministic=True):
-            return next(script), None
-
-    again = record("MKVJam-v0", Replay(), 2, 3, {"max_episode_steps": 12})
-    for key in ("observations", "actions", "rewards", "stuck", "episode_seeds"):
-        np.testing.assert_array_equal(again[key], data[key])
+    # the same actions run by the recorder's own loop give the same dataset, row for row
+    again = record("MKVJam-v0", Replay(data["actions"]), 2, 3, {"max_episode_steps": 12})
+    assert set(again.arrays) == set(data.arrays)
+    for k in data.arrays:
+        np.testing.assert_array_equal(again[k], data[k], err_msg=k)
     env.close()
+
+
+def test_record_keyboard_from_key_events_equals_the_recorder(monkeypatch):
+    """The whole record_keyboard path (window, event loop, key state) under SDL's dummy driver,
+    with the keyboard replaced by a script of pygame events, one list per control step."""
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setattr(teleop, "_no_display_reason", lambda: None)
+    frames = ([[press(UP)]] + [[]] * 5 + [[press(LEFT)]] + [[]] * 3
+              + [[release(UP), release(LEFT), press(DOWN)], [press(RIGHT)], [], [release(DOWN)]]
+              + [[]] * 12 + [[press(pygame.K_ESCAPE)]])
+    scripted_events(monkeypatch, frames)
+    kwargs = {"max_episode_steps": 10}
+    data = teleop.record_keyboard("MKVJam-v0", 5, seed=7, env_kwargs=kwargs, fps=1000)
+    # steps 0-9: episode 1 (seed 7); 10-19: episode 2 (seed 8); Escape in episode 3 drops it
+    assert data.n_episodes == 2 and data["episode_seeds"].tolist() == [7, 8]
+    acts = data["actions"]
+    assert acts[:6].tolist() == [[2, 1]] * 6 and acts[6:10].tolist() == [[2, 0]] * 4
+    assert acts[10:13].tolist() == [[0, 1], [0, 2], [0, 2]] and acts[13].tolist() == [1, 2]
+    assert data.metadata["policy"] == "human:keyboard"
+    again = record("MKVJam-v0", Replay(acts), 2, 7, kwargs)
+    for k in data.arrays:
+        np.testing.assert_array_equal(again[k], data[k], err_msg=k)
+    assert {k: v for k, v in data.metadata.items() if k not in ("policy", "checksum")} \
+        == {k: v for k, v in again.metadata.items() if k not in ("policy", "checksum")}
+
+
+def test_record_keyboard_refuses_headless_in_one_line(monkeypatch):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    assert not teleop.has_display()
+    with pytest.raises(teleop.TeleopError) as e:
+        teleop.record_keyboard("MKV-v0", 1)
+    msg = str(e.value)
+    assert isinstance(e.value, RuntimeError) and "\n" not in msg
+    assert "needs a display" in msg and "SDL_VIDEODRIVER is dummy" in msg
+    assert "script:PATH" in msg
+    with pytest.raises(ValueError, match="episodes"):
+        teleop.record_keyboard("MKV-v0", 0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="X/Wayland variables: linux")
+def test_has_display_on_linux(monkeypatch):
+    monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert not teleop.has_display()
+    with pytest.raises(teleop.TeleopError, match="neither DISPLAY nor WAYLAND_DISPLAY"):
+        teleop.record_keyboard("MKV-v0", 1)
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wayland-0")
+    assert teleop.has_display()
+    monkeypatch.setenv("SDL_VIDEODRIVER", "offscreen")
+    assert not teleop.has_display()
 
 
 def test_teleop_refuses_headless_in_one_line(tmp_path, capsys, monkeypatch):
