@@ -68,9 +68,10 @@ def run(args) -> int:
         obs, info = env.reset(seed=args.seed)
         if out:
             frames.append(env.render())
-        steps, ret, start = 0, 0.0, True
+        steps, ret, start, state = 0, 0.0, True, None
         while True:
-            action, _ = policy.predict(obs, episode_start=start)
+            # hand the returned state back, as the recorder does (recurrent policies keep memory)
+            action, state = policy.predict(obs, state=state, episode_start=start)
             start = False
             obs, reward, terminated, truncated, info = env.step(action)
             ret += float(reward)
