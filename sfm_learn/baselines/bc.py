@@ -312,23 +312,10 @@ class BCPolicy:
 
 def load_spec(arg, env, seed):
     """``bc:PATH`` -> :class:`BCPolicy`."""
-    from mkv_env.policies import PolicySpecError
-
-    path = arg.strip()
-    meta, files = sb3.read_policy_zip(path, FORMAT, ("policy.pth",))
-    sb3.check_env(meta, env, path)
-    torch = sb3.import_torch()
-    try:
-        policy = build_policy(len(meta["input_mean"]), meta["net_arch"])
-        policy.load_state_dict(
-            torch.load(io.BytesIO(files["policy.pth"]), map_location="cpu", weights_only=True)
-        )
-        out = BCPolicy(policy, meta, seed)
-    except Exception as e:  # corrupt weights or metadata: one line
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise PolicySpecError(f"{path}: cannot rebuild the BC policy ({reason})") from None
-    out.spec = f"bc:{path}"
-    return out
+    return sb3.rebuild_policy(
+        arg, FORMAT, env,
+        lambda meta, torch: build_policy(len(meta["input_mean"]), meta["net_arch"]),
+        lambda net, meta: BCPolicy(net, meta, seed))
 
 
 __all__ = [

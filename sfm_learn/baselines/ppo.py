@@ -314,37 +314,26 @@ def observation_transform(meta: dict, n: int):
 
 def load_spec(arg, env, seed):
     """``ppo:PATH`` -> a policy with SB3 ``predict`` (deterministic = argmax actions)."""
-    from mkv_env.policies import PolicySpecError
 
-    path = arg.strip()
-    meta, files = sb3.read_policy_zip(path, FORMAT, ("policy.pth",))
-    sb3.check_env(meta, env, path)
-    torch = sb3.import_torch()
-    import gymnasium as gym
-    from stable_baselines3.common.policies import ActorCriticPolicy
+    def make_net(meta, torch):
+        import gymnasium as gym
+        from stable_baselines3.common.policies import ActorCriticPolicy
 
-    try:
         n = len(meta["sensor_names"])
-        transform = observation_transform(meta, n)
         acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
-        policy = ActorCriticPolicy(
+        return ActorCriticPolicy(
             gym.spaces.Box(-np.inf, np.inf, (n,), np.float32),
             gym.spaces.MultiDiscrete(meta["action_nvec"]),
             lambda _: 0.0,
             net_arch=list(meta["hyperparameters"]["net_arch"]),
             activation_fn=acts[meta.get("activation", "tanh")],
         )
-        state = torch.load(io.BytesIO(files["policy.pth"]), map_location="cpu", weights_only=True)
-        policy.load_state_dict(state)
-    except PolicySpecError:
-        raise
-    except Exception as e:  # corrupt weights or metadata: one line
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise PolicySpecError(f"{path}: cannot rebuild the PPO policy ({reason})") from None
-    out = sb3.ActorPolicy(policy, meta["action_nvec"], transform=transform, seed=seed)
-    out.spec = f"ppo:{path}"
-    out.metadata = meta
-    return out
+
+    def wrap(net, meta):
+        transform = observation_transform(meta, len(meta["sensor_names"]))
+        return sb3.ActorPolicy(net, meta["action_nvec"], transform=transform, seed=seed)
+
+    return sb3.rebuild_policy(arg, FORMAT, env, make_net, wrap)
 
 
 __all__ = ["DEFAULTS", "check_env", "fmt_point", "load_spec", "observation_transform",

@@ -161,6 +161,31 @@ def check_env(meta: dict, env, path: str) -> None:
         )
 
 
+def rebuild_policy(arg: str, fmt: str, env, make_net, wrap):
+    """Load a policy zip of kind ``fmt`` (``mkv-ppo``/``mkv-bc``) for a spec ``prefix:PATH``:
+    read and check the zip and the env, build the network with ``make_net(meta, torch)``, load
+    its weights (``weights_only``: nothing is unpickled) and return ``wrap(net, meta)``.
+    Anything wrong with the file is one :class:`PolicySpecError` line."""
+    prefix, what = KIND_NAMES[fmt]
+    path = arg.strip()
+    meta, files = read_policy_zip(path, fmt, ("policy.pth",))
+    check_env(meta, env, path)
+    torch = import_torch()
+    try:
+        net = make_net(meta, torch)
+        net.load_state_dict(torch.load(io.BytesIO(files["policy.pth"]), map_location="cpu",
+                                       weights_only=True))
+        out = wrap(net, meta)
+    except PolicySpecError:
+        raise
+    except Exception as e:  # corrupt weights or metadata: one line
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise PolicySpecError(f"{path}: cannot rebuild {what} ({reason})") from None
+    out.spec = f"{prefix}:{path}"
+    out.metadata = meta
+    return out
+
+
 # ---------------------------------------------------------------------- observation scaling
 def rescale_observation(env: gym.Env) -> gym.Env:
     """``env`` with each observation channel mapped from its ``Box`` bounds to [-1, 1]: Gymnasium's

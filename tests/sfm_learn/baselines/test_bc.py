@@ -248,7 +248,7 @@ def test_corrupt_bc_zip_is_one_line(trained, tmp_path, capsys):
     code, _, err = run(
         capsys, "eval", "--env", "MKV-v0", "--policy", f"bc:{bad}", "--episodes", "1"
     )
-    assert code == 2 and err.count("\n") == 1 and "cannot rebuild the BC policy" in err
+    assert code == 2 and err.count("\n") == 1 and "cannot rebuild a behaviour-cloning policy" in err
     truncated = tmp_path / "trunc.zip"
     truncated.write_bytes(trained.read_bytes()[:200])
     code, _, err = run(
