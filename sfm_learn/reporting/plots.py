@@ -14,6 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mkv_env.actions import VALUE_NAMES
 from sfm_common.files import atomic_path
 from sfm_learn.evaluation.records import METRIC_KEYS, Evaluation
 from sfm_learn.reporting.tables import METRIC_LABELS, seed_range, short_name
@@ -22,10 +23,7 @@ __all__ = ["plot_figure3", "plot_spectrum", "plot_learning_cost", "plot_evaluati
            "plot_rank_study",
            "MatplotlibMissing"]
 
-_COMMAND_TICKS = {
-    "drive": ("reverse", "off", "forward"),
-    "steer": ("left", "off", "right"),
-}
+_COMMAND_TICKS = VALUE_NAMES  # axis labels of each command's three values
 
 
 class MatplotlibMissing(ImportError):
