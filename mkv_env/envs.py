@@ -1,4 +1,6 @@
-"""Gymnasium environments of the MK-V: ``MKV-v0`` (wander) and ``MKVJam-v0`` (escape a jam)."""
+"""Gymnasium environments of the MK-V: ``MKV-v0``/``MKV-v1`` (wander) and ``MKVJam-v0``/
+``MKVJam-v1`` (escape a jam). The v1 ids simulate the same robot and arena; only their rewards
+(and nothing the robot senses) differ: see :class:`MKVEnvV1` and :class:`MKVJamEnvV1`."""
 
 from __future__ import annotations
 
@@ -397,6 +399,145 @@ class MKVJamEnv(MKVEnv):
         info["escaped"] = self.tracker.escapes > 0
         info["scenario"] = self.scenario
         return info
+
+
+COVERAGE_CELL_M = 0.25
+"""Side of the square floor cells whose first forward visit ``MKV-v1`` rewards [m]."""
+
+
+class MKVEnvV1(MKVEnv):
+    """The MK-V wandering a cluttered arena, rewarded for exploring it.
+
+    ## Description / Action Space / Observation Space / Starting State / Episode End
+    As ``MKV-v0`` (:class:`MKVEnv`): same robot, sensors, arena, seeds and time limit (600 steps).
+
+    ## Rewards
+    ``MKV-v0`` pays for forward progress, which a robot circling on the spot (or scraping along a
+    wall) can farm forever. ``MKV-v1``'s maximum is the intended behaviour, wandering the whole
+    arena and getting out of jams:
+
+    * ``+coverage_reward`` (1.0) for every floor cell (``COVERAGE_CELL_M`` = 0.25 m squares)
+      the robot's centre enters for the first time in the episode while driving *forward*
+      (circling revisits the same few cells; reversing earns nothing);
+    * ``-still_penalty`` (0.05) every step the robot moves slower than ``stuck_speed_mps``,
+      whatever it commands (standing still is not the task);
+    * ``-stuck_penalty`` (0.1) more while stuck (commanded to drive, not moving);
+    * ``-jam_penalty`` (0.1) every step while in a jam (from ``jam_steps`` stuck steps until
+      it is escaped, as ``info["in_jam"]``);
+    * ``-collision_penalty`` (0.05) for each new contact with an obstacle.
+
+    Returns on unseen seeds (100 episodes each, ``docs/rewards.md``,
+    ``benchmarks/reward_table.py``): the scripted teacher is clearly best; standing still,
+    circling and reversing forever clearly worst.
+
+    ## Info
+    As ``MKV-v0`` plus ``cells_visited`` (cells entered driving forward so far).
+
+    ## Arguments
+    All ``MKV-v0`` arguments except ``progress_reward`` (not used), plus ``coverage_reward``,
+    ``still_penalty``, ``jam_penalty``.
+
+    ## Version History
+    * v1: reward for new ground covered driving forward, penalties while still, stuck and jammed
+      (v0: forward progress, which circling farms).
+    * v0: initial release.
+    """
+
+    def __init__(self, coverage_reward: float = 1.0, still_penalty: float = 0.05,
+                 jam_penalty: float = 0.1, stuck_penalty: float = 0.1,
+                 collision_penalty: float = 0.05, **kwargs):
+        for name, v in (("coverage_reward", coverage_reward), ("still_penalty", still_penalty),
+                        ("jam_penalty", jam_penalty)):
+            _check(_num(v), f"{name} must be a finite number, got {v!r}")
+        super().__init__(stuck_penalty=stuck_penalty, collision_penalty=collision_penalty,
+                         **kwargs)
+        self.coverage_reward = float(coverage_reward)
+        self.still_penalty, self.jam_penalty = float(still_penalty), float(jam_penalty)
+        self._cells: set[tuple[int, int]] = set()
+
+    def _reset_tracker(self) -> None:
+        super()._reset_tracker()
+        self._cells = set()
+
+    def _reward(self, progress, stuck, collision, escaped) -> float:
+        t = self.tracker
+        new_cell = 0
+        if progress > 0:
+            cell = (math.floor(t.x / COVERAGE_CELL_M), math.floor(t.y / COVERAGE_CELL_M))
+            if cell not in self._cells:
+                self._cells.add(cell)
+                new_cell = 1
+        still = t.last_step_m < t.stuck_speed_mps * t.period_s
+        return (self.coverage_reward * new_cell - self.still_penalty * still
+                - self.stuck_penalty * stuck - self.jam_penalty * t.in_jam
+                - self.collision_penalty * collision)
+
+    def _info(self, stuck: bool, collision: bool) -> dict[str, Any]:
+        info = super()._info(stuck, collision)
+        info["cells_visited"] = len(self._cells)
+        return info
+
+
+class MKVJamEnvV1(MKVJamEnv):
+    """The MK-V starting jammed, rewarded for getting free and driving on.
+
+    ## Description / Action Space / Observation Space / Starting State / Episode End
+    As ``MKVJam-v0`` (:class:`MKVJamEnv`): same jams, seeds, escape test and time limit (300 steps);
+    terminated on escape.
+
+    ## Rewards
+    ``MKVJam-v0`` charges for reversing (negative progress), so standing still is nearly optimal
+    for it. ``MKVJam-v1``:
+
+    * ``+escape_reward`` (10) on the step the robot is free (the terminal step);
+    * ``-time_penalty`` (0.02) every step until then (standing still or reversing forever costs
+      ``0.02 * 300 = 6`` per episode);
+    * ``-stuck_penalty`` (0.05) while stuck (pushing against what holds it);
+    * ``-collision_penalty`` (0.05) for each new contact;
+    * potential-based shaping ``shaping * (phi' - phi)`` with ``phi = min(d / escape_distance_m,
+      1)``, ``d`` the distance from where the jam began: moving away is credited, coming back
+      debited, so the shaping sums to at most ``shaping`` (0.5) over an episode and cannot be
+      farmed (Ng, Harada & Russell 1999: it leaves the optimal policy unchanged).
+
+    Returns on unseen seeds (``docs/rewards.md``): the scripted teacher is clearly best; standing
+    still, circling and reversing forever clearly worst.
+
+    ## Arguments
+    All ``MKVJam-v0`` arguments except ``progress_reward`` (not used), plus ``time_penalty``
+    and ``shaping``.
+
+    ## Version History
+    * v1: terminal escape bonus, time penalty, potential shaping on distance from the jam
+      (v0: forward progress + escape bonus, under which standing still is nearly optimal).
+    * v0: initial release.
+    """
+
+    def __init__(self, escape_reward: float = 10.0, time_penalty: float = 0.02,
+                 stuck_penalty: float = 0.05, collision_penalty: float = 0.05,
+                 shaping: float = 0.5, **kwargs):
+        for name, v in (("time_penalty", time_penalty), ("shaping", shaping)):
+            _check(_num(v), f"{name} must be a finite number, got {v!r}")
+        super().__init__(escape_reward=escape_reward, stuck_penalty=stuck_penalty,
+                         collision_penalty=collision_penalty, **kwargs)
+        self.time_penalty, self.shaping = float(time_penalty), float(shaping)
+        self._phi = 0.0
+
+    def _potential(self) -> float:
+        t = self.tracker
+        d = math.hypot(t.x - t.jam_x, t.y - t.jam_y)
+        return min(d / t.escape_distance_m, 1.0)
+
+    def _reset_tracker(self) -> None:
+        super()._reset_tracker()
+        self._phi = self._potential()
+
+    def _reward(self, progress, stuck, collision, escaped) -> float:
+        # the tracker has already moved on: jam_x/jam_y stay where the episode's jam began
+        phi = self._potential()
+        shaped = self.shaping * (phi - self._phi)
+        self._phi = phi
+        return (self.escape_reward * escaped - self.time_penalty - self.stuck_penalty * stuck
+                - self.collision_penalty * collision + shaped)
 
 
 def _drive_until_jammed(world: World, env: MKVEnv, rng,

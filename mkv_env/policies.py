@@ -11,6 +11,9 @@ Specs understood here:
   parameter overrides, e.g. ``teacher:backoff_s=2,wander_rate_hz=0``.
 * ``random``: uniformly random actions from the env's action space (seeded).
 * ``script:PATH``: replay a command script (:mod:`mkv_env.script`).
+* ``const:NAME`` or ``const:D,S``: the same action every step, for degenerate baselines:
+  ``still`` (off, off), ``circle`` (forward, left), ``reverse`` (reverse, off), ``forward``
+  (forward, off), or the action indices themselves (``const:2,0``).
 
 Other packages add prefixes with :func:`register_policy_loader`, giving either a callable or a
 ``"module:function"`` string that is imported only when the spec is used (so ``mkv eval --policy
@@ -74,7 +77,7 @@ def make_policy(spec: str, env=None, seed: int | None = None):
     if prefix not in _LOADERS:
         raise PolicySpecError(
             f"unknown policy spec {spec!r}; known: "
-            + ", ".join(p + (":PATH" if p not in ("teacher", "random") else "")
+            + ", ".join(p + {"teacher": "", "random": "", "const": ":NAME"}.get(p, ":PATH")
                         for p in known_prefixes())
         )
     loader = _LOADERS[prefix]
@@ -187,6 +190,45 @@ def _load_random(arg: str, env, seed):
     return policy
 
 
+#: Named constant actions of ``const:NAME`` ([drive, steer] indices).
+CONST_ACTIONS = {"still": (1, 1), "circle": (2, 0), "reverse": (0, 1), "forward": (2, 1)}
+
+
+class ConstantPolicy:
+    """The same action every step (``const:`` specs): standing still, circling forever,
+    reversing forever; the degenerate behaviours a reward must not favour."""
+
+    def __init__(self, action):
+        self.action = np.asarray(action, dtype=np.int64)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Nothing to forget."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
+        obs, single = as_batch(observation)
+        actions = np.tile(self.action, (len(obs), 1))
+        return (actions[0] if single else actions), state
+
+
+def _load_const(arg: str, env, seed):
+    nvec = tuple(int(n) for n in getattr(getattr(env, "action_space", None), "nvec", ACTION_NVEC))
+    if arg in CONST_ACTIONS:
+        action = CONST_ACTIONS[arg]
+    else:
+        try:
+            action = tuple(int(v) for v in arg.split(","))
+        except ValueError:
+            action = ()
+        if len(action) != len(nvec) or not all(
+                0 <= a < n for a, n in zip(action, nvec, strict=True)):
+            raise PolicySpecError(
+                f"const:{arg} is not an action: give one of {', '.join(CONST_ACTIONS)} or "
+                f"{len(nvec)} comma-separated indices below {list(nvec)}, e.g. const:2,1")
+    policy = ConstantPolicy(action)
+    policy.spec = f"const:{arg}"
+    return policy
+
+
 def _load_script(arg: str, env, seed):
     if not arg:
         raise PolicySpecError("'script' needs a file: script:PATH")
@@ -198,8 +240,10 @@ def _load_script(arg: str, env, seed):
 register_policy_loader("teacher", _load_teacher)
 register_policy_loader("random", _load_random)
 register_policy_loader("script", _load_script)
+register_policy_loader("const", _load_const)
 
 __all__ = [
-    "PolicySpecError", "RandomPolicy", "describe", "known_prefixes", "make_policy",
+    "CONST_ACTIONS", "ConstantPolicy", "PolicySpecError", "RandomPolicy", "describe",
+    "known_prefixes", "make_policy",
     "register_policy_loader",
 ]

@@ -35,6 +35,7 @@ class MotionTracker:
     def reset(self, pose, jammed: bool = False, contact_events: int = 0) -> None:
         self.x, self.y, self.heading = pose
         self.distance_m = 0.0
+        self.last_step_m = 0.0
         self.stuck_run = 0
         self.jams = 1 if jammed else 0
         self.escapes = 0
@@ -57,6 +58,7 @@ class MotionTracker:
         progress = dx * math.cos(mid) + dy * math.sin(mid)
         self.x, self.y, self.heading = x, y, heading
         self.distance_m += step
+        self.last_step_m = step
         stuck = drive_cmd != 0 and step < self.stuck_speed_mps * self.period_s
         self.stuck_run = self.stuck_run + 1 if stuck else 0
         new_collision = contact_events > self._events

@@ -123,11 +123,11 @@ def check_png_path(path: str, what: str) -> None:
 
 def spec_path(spec: str) -> str | None:
     """The file a policy spec reads (``sfm:P``, ``bc:P``, ``ppo:P``, ``script:P``, ``sb3:ALGO:P``),
-    or None (``teacher``, ``random``)."""
+    or None (``teacher``, ``random``, ``const:NAME``)."""
     prefix, _, arg = spec.strip().partition(":")
     if prefix == "sb3":
         arg = arg.partition(":")[2]
-    return arg.strip() or None if prefix not in ("teacher", "random") else None
+    return arg.strip() or None if prefix not in ("teacher", "random", "const") else None
 
 
 def check_outputs(inputs=(), outputs=()) -> None:
