@@ -63,7 +63,8 @@ from sfm_common.files import atomic_write_bytes
 from sfm_learn.baselines import sb3
 
 FORMAT = "mkv-ppo"
-FORMAT_VERSION = 2  # 2: obs_rescale (gymnasium RescaleObservation); 1: obs_scaling
+FORMAT_VERSION = 3  # 3: optional feature_spec; 2: obs_rescale (RescaleObservation); 1: obs_scaling
+OBSERVATIONS = ("raw", "features")
 
 #: PPO hyperparameters used unless overridden on the command line.
 DEFAULTS = {
@@ -79,6 +80,63 @@ DEFAULTS = {
     "max_grad_norm": 0.5,
     "net_arch": [64, 64],
 }
+
+
+HYPERPARAMS_FILE = os.path.join(os.path.dirname(__file__), "hyperparams", "ppo.yml")
+"""The packaged rl-zoo3-style hyperparameter file (one entry per env id, plus ``default``)."""
+_HP_KEYS = {"n_envs", "n_timesteps", "observation", *DEFAULTS}
+
+
+def load_hyperparameters(env_id: str, path: str | None = None) -> dict:
+    """The hyperparameter entry of ``env_id`` (else ``default``) in an rl-zoo3-style YAML file
+    (:data:`HYPERPARAMS_FILE` when ``path`` is None), over :data:`DEFAULTS`; ValueError (one
+    line) on a missing/unreadable file, unknown keys or values of the wrong kind."""
+    try:
+        import yaml
+    except ImportError:
+        raise ValueError("reading a hyperparameter file needs PyYAML: pip install pyyaml") from None
+    path = HYPERPARAMS_FILE if path is None else os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = yaml.safe_load(f)
+    except OSError as e:
+        raise ValueError(f"cannot read hyperparameter file {path}: {e.strerror}") from None
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ValueError(f"hyperparameter file {path} is not valid YAML: "
+                         f"{str(e).splitlines()[0]}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"hyperparameter file {path} must map env ids to settings")
+    entry = doc.get(env_id, doc.get("default", {}))
+    if not isinstance(entry, dict):
+        raise ValueError(f"hyperparameter entry for {env_id} in {path} is not a mapping")
+    unknown = set(entry) - _HP_KEYS
+    if unknown:
+        raise ValueError(f"unknown hyperparameter(s) {sorted(unknown)} in {path}; "
+                         f"known: {sorted(_HP_KEYS)}")
+    hp = {**DEFAULTS, "n_envs": 2, "n_timesteps": 100_000, "observation": "raw", **entry}
+    ints = ("n_envs", "n_timesteps", "n_steps", "batch_size", "n_epochs")
+    floats = ("learning_rate", "gamma", "gae_lambda", "clip_range", "ent_coef", "vf_coef",
+              "max_grad_norm")
+    try:
+        for k in ints:
+            v = hp[k]
+            if isinstance(v, bool) or float(v) != int(v) or int(v) < 1:
+                raise ValueError(k)
+            hp[k] = int(v)
+        for k in floats:
+            if isinstance(hp[k], bool) or not math.isfinite(float(hp[k])) or float(hp[k]) < 0:
+                raise ValueError(k)
+            hp[k] = float(hp[k])
+        arch = hp["net_arch"]
+        if (not isinstance(arch, list) or not arch
+                or not all(isinstance(u, int) and 1 <= u <= 4096 for u in arch)):
+            raise ValueError("net_arch")
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"hyperparameter {e.args[0] if e.args else ''} of {env_id} in {path} "
+                         "has a bad value") from None
+    if hp["observation"] not in OBSERVATIONS:
+        raise ValueError(f"observation of {env_id} in {path} must be one of {OBSERVATIONS}")
+    return hp
 
 
 # ---------------------------------------------------------------------- training
@@ -145,11 +203,16 @@ def train(
     eval_seed: int = 10_000,
     checkpoint_dir: str | None = None,
     hyperparameters: dict | None = None,
+    observation: str = "raw",
     progress=None,
     log=None,
 ):
     """Train PPO; returns ``(model, meta)``. ``progress`` has ``update(n)``; ``log(line)`` gets
-    one line per evaluation. Writes checkpoints (atomically) when ``checkpoint_dir`` is given."""
+    one line per evaluation. Writes checkpoints (atomically) when ``checkpoint_dir`` is given.
+
+    ``observation``: ``"raw"`` (the rescaled sensor vector) or ``"features"`` (the SfM/BC default
+    features of the rescaled sensors and the previous command, :class:`sb3.FeatureObservation`).
+    """
 
     torch = sb3.import_torch()
     from stable_baselines3 import PPO
@@ -157,9 +220,16 @@ def train(
     from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
     env_kwargs = dict(env_kwargs or {})
     sensor_names, nvec, low, high = check_env(env_id, env_kwargs)
     scale = sb3.rescale_function(low, high)
+    feature_spec = None
+    if observation == "features":
+        from sfm_learn.eigenspace.features import default_feature_spec
+
+        feature_spec = default_feature_spec(sensor_names, nvec).to_dict()
     hp = dict(DEFAULTS)
     hp.update(hyperparameters or {})
     hp["n_steps"] = rollout_steps(timesteps, n_envs, hp["n_steps"])
@@ -168,7 +238,8 @@ def train(
     planned = planned_timesteps(timesteps, n_envs, hp["n_steps"])
     eval_every = eval_every or max(1, timesteps // 10)
 
-    fns = [functools.partial(sb3.make_rescaled_env, env_id, env_kwargs) for _ in range(n_envs)]
+    fns = [functools.partial(sb3.make_rescaled_env, env_id, env_kwargs,
+                             feature_spec=feature_spec) for _ in range(n_envs)]
     venv = SubprocVecEnv(fns) if vec == "async" else DummyVecEnv(fns)
     meta = {
         "format": FORMAT,
@@ -180,6 +251,8 @@ def train(
         "obs_rescale": {"low": np.asarray(low, dtype=float).tolist(),
                         "high": np.asarray(high, dtype=float).tolist(), "to": [-1.0, 1.0],
                         "wrapper": "gymnasium.wrappers.RescaleObservation"},
+        "observation": observation,
+        "feature_spec": feature_spec,
         "seed": int(seed),
         "n_envs": int(n_envs),
         "vec": vec,
@@ -202,6 +275,8 @@ def train(
     state = {"excluded": 0.0, "next_eval": 0, "start": 0.0}
 
     def policy_view(model):
+        if feature_spec is not None:
+            return sb3.FeatureActorPolicy(model.policy, nvec, feature_spec, transform=scale)
         return sb3.ActorPolicy(model.policy, nvec, transform=scale)
 
     def do_eval(model):
@@ -320,6 +395,10 @@ def load_spec(arg, env, seed):
         from stable_baselines3.common.policies import ActorCriticPolicy
 
         n = len(meta["sensor_names"])
+        if meta.get("feature_spec") is not None:
+            from sfm_learn.eigenspace.features import FeatureSpec
+
+            n = FeatureSpec.from_dict(meta["feature_spec"]).n_features
         acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
         return ActorCriticPolicy(
             gym.spaces.Box(-np.inf, np.inf, (n,), np.float32),
@@ -331,11 +410,14 @@ def load_spec(arg, env, seed):
 
     def wrap(net, meta):
         transform = observation_transform(meta, len(meta["sensor_names"]))
+        if meta.get("feature_spec") is not None:
+            return sb3.FeatureActorPolicy(net, meta["action_nvec"], meta["feature_spec"],
+                                          transform=transform, seed=seed)
         return sb3.ActorPolicy(net, meta["action_nvec"], transform=transform, seed=seed)
 
     return sb3.rebuild_policy(arg, FORMAT, env, make_net, wrap)
 
 
-__all__ = ["DEFAULTS", "check_env", "fmt_point", "load_spec", "observation_transform",
+__all__ = ["DEFAULTS", "HYPERPARAMS_FILE", "OBSERVATIONS", "check_env", "load_hyperparameters", "fmt_point", "load_spec", "observation_transform",
            "planned_timesteps", "read_metadata",
            "save", "train"]

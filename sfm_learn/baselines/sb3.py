@@ -208,12 +208,43 @@ def rescale_function(low, high):
     return lambda obs: forward(np.asarray(obs, dtype=np.float32))
 
 
-def make_rescaled_env(env_id: str, env_kwargs: dict, monitor: bool = True) -> gym.Env:
+class FeatureObservation(gym.Wrapper):
+    """Observations replaced by the shape-from-motion feature vector of a
+    :class:`~sfm_learn.eigenspace.features.FeatureSpec` (decaying traces of every channel, the
+    previous command, ...), built online from the wrapped env's observations and the actions
+    actually sent; reset at every episode start. Gives a reactive policy (PPO's MLP) the same
+    short memory the SfM and BC policies see. Features are float32, like the network's input.
+    """
+
+    def __init__(self, env: gym.Env, spec: dict):
+        from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec
+
+        super().__init__(env)
+        self.builder = FeatureBuilder(FeatureSpec.from_dict(spec))
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.builder.n_features,),
+                                                np.float32)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.builder.reset()
+        return self.builder.step(obs).astype(np.float32), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        feats = self.builder.step(obs, np.asarray(action, dtype=np.int64))
+        return feats.astype(np.float32), reward, terminated, truncated, info
+
+
+def make_rescaled_env(env_id: str, env_kwargs: dict, monitor: bool = True,
+                      feature_spec: dict | None = None) -> gym.Env:
     """Env factory for (possibly subprocess) vector envs: picklable through functools.partial,
-    and it imports :mod:`mkv_env` so the ids are registered in a fresh worker process."""
+    and it imports :mod:`mkv_env` so the ids are registered in a fresh worker process. With
+    ``feature_spec`` the rescaled observations go through :class:`FeatureObservation`."""
     import mkv_env  # noqa: F401
 
     env = rescale_observation(gym.make(env_id, **env_kwargs))
+    if feature_spec is not None:
+        env = FeatureObservation(env, feature_spec)
     if monitor:
         from stable_baselines3.common.monitor import Monitor
 
@@ -274,3 +305,30 @@ class ActorPolicy:
         inputs = obs2 if self.transform is None else self.transform(obs2)
         actions = self.actions_from_logits(self.logits(inputs), deterministic)
         return (actions[0] if single else actions), state
+
+
+class FeatureActorPolicy:
+    """SB3 ``predict`` for a network trained on :class:`FeatureObservation` inputs: observations
+    rescaled by ``transform``, then online features per env (each reset by its
+    ``episode_start`` or by :meth:`reset`), then the actor; the actions taken are fed back as
+    the next step's previous command, exactly as the training wrapper does."""
+
+    def __init__(self, policy, nvec, spec: dict, transform=None, seed: int | None = None):
+        from sfm_learn.eigenspace.features import FeatureSpec, OnlineFeatures
+
+        self.actor = ActorPolicy(policy, nvec, seed=seed)
+        self.transform = transform
+        self._online = OnlineFeatures(FeatureSpec.from_dict(spec))
+
+    def reset(self, seed: int | None = None) -> None:
+        self.actor.reset(seed)
+        self._online.reset()
+
+    def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
+        obs, single = self._online.as_batch(observation, "a PPO policy")
+        if self.transform is not None:
+            obs = self.transform(obs)
+        feats = np.stack(self._online.step(obs, episode_start)).astype(np.float32)
+        actions = self.actor.actions_from_logits(self.actor.logits(feats), deterministic)
+        self._online.set_previous(actions)
+        return (actions[0].copy() if single else actions), state

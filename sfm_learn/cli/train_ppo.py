@@ -2,9 +2,14 @@
 
 ::
 
-    mkv train-ppo --env MKVJam-v0 --timesteps 100000 --out ppo.zip [--seed 0] [--n-envs 2]
-                  [--vec sync|async] [--eval-every STEPS] [--eval-episodes 10]
-                  [--eval-seed 10000] [--checkpoint-dir DIR] [--env-kwargs JSON] [--quiet]
+    mkv train-ppo --env MKVJam-v1 --out ppo.zip [--timesteps T] [--seed 0] [--n-envs N]
+                  [--hyperparams FILE] [--observation raw|features] [--vec sync|async]
+                  [--eval-every STEPS] [--eval-episodes 10] [--eval-seed 10000]
+                  [--checkpoint-dir DIR] [--env-kwargs JSON] [--quiet]
+
+Settings come from an rl-zoo3-style hyperparameter file (the packaged
+``sfm_learn/baselines/hyperparams/ppo.yml`` unless ``--hyperparams``): the entry of ``--env`` or
+its ``default``; flags given on the command line override it.
 """
 
 from __future__ import annotations
@@ -12,7 +17,15 @@ from __future__ import annotations
 import argparse
 import os
 
-from sfm_learn.baselines.ppo import DEFAULTS, check_env, fmt_point, planned_timesteps, save, train
+from sfm_learn.baselines.ppo import (
+    OBSERVATIONS,
+    check_env,
+    fmt_point,
+    load_hyperparameters,
+    planned_timesteps,
+    save,
+    train,
+)
 from sfm_learn.cli.common import (
     CliError,
     add_env_arguments,
@@ -30,15 +43,28 @@ from sfm_learn.cli.common import (
     timesteps_type,
 )
 
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument(
         "--timesteps",
         type=timesteps_type,
-        required=True,
+        default=None,
         metavar="T",
-        help="env steps to train on (rounded up to whole rollouts)",
+        help="env steps to train on (rounded up to whole rollouts; default: the "
+        "hyperparameter file's n_timesteps)",
+    )
+    p.add_argument(
+        "--hyperparams",
+        default=None,
+        metavar="FILE",
+        help="rl-zoo3-style YAML of settings per env id (default: the packaged ppo.yml)",
+    )
+    p.add_argument(
+        "--observation",
+        choices=OBSERVATIONS,
+        default=None,
+        help="raw: the rescaled sensors; features: plus decaying traces and the previous "
+        "command, as SfM/BC see them (default: from the hyperparameter file)",
     )
     p.add_argument("--out", required=True, metavar="PPO.zip")
     p.add_argument(
@@ -49,7 +75,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="seeds torch, the policy and the envs (env i starts at S+i); default 0",
     )
     p.add_argument(
-        "--n-envs", type=n_envs_type, default=2, metavar="N", help="parallel envs (default 2)"
+        "--n-envs", type=n_envs_type, default=None, metavar="N",
+        help="parallel envs (default: from the hyperparameter file)"
     )
     p.add_argument(
         "--vec",
@@ -89,44 +116,44 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--n-steps",
         type=positive_int,
-        default=DEFAULTS["n_steps"],
+        default=None,
         metavar="N",
-        help=f"rollout steps per env (default {DEFAULTS['n_steps']})",
+        help="rollout steps per env (default: from the hyperparameter file)",
     )
     g.add_argument(
         "--batch-size",
         type=positive_int,
-        default=DEFAULTS["batch_size"],
+        default=None,
         metavar="B",
-        help=f"minibatch size (default {DEFAULTS['batch_size']})",
+        help="minibatch size (default: from the hyperparameter file)",
     )
     g.add_argument(
         "--n-epochs",
         type=positive_int,
-        default=DEFAULTS["n_epochs"],
+        default=None,
         metavar="K",
-        help=f"epochs per rollout (default {DEFAULTS['n_epochs']})",
+        help="epochs per rollout (default: from the hyperparameter file)",
     )
     g.add_argument(
         "--lr",
         type=positive_float,
-        default=DEFAULTS["learning_rate"],
+        default=None,
         metavar="LR",
-        help=f"Adam learning rate (default {DEFAULTS['learning_rate']})",
+        help="Adam learning rate (default: from the hyperparameter file)",
     )
     g.add_argument(
         "--ent-coef",
         type=non_negative_float,
-        default=DEFAULTS["ent_coef"],
+        default=None,
         metavar="C",
-        help=f"entropy coefficient (default {DEFAULTS['ent_coef']})",
+        help="entropy coefficient (default: from the hyperparameter file)",
     )
     add_quiet_argument(p)
 
 
 def run(args) -> int:
     check_output_path(args.out)
-    check_outputs([], [args.out])
+    check_outputs([args.hyperparams] if args.hyperparams else [], [args.out])
     d = args.checkpoint_dir
     if d:
         if os.path.exists(d) and not os.path.isdir(d):
@@ -136,25 +163,26 @@ def run(args) -> int:
             raise CliError(f"checkpoint directory parent {parent} does not exist")
     try:
         check_env(args.env, args.env_kwargs)  # one-line error before torch is imported
+        hp = load_hyperparameters(args.env, args.hyperparams)
     except ValueError as e:
         raise CliError(one_line(e)) from None
+    overrides = {"n_steps": args.n_steps, "batch_size": args.batch_size,
+                 "n_epochs": args.n_epochs, "learning_rate": args.lr,
+                 "ent_coef": args.ent_coef, "n_envs": args.n_envs,
+                 "n_timesteps": args.timesteps, "observation": args.observation}
+    hp.update({k: v for k, v in overrides.items() if v is not None})
+    n_envs, timesteps = hp.pop("n_envs"), hp.pop("n_timesteps")
+    observation = hp.pop("observation")
     if d:
         os.makedirs(d, exist_ok=True)
-    hp = {
-        "n_steps": args.n_steps,
-        "batch_size": args.batch_size,
-        "n_epochs": args.n_epochs,
-        "learning_rate": args.lr,
-        "ent_coef": args.ent_coef,
-    }
-    total = planned_timesteps(args.timesteps, args.n_envs, args.n_steps)
+    total = planned_timesteps(timesteps, n_envs, hp["n_steps"])
     with progress_for(args, total, f"train-ppo {args.env}", unit="step") as bar:
         log = None if args.quiet else bar.write
         model, meta = train(
             args.env,
-            args.timesteps,
+            timesteps,
             seed=args.seed,
-            n_envs=args.n_envs,
+            n_envs=n_envs,
             vec=args.vec,
             env_kwargs=args.env_kwargs,
             eval_every=args.eval_every,
@@ -162,6 +190,7 @@ def run(args) -> int:
             eval_seed=args.eval_seed,
             checkpoint_dir=args.checkpoint_dir,
             hyperparameters=hp,
+            observation=observation,
             progress=bar,
             log=log,
         )
