@@ -418,6 +418,6 @@ def load_spec(arg, env, seed):
     return sb3.rebuild_policy(arg, FORMAT, env, make_net, wrap)
 
 
-__all__ = ["DEFAULTS", "HYPERPARAMS_FILE", "OBSERVATIONS", "check_env", "load_hyperparameters", "fmt_point", "load_spec", "observation_transform",
-           "planned_timesteps", "read_metadata",
-           "save", "train"]
+__all__ = ["DEFAULTS", "HYPERPARAMS_FILE", "OBSERVATIONS", "check_env", "fmt_point",
+           "load_hyperparameters", "load_spec", "observation_transform", "planned_timesteps",
+           "read_metadata", "save", "train"]

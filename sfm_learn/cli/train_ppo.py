@@ -43,6 +43,7 @@ from sfm_learn.cli.common import (
     timesteps_type,
 )
 
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument(
