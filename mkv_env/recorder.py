@@ -15,6 +15,7 @@ replays exactly on its own, whatever ran before it.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 
 import gymnasium as gym
@@ -35,9 +36,16 @@ def policy_seed(env_seed: int) -> int:
 
 
 def make_env(env_id: str, env_kwargs: dict | None = None, **extra) -> gym.Env:
-    """``gymnasium.make`` with one-line errors: ValueError for an unknown id or bad kwargs."""
+    """``gymnasium.make`` with one-line errors: ValueError for an unknown id or bad kwargs.
+
+    Gymnasium's "environment MKV-v0 is out of date" notice is silenced here: the v0 ids stay
+    supported unchanged (their rewards define earlier results); v1 differs only in its reward.
+    """
     try:
-        return gym.make(env_id, **(env_kwargs or {}), **extra)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*is out of date. You should consider",
+                                    category=DeprecationWarning)
+            return gym.make(env_id, **(env_kwargs or {}), **extra)
     except gym.error.Error as e:
         raise ValueError(f"cannot make env {env_id!r}: {str(e).splitlines()[0]}") from None
     except TypeError as e:

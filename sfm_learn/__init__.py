@@ -5,7 +5,7 @@ Layers, each importing only the ones before it (``tests/test_layering.py`` check
     eigenspace/   projector, features, policy        the paper's learner
     evaluation/   records, bootstrap, runner,        episodes -> metrics with intervals;
                   compare, study                     Figure 3 agreement; the feature study
-    baselines/    sb3, bc, ppo, sb3_zoo              Stable-Baselines3 learners and policy files
+    baselines/    sb3, bc, dagger, ppo, sb3_models Stable-Baselines3 learners and policy files
     reporting/    tables, plots, report              Markdown, PNG, the demo report
     cli/          one module per ``mkv`` command     the only place argparse and CliError live
 
@@ -26,6 +26,7 @@ POLICY_LOADERS: dict[str, str] = {
     "sfm": "sfm_learn.eigenspace.policy:load_spec",
     "ppo": "sfm_learn.baselines.ppo:load_spec",
     "bc": "sfm_learn.baselines.bc:load_spec",
+    "dagger": "sfm_learn.baselines.dagger:load_spec",
     "sb3": "sfm_learn.baselines.sb3_models:load_spec",
 }
 

@@ -135,8 +135,6 @@ def train(
     from mkv_env.dataset import split_by_episode
     from sfm_learn.eigenspace.features import FeatureBuilder
 
-    torch = sb3.import_torch()
-    net_arch = dict(DEFAULT_NET_ARCH if net_arch is None else net_arch)
     sensor_names = list(data.metadata["sensor_names"])
     acts = data["actions"]
     if (
@@ -157,6 +155,53 @@ def train(
     y_train = train_set["actions"].astype(np.int64)
     x_held = dataset_features(builder, held_set) if held_set.n_steps else None
     y_held = held_set["actions"].astype(np.int64)
+    policy, fit = fit_features(x_train, y_train, x_held, y_held, spec.n_features, epochs=epochs,
+                               batch_size=batch_size, lr=lr, seed=seed, net_arch=net_arch,
+                               on_epoch=on_epoch)
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "env_id": data.metadata.get("env_id"),
+        "env_kwargs": data.metadata.get("env_kwargs", {}),
+        "control_period_s": data.metadata.get("control_period_s"),
+        "sensor_names": sensor_names,
+        "action_nvec": list(ACTION_NVEC),
+        "action_names": list(ACTION_NAMES),
+        "features": features,
+        "feature_spec": spec.to_dict(),
+        **fit,
+        "teacher_steps": int(train_set.n_steps),
+        "teacher_episodes": int(train_set.n_episodes),
+        "held_out_steps": int(held_set.n_steps),
+        "held_out_episodes": int(held_set.n_episodes),
+        "held_out_fraction": float(held_out),
+        "seed": int(seed),
+        "dataset": {
+            "content_sha256": data.metadata.get("content_sha256"),
+            "policy": data.metadata.get("policy"),
+            "n_steps": int(data.n_steps),
+            "n_episodes": int(data.n_episodes),
+        },
+        **sb3.versions(),
+    }
+    return policy, meta
+
+
+def fit_features(x_train, y_train, x_held, y_held, n_features: int, *, epochs: int = 30,
+                 batch_size: int = 256, lr: float = 1e-3, seed: int = 0, net_arch=None,
+                 on_epoch=None, policy=None):
+    """The supervised core of BC (and of each DAgger round): standardise the inputs with
+    training statistics, minibatch Adam on the NLL of the commands. ``x_held`` may be None.
+    ``policy`` continues training an existing network (a DAgger round's warm start).
+
+    Returns ``(policy, fit)``; ``fit`` holds ``input_mean``/``input_std``, ``net_arch``,
+    ``activation``, ``majority_class``, ``epochs``, ``batch_size``, ``lr``, ``train_wall_s``,
+    ``train_accuracy``, ``held_out`` and ``history``.
+    """
+    import numpy as np
+
+    torch = sb3.import_torch()
+    net_arch = dict(DEFAULT_NET_ARCH if net_arch is None else net_arch)
     mean = x_train.mean(axis=0)
     std = x_train.std(axis=0)
     std = np.where(std > 1e-8, std, 1.0)
@@ -165,13 +210,14 @@ def train(
     ]
 
     torch.manual_seed(int(seed))
-    policy = build_policy(spec.n_features, net_arch, lr)
+    if policy is None:
+        policy = build_policy(n_features, net_arch, lr)
     policy.set_training_mode(True)
     opt = torch.optim.Adam(policy.parameters(), lr=lr)
     xt = torch.as_tensor(((x_train - mean) / std).astype(np.float32))
     yt = torch.as_tensor(y_train)
     xh = None if x_held is None else torch.as_tensor(((x_held - mean) / std).astype(np.float32))
-    yh = torch.as_tensor(y_held)
+    yh = None if y_held is None else torch.as_tensor(y_held)
     rng = np.random.default_rng(seed)
     n = len(xt)
     view = sb3.ActorPolicy(policy, ACTION_NVEC)
@@ -208,44 +254,20 @@ def train(
         held = action_metrics(pred, y_held, majority)
         held["nll"] = history[-1]["held_out_nll"]
     train_pred = view.actions_from_logits(view.logits(xt.numpy()))
-    meta = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "env_id": data.metadata.get("env_id"),
-        "env_kwargs": data.metadata.get("env_kwargs", {}),
-        "control_period_s": data.metadata.get("control_period_s"),
-        "sensor_names": sensor_names,
-        "action_nvec": list(ACTION_NVEC),
-        "action_names": list(ACTION_NAMES),
-        "features": features,
-        "feature_spec": spec.to_dict(),
+    return policy, {
         "input_mean": mean.tolist(),
         "input_std": std.tolist(),
         "net_arch": net_arch,
         "activation": "tanh",
-        "teacher_steps": int(train_set.n_steps),
-        "teacher_episodes": int(train_set.n_episodes),
-        "held_out_steps": int(held_set.n_steps),
-        "held_out_episodes": int(held_set.n_episodes),
-        "held_out_fraction": float(held_out),
         "majority_class": dict(zip(ACTION_NAMES, majority, strict=True)),
         "epochs": int(epochs),
         "batch_size": int(batch_size),
         "lr": float(lr),
-        "seed": int(seed),
         "train_wall_s": round(train_wall, 3),
         "train_accuracy": action_metrics(train_pred, y_train, majority)["accuracy"],
         "held_out": held,
         "history": history,
-        "dataset": {
-            "content_sha256": data.metadata.get("content_sha256"),
-            "policy": data.metadata.get("policy"),
-            "n_steps": int(data.n_steps),
-            "n_episodes": int(data.n_episodes),
-        },
-        **sb3.versions(),
     }
-    return policy, meta
 
 
 def save(policy, meta: dict, path: str) -> None:

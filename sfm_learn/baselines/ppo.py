@@ -180,6 +180,7 @@ def _evaluate(env_id, env_kwargs, policy, episodes, seed) -> dict:
         "mean_return": m["mean_return"],
         "escape_rate": m["escape_rate"],
         "distance_m": m["distance_m"],
+        "stuck_fraction": m["stuck_fraction"],
     }
 
 
@@ -187,7 +188,10 @@ def fmt_point(pt: dict) -> str:
     text = f"steps {pt['env_steps']}: return {pt['mean_return']:.2f}"
     if pt.get("escape_rate") is not None:
         text += f", escape rate {pt['escape_rate']:.2f}"
-    return text + f", distance {pt['distance_m']:.2f} m"
+    text += f", distance {pt['distance_m']:.2f} m"
+    if pt.get("stuck_fraction") is not None:
+        text += f", stuck {pt['stuck_fraction']:.3f}"
+    return text
 
 
 def train(

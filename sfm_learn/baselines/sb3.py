@@ -28,7 +28,8 @@ from mkv_env.policies import PolicySpecError
 
 META_MEMBER = "mkv_meta.json"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-KIND_NAMES = {"mkv-ppo": ("ppo", "a PPO model"), "mkv-bc": ("bc", "a behaviour-cloning policy")}
+KIND_NAMES = {"mkv-ppo": ("ppo", "a PPO model"), "mkv-bc": ("bc", "a behaviour-cloning policy"),
+              "mkv-dagger": ("dagger", "a DAgger policy")}
 
 
 def import_torch(threads: int = 1):

@@ -54,6 +54,8 @@ COMMANDS: list[Command] = [
             "sfm_learn.cli.compare"),
     Command("train-ppo", "train an SB3 PPO policy on the env reward", "sfm_learn.cli.train_ppo"),
     Command("train-bc", "behaviour-clone an SB3 policy from a dataset", "sfm_learn.cli.train_bc"),
+    Command("train-dagger", "DAgger: the teacher labels the learner's own runs",
+            "sfm_learn.cli.train_dagger"),
     Command("demo", "the main job end to end on defaults; writes DIR/report.md",
             "sfm_learn.cli.demo"),
     Command("export", "write a dataset file into Minari (offline-RL dataset standard)",

@@ -49,7 +49,7 @@ def env_kwargs_type(text: str) -> dict:
 def add_env_arguments(p: argparse.ArgumentParser, required: bool = False) -> None:
     """``--env ID`` and ``--env-kwargs JSON``."""
     p.add_argument("--env", default=None if required else DEFAULT_ENV, required=required,
-                   metavar="ID", help="registered env id (MKV-v0, MKVJam-v0)"
+                   metavar="ID", help="registered env id (MKV-v1, MKVJam-v1, MKV-v0, MKVJam-v0)"
                    + ("" if required else f"; default {DEFAULT_ENV}"))
     p.add_argument("--env-kwargs", type=env_kwargs_type, default={}, metavar="JSON",
                    help="extra gymnasium.make arguments as a JSON object")

@@ -71,7 +71,8 @@ def test_train_ppo_writes_sb3_zip_with_metadata(trained):
     curve = meta["learning_curve"]
     assert [p["env_steps"] for p in curve] == [0, 128, 256]
     for p in curve:
-        assert set(p) == {"env_steps", "wall_s", "mean_return", "escape_rate", "distance_m"}
+        assert set(p) == {"env_steps", "wall_s", "mean_return", "escape_rate", "distance_m",
+                          "stuck_fraction"}
         assert 0 <= p["escape_rate"] <= 1 and p["distance_m"] >= 0
     assert [p["wall_s"] for p in curve] == sorted(p["wall_s"] for p in curve)
     assert meta["final_eval"] == curve[-1]
