@@ -32,7 +32,8 @@ LAYERS = {
     "sfm_learn.evaluation": 4,
     "sfm_learn.baselines": 5,
     "sfm_learn.reporting": 6,
-    "sfm_learn.cli": 7,
+    "sfm_learn.experiments": 7,
+    "sfm_learn.cli": 8,
 }
 # Same rank but independent: neither may import the other.
 SIBLINGS = {frozenset({"mkv_env", "calib"})}

@@ -208,11 +208,15 @@ def train(
     checkpoint_dir: str | None = None,
     hyperparameters: dict | None = None,
     observation: str = "raw",
+    eval_at=None,
     progress=None,
     log=None,
 ):
     """Train PPO; returns ``(model, meta)``. ``progress`` has ``update(n)``; ``log(line)`` gets
     one line per evaluation. Writes checkpoints (atomically) when ``checkpoint_dir`` is given.
+
+    ``eval_at``: evaluate (and checkpoint) at the first rollout boundary at or after each of these
+    env-step counts instead of every ``eval_every`` steps (a sweep's budgets).
 
     ``observation``: ``"raw"`` (the rescaled sensor vector) or ``"features"`` (the SfM/BC default
     features of the rescaled sensors and the previous command, :class:`sb3.FeatureObservation`).
@@ -277,6 +281,7 @@ def train(
         **sb3.versions(),
     }
     state = {"excluded": 0.0, "next_eval": 0, "start": 0.0}
+    marks = sorted({0, *(int(b) for b in eval_at)}) if eval_at is not None else None
 
     def policy_view(model):
         if feature_spec is not None:
@@ -301,6 +306,8 @@ def train(
             save(model, meta, os.path.join(checkpoint_dir, f"ppo_{steps:08d}.zip"))
         state["excluded"] += time.perf_counter() - t0
         meta["eval_wall_s"] = round(state["excluded"], 3)
+        if marks is not None:
+            state["next_eval"] = next((b for b in marks if b > steps), math.inf)
         while state["next_eval"] <= steps:
             state["next_eval"] += eval_every
 
@@ -317,24 +324,13 @@ def train(
             return True
 
     try:
-        model = PPO(
-            "MlpPolicy",
-            venv,
-            seed=int(seed),
-            device="cpu",
-            verbose=0,
-            n_steps=hp["n_steps"],
-            batch_size=hp["batch_size"],
-            n_epochs=hp["n_epochs"],
-            learning_rate=hp["learning_rate"],
-            gamma=hp["gamma"],
-            gae_lambda=hp["gae_lambda"],
-            clip_range=hp["clip_range"],
-            ent_coef=hp["ent_coef"],
-            vf_coef=hp["vf_coef"],
-            max_grad_norm=hp["max_grad_norm"],
-            policy_kwargs={"net_arch": list(hp["net_arch"]), "activation_fn": torch.nn.Tanh},
-        )
+        import warnings
+
+        with warnings.catch_warnings():
+            # a budget smaller than one rollout shrinks n_steps; SB3 then warns that the minibatch
+            # does not divide the rollout (a truncated last minibatch: harmless)
+            warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
+            model = _make_ppo(PPO, venv, seed, hp, torch)
         # no logger output: SB3's default logger makes an empty /tmp/SB3-<date> folder per run
         model.set_logger(Logger(None, []))
         state["start"] = time.perf_counter()
@@ -356,6 +352,27 @@ def train(
     meta["eval_wall_s"] = round(state["excluded"], 3)
     meta["final_eval"] = meta["learning_curve"][-1]
     return model, meta
+
+
+def _make_ppo(PPO, venv, seed, hp, torch):
+    return PPO(
+        "MlpPolicy",
+        venv,
+        seed=int(seed),
+        device="cpu",
+        verbose=0,
+        n_steps=hp["n_steps"],
+        batch_size=hp["batch_size"],
+        n_epochs=hp["n_epochs"],
+        learning_rate=hp["learning_rate"],
+        gamma=hp["gamma"],
+        gae_lambda=hp["gae_lambda"],
+        clip_range=hp["clip_range"],
+        ent_coef=hp["ent_coef"],
+        vf_coef=hp["vf_coef"],
+        max_grad_norm=hp["max_grad_norm"],
+        policy_kwargs={"net_arch": list(hp["net_arch"]), "activation_fn": torch.nn.Tanh},
+    )
 
 
 def save(model, meta: dict, path: str) -> None:

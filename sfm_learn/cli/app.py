@@ -56,6 +56,8 @@ COMMANDS: list[Command] = [
     Command("train-bc", "behaviour-clone an SB3 policy from a dataset", "sfm_learn.cli.train_bc"),
     Command("train-dagger", "DAgger: the teacher labels the learner's own runs",
             "sfm_learn.cli.train_dagger"),
+    Command("sweep", "run a sweep spec (learners x seeds x budgets) or summarise one",
+            "sfm_learn.cli.sweep"),
     Command("demo", "the main job end to end on defaults; writes DIR/report.md",
             "sfm_learn.cli.demo"),
     Command("export", "write a dataset file into Minari (offline-RL dataset standard)",

@@ -1,0 +1,123 @@
+"""A sweep's rows as curves: mean over training seeds with 95% intervals, a table and a plot.
+
+For each (learner, budget, eval env, metric) the rows of the different training seeds give one
+value each; the point is their mean and the band a 95% Student-t interval over seeds
+(``mean +- t_{0.975, n-1} * sd / sqrt(n)``, clipped to a rate's [0, 1]; with a handful of
+seeds, t rather than a bootstrap, whose intervals are too narrow at n = 5). Error rows are
+counted and listed, never averaged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+import numpy as np
+
+METRIC_LABELS = {
+    "escape_rate": "escape rate",
+    "distance_m": "distance per episode [m]",
+    "stuck_fraction": "stuck fraction",
+    "mean_return": "mean return",
+}
+
+
+def t_interval(values, level: float = 0.95) -> tuple[float, float, float]:
+    """``(mean, lo, hi)``; lo = hi = mean for one value."""
+    from scipy import stats
+
+    v = np.asarray(values, dtype=float)
+    m = float(v.mean())
+    if len(v) < 2:
+        return m, m, m
+    half = float(stats.t.ppf(0.5 + level / 2, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    return m, m - half, m + half
+
+
+BOUNDS = {"escape_rate": (0.0, 1.0), "stuck_fraction": (0.0, 1.0), "distance_m": (0.0, math.inf)}
+"""Ranges of bounded metrics: their t-intervals are clipped to them."""
+
+
+def aggregate(rows: list[dict]) -> dict:
+    """``{(learner, env, metric): [(budget, steps_mean, mean, lo, hi, n), ...]}`` sorted by budget,
+    from the ok rows; plus ``errors``: the error rows."""
+    groups: dict = defaultdict(lambda: defaultdict(list))
+    steps: dict = defaultdict(list)
+    errors = []
+    for r in rows:
+        if r.get("status") != "ok":
+            errors.append(r)
+            continue
+        steps[(r["learner"], r["budget"])].append(r.get("steps", r["budget"]))
+        for env_id, metrics in r["metrics"].items():
+            for k, v in metrics.items():
+                if v is not None:
+                    groups[(r["learner"], env_id, k)][r["budget"]].append(v)
+    out = {}
+    for key, by_budget in groups.items():
+        pts = []
+        for b in sorted(by_budget):
+            m, lo, hi = t_interval(by_budget[b])
+            lo_b, hi_b = BOUNDS.get(key[2], (-math.inf, math.inf))
+            lo, hi = max(lo, lo_b), min(hi, hi_b)
+            pts.append((b, float(np.mean(steps[(key[0], b)])), m, lo, hi, len(by_budget[b])))
+        out[key] = pts
+    return {"curves": out, "errors": errors}
+
+
+def markdown_table(agg: dict, env_id: str, metric: str, units: dict[str, str]) -> str:
+    """One Markdown table: a row per (learner, budget) for ``metric`` on ``env_id``."""
+    lines = [f"{METRIC_LABELS.get(metric, metric)} on **{env_id}**, mean over training seeds "
+             "[95% t-interval]", "",
+             "| learner | budget | steps used | unit | value | seeds |",
+             "|:---|---:|---:|:---|---:|---:|"]
+    for (learner, env, m), pts in sorted(agg["curves"].items()):
+        if env != env_id or m != metric:
+            continue
+        for b, steps, mean, lo, hi, n in pts:
+            lines.append(f"| {learner} | {b:,} | {steps:,.0f} | {units.get(learner, 'steps')} | "
+                         f"{mean:.3f} [{lo:.3f}, {hi:.3f}] | {n} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(agg: dict, panels: list[tuple[str, str]], path: str,
+                units: dict[str, str], title: str = "") -> str:
+    """One panel per (env, metric): a line per learner (mean) with its 95% band, against
+    steps on a log axis (teacher steps solid, PPO env steps dashed). Written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sfm_common.files import atomic_path
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
+    learners = sorted({k[0] for k in agg["curves"]})
+    colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(learners)}
+    for ax, (env_id, metric) in zip(axes[0], panels, strict=True):
+        for learner in learners:
+            pts = agg["curves"].get((learner, env_id, metric))
+            if not pts:
+                continue
+            x = [p[1] for p in pts]
+            mean, lo, hi = ([p[i] for p in pts] for i in (2, 3, 4))
+            env_steps = units.get(learner) == "env steps"
+            ax.plot(x, mean, "--" if env_steps else "-", marker="o", ms=3,
+                    color=colours[learner], label=f"{learner} ({units.get(learner, 'steps')})")
+            ax.fill_between(x, lo, hi, color=colours[learner], alpha=0.15, lw=0)
+        ax.set_xscale("log")
+        ax.set_xlabel("teacher steps (solid) / PPO env steps (dashed)")
+        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
+        ax.set_title(env_id)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="best")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(path, ".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+__all__ = ["aggregate", "markdown_table", "plot_curves", "t_interval"]

@@ -1,0 +1,414 @@
+"""Sweeps: many (learner, seed, budget) training runs, each evaluated, one JSON row per job.
+
+A spec (JSON, or YAML with PyYAML installed) names what to run::
+
+    name: sample-efficiency
+    teacher_env: MKV-v1            # where the teacher's demonstrations are recorded
+    env: [MKVJam-v1, MKV-v1]       # evaluation env(s)
+    eval: {episodes: 50, seed: 5000000}
+    seeds: [0, 1, 2, 3, 4]
+    learners:
+      sfm: {}                      # kind = the name before the first "-" unless given
+      sfm-paper: {preset: paper}
+      bc: {epochs: 30}
+      dagger: {rounds: 4}
+      ppo-jam: {kind: ppo, env: MKVJam-v1, eval_env: [MKVJam-v1]}
+    budgets:                       # teacher steps (sfm, bc, dagger) or env steps (ppo)
+      sfm: [1200, 3000, 12000]
+      ppo-jam: [50000, 200000]
+
+Jobs. For a teacher-step learner one job is (learner, seed, budget): record the teacher for
+``budget`` steps (cached per (seed, budget) in ``DIR/data``; episodes of at most 600 steps on seeds
+``10_000_000 + 10_000 * seed + i``, disjoint from every evaluation seed), fit or train, evaluate.
+For PPO one job is (learner, seed): one training run with a checkpoint at each budget (PPO's
+constant schedules make the checkpoint at ``b`` steps the same network a run of budget ``b``
+would end with), each checkpoint evaluated; it writes one row per budget.
+
+Rows. Each job writes ``DIR/rows/<learner>__s<seed>__b<budget>.json`` atomically when it has
+finished (PPO: all its budgets at the end), so a killed sweep loses no finished job and a rerun
+skips every job whose rows exist with ``"status": "ok"``. A job that raises writes a row with
+``"status": "error"`` and the one-line error; the other jobs go on, and a rerun retries it.
+
+Backends. ``local`` runs jobs in this process (``workers=1``) or in a ``ProcessPoolExecutor``;
+``ray`` submits each job as a Ray task (:mod:`sfm_learn.experiments.ray_backend`). Jobs are
+deterministic given the spec, so the backend changes only the wall time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from concurrent import futures
+from dataclasses import dataclass
+
+from sfm_common.files import atomic_write_text
+
+KINDS = ("sfm", "bc", "dagger", "ppo")
+TEACHER_KINDS = ("sfm", "bc", "dagger")
+TRAIN_SEED_BASE = 10_000_000
+"""Demonstrations of training seed ``s`` use env seeds ``TRAIN_SEED_BASE + 10_000 s + i``."""
+MAX_EPISODE_STEPS = 600
+METRICS = ("escape_rate", "distance_m", "stuck_fraction", "mean_return")
+
+
+class SpecError(ValueError):
+    """A sweep spec that cannot be run (one line)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One unit of work: a learner on one training seed and one budget (PPO: all budgets)."""
+
+    learner: str
+    seed: int
+    budgets: tuple[int, ...]
+
+    @property
+    def names(self) -> list[str]:
+        """Row file names this job writes (one per budget)."""
+        return [row_name(self.learner, self.seed, b) for b in self.budgets]
+
+
+def row_name(learner: str, seed: int, budget: int) -> str:
+    return f"{learner}__s{seed}__b{budget}.json"
+
+
+# ---------------------------------------------------------------------- spec
+def load_spec(path: str) -> dict:
+    """Read and check a spec file (JSON, or YAML when the name ends in .yml/.yaml)."""
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError as e:
+        raise SpecError(f"cannot read sweep spec {path}: {e.strerror}") from None
+    except UnicodeDecodeError:
+        raise SpecError(f"sweep spec {path} is not UTF-8 text") from None
+    if path.endswith((".yml", ".yaml")):
+        try:
+            import yaml
+        except ImportError:
+            raise SpecError("a YAML sweep spec needs PyYAML: pip install pyyaml") from None
+        try:
+            doc = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise SpecError(f"sweep spec {path} is not valid YAML: "
+                            f"{str(e).splitlines()[0]}") from None
+    else:
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise SpecError(f"sweep spec {path} is not valid JSON: {e}") from None
+    return check_spec(doc)
+
+
+def _int_list(value, what, lo=0, hi=10**12) -> list[int]:
+    if not isinstance(value, list) or not value:
+        raise SpecError(f"{what} must be a non-empty list of integers")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) \
+                or not lo <= int(v) <= hi:
+            raise SpecError(f"{what} must hold integers in [{lo}, {hi}], got {v!r}")
+        out.append(int(v))
+    if len(set(out)) != len(out):
+        raise SpecError(f"{what} has repeated values")
+    return out
+
+
+def _env_list(value, what) -> list[str]:
+    envs = [value] if isinstance(value, str) else value
+    if not isinstance(envs, list) or not envs or not all(isinstance(e, str) and e for e in envs):
+        raise SpecError(f"{what} must be an env id or a non-empty list of env ids")
+    return list(envs)
+
+
+def check_spec(doc) -> dict:
+    """Normalise a spec (a dict) and check every field; SpecError (one line) otherwise."""
+    if not isinstance(doc, dict):
+        raise SpecError("a sweep spec must be a mapping")
+    known = {"name", "env", "teacher_env", "eval", "seeds", "learners", "budgets"}
+    unknown = set(doc) - known
+    if unknown:
+        raise SpecError(f"unknown sweep spec key(s) {sorted(unknown)}; known: {sorted(known)}")
+    for key in ("env", "learners", "seeds", "budgets"):
+        if key not in doc:
+            raise SpecError(f"sweep spec lacks {key!r}")
+    spec = {"name": str(doc.get("name", "sweep")), "env": _env_list(doc["env"], "env")}
+    spec["teacher_env"] = doc.get("teacher_env", spec["env"][0])
+    if not isinstance(spec["teacher_env"], str):
+        raise SpecError("teacher_env must be an env id")
+    ev = doc.get("eval", {})
+    if not isinstance(ev, dict) or set(ev) - {"episodes", "seed"}:
+        raise SpecError("eval must be a mapping with 'episodes' and 'seed'")
+    spec["eval"] = {"episodes": _int_list([ev.get("episodes", 50)], "eval.episodes", 1,
+                                          100_000)[0],
+                    "seed": _int_list([ev.get("seed", 5_000_000)], "eval.seed", 0,
+                                      2**62)[0]}
+    spec["seeds"] = _int_list(doc["seeds"], "seeds", 0, 99_999)
+    if not isinstance(doc["learners"], dict) or not doc["learners"]:
+        raise SpecError("learners must map names to options")
+    if not isinstance(doc["budgets"], dict):
+        raise SpecError("budgets must map learner names to lists of steps")
+    learners = {}
+    for name, opts in doc["learners"].items():
+        opts = dict(opts or {}) if isinstance(opts, dict) or opts is None else None
+        if opts is None or not isinstance(name, str) or "__" in name or "/" in name:
+            raise SpecError(f"learner {name!r}: options must be a mapping, names without / or __")
+        kind = opts.pop("kind", name.split("-")[0])
+        if kind not in KINDS:
+            raise SpecError(f"learner {name!r}: unknown kind {kind!r}; known: {', '.join(KINDS)}")
+        allowed = {"sfm": {"preset"}, "bc": {"epochs"}, "dagger": {"rounds", "epochs"},
+                   "ppo": {"env", "hyperparams", "eval_env"}}[kind] | {"eval_env"}
+        if set(opts) - allowed:
+            raise SpecError(f"learner {name!r} ({kind}): unknown option(s) "
+                            f"{sorted(set(opts) - allowed)}; known: {sorted(allowed)}")
+        if "eval_env" in opts:
+            opts["eval_env"] = _env_list(opts["eval_env"], f"{name}.eval_env")
+        if kind == "ppo":
+            opts.setdefault("env", spec["env"][0])
+        if name not in doc["budgets"]:
+            raise SpecError(f"budgets lacks learner {name!r}")
+        hi = 10**10 if kind == "ppo" else 10_000_000
+        budgets = _int_list(doc["budgets"][name], f"budgets.{name}", 2, hi)
+        learners[name] = {"kind": kind, "options": opts, "budgets": sorted(budgets)}
+    extra = set(doc["budgets"]) - set(learners)
+    if extra:
+        raise SpecError(f"budgets names unknown learner(s) {sorted(extra)}")
+    spec["learners"] = learners
+    return spec
+
+
+def plan(spec: dict) -> list[Job]:
+    """Every job of the spec, in a fixed order (learner, seed, budget)."""
+    jobs = []
+    for name, lr in spec["learners"].items():
+        for s in spec["seeds"]:
+            if lr["kind"] == "ppo":
+                jobs.append(Job(name, s, tuple(lr["budgets"])))
+            else:
+                jobs.extend(Job(name, s, (b,)) for b in lr["budgets"])
+    return jobs
+
+
+def check_envs(spec: dict) -> None:
+    """Make every env of the spec once (fail fast, one line), before any job runs."""
+    from mkv_env.recorder import make_env
+
+    envs = {spec["teacher_env"], *spec["env"]}
+    for lr in spec["learners"].values():
+        envs |= set(lr["options"].get("eval_env", []))
+        if lr["kind"] == "ppo":
+            envs.add(lr["options"]["env"])
+    for env_id in sorted(envs):
+        try:
+            make_env(env_id).close()
+        except ValueError as e:
+            raise SpecError(str(e)) from None
+
+
+# ---------------------------------------------------------------------- one job
+def teacher_data(spec: dict, seed: int, budget: int, out_dir: str):
+    """The teacher's recording for (seed, budget), cached in ``out_dir/data``."""
+    from mkv_env import dataset as ds
+    from mkv_env.recorder import record
+
+    path = os.path.join(out_dir, "data", f"teacher_s{seed}_b{budget}.npz")
+    if os.path.exists(path):
+        try:
+            return ds.load(path)
+        except ValueError:
+            pass  # damaged (a crash outside our atomic writes): record again
+    episodes = max(1, math.ceil(budget / MAX_EPISODE_STEPS))
+    data = record(spec["teacher_env"], "teacher", episodes,
+                  TRAIN_SEED_BASE + 10_000 * seed, max_steps=budget // episodes)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    ds.save(data, path)
+    return data
+
+
+def _evaluate(spec: dict, policy_spec: str, env_ids: Sequence[str]) -> dict:
+    from sfm_learn.evaluation import evaluate
+
+    out = {}
+    for env_id in env_ids:
+        m = evaluate(env_id, policy_spec, spec["eval"]["episodes"], spec["eval"]["seed"]).metrics
+        out[env_id] = {k: m.get(k) for k in METRICS}
+    return out
+
+
+def _train_teacher_learner(spec, job, kind, opts, budget, pol_dir) -> tuple[str, int]:
+    """Train one teacher-step learner; returns (policy spec, teacher steps used)."""
+    base = os.path.join(pol_dir, f"{job.learner}_s{job.seed}_b{budget}")
+    if kind == "dagger":
+        from sfm_learn.baselines import dagger
+
+        policy, meta = dagger.train(spec["teacher_env"], budget, rounds=opts.get("rounds", 4),
+                                    seed=TRAIN_SEED_BASE + 10_000 * job.seed,
+                                    epochs=opts.get("epochs", 30))
+        dagger.save(policy, meta, base + ".zip")
+        return f"dagger:{base}.zip", meta["teacher_steps"]
+    data = teacher_data(spec, job.seed, budget, os.path.dirname(pol_dir))
+    if kind == "sfm":
+        from sfm_learn.eigenspace.policy import fit_policy, preset
+
+        fspec, kw = preset(opts.get("preset", "default"), data.metadata["sensor_names"])
+        fit_policy(data, fspec, **kw).save(base + ".npz")
+        return f"sfm:{base}.npz", data.n_steps
+    from sfm_learn.baselines import bc
+
+    policy, meta = bc.train(data, epochs=opts.get("epochs", 30), seed=job.seed, held_out=0.0)
+    bc.save(policy, meta, base + ".zip")
+    return f"bc:{base}.zip", data.n_steps
+
+
+def run_job(spec: dict, job: Job, out_dir: str) -> list[dict]:
+    """Run one job and write its rows; returns them. Exceptions become an error row."""
+    lr = spec["learners"][job.learner]
+    kind, opts = lr["kind"], lr["options"]
+    eval_envs = opts.get("eval_env", spec["env"])
+    pol_dir = os.path.join(out_dir, "policies")
+    os.makedirs(pol_dir, exist_ok=True)
+    t0 = time.perf_counter()
+    base_row = {"learner": job.learner, "kind": kind, "seed": job.seed,
+                "budget_unit": "env_steps" if kind == "ppo" else "teacher_steps"}
+    rows = []
+    try:
+        if kind == "ppo":
+            rows = _run_ppo(spec, job, opts, eval_envs, pol_dir, base_row, t0)
+        else:
+            budget = job.budgets[0]
+            policy_spec, used = _train_teacher_learner(spec, job, kind, opts, budget, pol_dir)
+            train_s = time.perf_counter() - t0
+            metrics = _evaluate(spec, policy_spec, eval_envs)
+            rows = [{**base_row, "budget": budget, "steps": int(used), "status": "ok",
+                     "policy": policy_spec, "metrics": metrics, "train_s": round(train_s, 3),
+                     "wall_s": round(time.perf_counter() - t0, 3)}]
+    except KeyboardInterrupt:
+        raise
+    except Exception as e:  # noqa: BLE001 - a job's failure is data, not a crash of the sweep
+        msg = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        rows = [{**base_row, "budget": b, "status": "error",
+                 "error": f"{type(e).__name__}: {msg}",
+                 "where": traceback.format_exc(limit=-1).strip().splitlines()[-3:],
+                 "wall_s": round(time.perf_counter() - t0, 3)} for b in job.budgets]
+    for row, name in zip(rows, job.names, strict=True):
+        write_row(out_dir, name, row)
+    return rows
+
+
+def _run_ppo(spec, job, opts, eval_envs, pol_dir, base_row, t0) -> list[dict]:
+    from sfm_learn.baselines import ppo
+
+    hp = ppo.load_hyperparameters(opts["env"], opts.get("hyperparams"))
+    n_envs, observation = hp.pop("n_envs"), hp.pop("observation")
+    hp.pop("n_timesteps")
+    ckpt = os.path.join(pol_dir, f"{job.learner}_s{job.seed}")
+    os.makedirs(ckpt, exist_ok=True)
+    _, meta = ppo.train(opts["env"], max(job.budgets), seed=job.seed, n_envs=n_envs,
+                        hyperparameters=hp, observation=observation, eval_at=job.budgets,
+                        eval_episodes=1, eval_seed=spec["eval"]["seed"], checkpoint_dir=ckpt)
+    train_s = time.perf_counter() - t0
+    rows = []
+    for b in job.budgets:
+        # the first checkpoint at or after b env steps (SB3 finishes whole rollouts)
+        point = next(p for p in meta["learning_curve"] if p["env_steps"] >= b)
+        path = os.path.join(ckpt, f"ppo_{point['env_steps']:08d}.zip")
+        rows.append({**base_row, "budget": b, "steps": point["env_steps"], "status": "ok",
+                     "policy": f"ppo:{path}", "metrics": _evaluate(spec, f"ppo:{path}",
+                                                                   eval_envs),
+                     "train_s": round(train_s, 3), "ppo_train_wall_s": point["wall_s"],
+                     "wall_s": round(time.perf_counter() - t0, 3)})
+    return rows
+
+
+def write_row(out_dir: str, name: str, row: dict) -> None:
+    os.makedirs(os.path.join(out_dir, "rows"), exist_ok=True)
+    atomic_write_text(os.path.join(out_dir, "rows", name),
+                      json.dumps(row, indent=1, sort_keys=True, allow_nan=False) + "\n")
+
+
+def read_rows(out_dir: str) -> list[dict]:
+    """Every row in ``out_dir/rows`` (unreadable files are skipped)."""
+    d = os.path.join(out_dir, "rows")
+    rows = []
+    for name in sorted(os.listdir(d)) if os.path.isdir(d) else []:
+        if not name.endswith(".json"):
+            continue
+        try:
+            with open(os.path.join(d, name), encoding="utf-8") as f:
+                row = json.load(f)
+        except (OSError, ValueError):
+            continue
+        if isinstance(row, dict):
+            row["_file"] = name
+            rows.append(row)
+    return rows
+
+
+def pending(spec: dict, out_dir: str) -> list[Job]:
+    """Jobs whose rows are not all present with status ok."""
+    done = {r["_file"] for r in read_rows(out_dir) if r.get("status") == "ok"}
+    return [j for j in plan(spec) if not all(n in done for n in j.names)]
+
+
+# ---------------------------------------------------------------------- the sweep
+def _job_entry(spec, job, out_dir):
+    import mkv_env  # noqa: F401  (a fresh worker registers the ids)
+    import sfm_learn  # noqa: F401  (and the policy specs)
+
+    return run_job(spec, job, out_dir)
+
+
+def run_sweep(spec: dict, out_dir: str, *, backend: str = "local", workers: int = 1,
+              address: str | None = None,
+              on_job: Callable[[Job, list[dict]], None] | None = None) -> dict:
+    """Run every pending job of ``spec`` into ``out_dir``; returns counts
+    ``{"jobs", "skipped", "ok", "error"}``. ``on_job(job, rows)`` after each finished job."""
+    os.makedirs(out_dir, exist_ok=True)
+    atomic_write_text(os.path.join(out_dir, "spec.json"),
+                      json.dumps(spec, indent=1, sort_keys=True) + "\n")
+    todo = pending(spec, out_dir)
+    counts = {"jobs": len(plan(spec)), "skipped": len(plan(spec)) - len(todo), "ok": 0,
+              "error": 0}
+
+    def done(job, rows):
+        bad = any(r.get("status") != "ok" for r in rows)
+        counts["error" if bad else "ok"] += 1
+        if on_job is not None:
+            on_job(job, rows)
+
+    if backend == "ray":
+        from sfm_learn.experiments import ray_backend
+
+        ray_backend.run(_job_entry, spec, todo, out_dir, workers=workers, address=address,
+                        on_done=done)
+    elif backend != "local":
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    elif workers <= 1:
+        for job in todo:
+            done(job, _job_entry(spec, job, out_dir))
+    else:
+        import multiprocessing as mp
+
+        from sfm_learn.evaluation.runner import default_start_method
+
+        ctx = mp.get_context(default_start_method())
+        with futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+            futs = {pool.submit(_job_entry, spec, job, out_dir): job for job in todo}
+            try:
+                for fut in futures.as_completed(futs):
+                    done(futs[fut], fut.result())
+            except BaseException:
+                for f in futs:
+                    f.cancel()
+                raise
+    return counts
+
+
+__all__ = ["Job", "SpecError", "check_envs", "check_spec", "load_spec", "pending", "plan",
+           "read_rows", "row_name", "run_job", "run_sweep", "teacher_data"]
