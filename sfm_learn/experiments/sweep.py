@@ -372,7 +372,9 @@ def run_sweep(spec: dict, out_dir: str, *, backend: str = "local", workers: int 
     os.makedirs(out_dir, exist_ok=True)
     atomic_write_text(os.path.join(out_dir, "spec.json"),
                       json.dumps(spec, indent=1, sort_keys=True) + "\n")
-    todo = pending(spec, out_dir)
+    # longest first (PPO runs), so no long job starts last while the other workers idle
+    todo = sorted(pending(spec, out_dir),
+                  key=lambda j: spec["learners"][j.learner]["kind"] != "ppo")
     counts = {"jobs": len(plan(spec)), "skipped": len(plan(spec)) - len(todo), "ok": 0,
               "error": 0}
 
