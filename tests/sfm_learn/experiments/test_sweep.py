@@ -1,0 +1,155 @@
+"""``mkv sweep``: spec checks, resumable rows, failing jobs, summary."""
+
+import json
+import os
+
+import pytest
+
+from sfm_learn.cli import main
+from sfm_learn.experiments import sweep
+from sfm_learn.experiments.summary import aggregate, t_interval
+
+SPEC = {
+    "name": "tiny",
+    "teacher_env": "MKV-v1",
+    "env": ["MKVJam-v1"],
+    "eval": {"episodes": 2, "seed": 4_100_000},
+    "seeds": [0, 1],
+    "learners": {"sfm": {}, "sfm-paper": {"preset": "paper"}},
+    "budgets": {"sfm": [200, 400], "sfm-paper": [300]},
+}
+VOLATILE = ("wall_s", "train_s", "policy", "_file")
+
+
+def stable(rows):
+    return sorted(json.dumps({k: v for k, v in r.items() if k not in VOLATILE}, sort_keys=True)
+                   for r in rows)
+
+
+def write_spec(tmp_path, spec, name="spec.json"):
+    p = tmp_path / name
+    p.write_text(json.dumps(spec))
+    return str(p)
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sweep") / "full"
+    counts = sweep.run_sweep(sweep.check_spec(SPEC), str(d))
+    assert counts == {"jobs": 6, "skipped": 0, "ok": 6, "error": 0}
+    return d
+
+
+def test_rows_one_per_job_with_metrics(full):
+    rows = sweep.read_rows(str(full))
+    assert sorted(r["_file"] for r in rows) == sorted(
+        sweep.row_name(n, s, b) for n, bs in SPEC["budgets"].items() for s in (0, 1) for b in bs)
+    for r in rows:
+        assert r["status"] == "ok" and r["budget_unit"] == "teacher_steps"
+        assert r["steps"] == r["budget"]                      # the teacher ran exactly the budget
+        m = r["metrics"]["MKVJam-v1"]
+        assert 0.0 <= m["escape_rate"] <= 1.0 and m["distance_m"] >= 0
+
+
+def test_interrupted_sweep_resumes_to_the_same_rows(full, tmp_path):
+    spec = sweep.check_spec(SPEC)
+    d = tmp_path / "resumed"
+    seen = []
+
+    def stop_after_two(job, rows):
+        seen.append(job)
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sweep.run_sweep(spec, str(d), on_job=stop_after_two)
+    assert len(sweep.read_rows(str(d))) == 2
+    assert len(sweep.pending(spec, str(d))) == 4
+    counts = sweep.run_sweep(spec, str(d))
+    assert counts == {"jobs": 6, "skipped": 2, "ok": 4, "error": 0}
+    assert stable(sweep.read_rows(str(d))) == stable(sweep.read_rows(str(full)))
+    # a third run has nothing left to do
+    assert sweep.run_sweep(spec, str(d))["skipped"] == 6
+
+
+def test_failing_job_is_reported_and_the_others_finish(tmp_path, capsys):
+    spec = dict(SPEC, learners={"sfm": {}, "sfm-bad": {"preset": "no-such-preset"}},
+                budgets={"sfm": [200], "sfm-bad": [200]})
+    d = tmp_path / "out"
+    code = main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"])
+    out, err = capsys.readouterr()
+    assert code == 1
+    assert "4 jobs: 0 already done, 2 ran, 2 failed" in out
+    rows = {r["_file"]: r for r in sweep.read_rows(str(d))}
+    bad = rows[sweep.row_name("sfm-bad", 0, 200)]
+    assert bad["status"] == "error" and "no-such-preset" in bad["error"]
+    assert rows[sweep.row_name("sfm", 1, 200)]["status"] == "ok"
+    # a rerun retries only the failed jobs
+    assert main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"]) == 1
+    assert "4 jobs: 2 already done, 0 ran, 2 failed" in capsys.readouterr().out
+
+
+def test_local_pool_of_two_workers_writes_the_same_rows(full, tmp_path):
+    d = tmp_path / "pool"
+    sweep.run_sweep(sweep.check_spec(SPEC), str(d), workers=2)
+    assert stable(sweep.read_rows(str(d))) == stable(sweep.read_rows(str(full)))
+
+
+def test_summary_prints_tables_and_draws_curves(full, capsys, tmp_path):
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "c.png"
+    assert main(["sweep", "--summary", str(full), "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "escape rate on **MKVJam-v1**" in out and "| sfm | 400 | 400 | teacher steps |" in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_t_interval_and_aggregate():
+    m, lo, hi = t_interval([1.0, 2.0, 3.0])
+    assert m == 2.0 and lo == pytest.approx(2 - 4.302653 / 3 ** 0.5, rel=1e-5)
+    rows = [{"status": "ok", "learner": "a", "budget": 10, "steps": 10,
+             "metrics": {"E": {"escape_rate": v}}} for v in (0.0, 1.0)]
+    pts = aggregate(rows + [{"status": "error", "learner": "a", "budget": 10}])
+    (b, steps, mean, lo, hi, n), = pts["curves"][("a", "E", "escape_rate")]
+    assert (b, n, mean, lo, hi) == (10, 2, 0.5, 0.0, 1.0)      # clipped to [0, 1]
+    assert len(pts["errors"]) == 1
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"seeds": []}, "seeds must be a non-empty list"),
+    ({"seeds": [1, 1]}, "repeated"),
+    ({"learners": {"xgb": {}}, "budgets": {"xgb": [10]}}, "unknown kind 'xgb'"),
+    ({"budgets": {"sfm": [200]}}, "budgets lacks learner 'sfm-paper'"),
+    ({"learners": {"sfm": {"epochs": 3}}, "budgets": {"sfm": [10]}}, "unknown option"),
+    ({"colour": 1}, "unknown sweep spec key"),
+    ({"eval": {"episodes": 0}}, "eval.episodes"),
+    ({"env": "Nope-v9"}, "Nope-v9"),
+])
+def test_bad_specs_are_one_line_errors(tmp_path, capsys, change, message):
+    spec = dict(SPEC, **change)
+    d = tmp_path / "o"
+    assert main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not d.exists()
+
+
+def test_unreadable_spec_files(tmp_path, capsys):
+    bad = tmp_path / "s.yml"
+    bad.write_text("learners: [")
+    for path, message in ((str(bad), "not valid YAML"), (str(tmp_path / "none.json"),
+                                                          "cannot read sweep spec")):
+        assert main(["sweep", path, "--out", str(tmp_path / "o"), "--quiet"]) == 2
+        assert message in capsys.readouterr().err
+
+
+def test_another_spec_in_the_same_directory_is_refused(full, tmp_path, capsys):
+    spec = dict(SPEC, seeds=[7])
+    assert main(["sweep", write_spec(tmp_path, spec), "--out", str(full), "--quiet"]) == 2
+    assert "holds a sweep of another spec" in capsys.readouterr().err
+
+
+def test_summary_of_a_non_sweep_directory(tmp_path, capsys):
+    assert main(["sweep", "--summary", str(tmp_path)]) == 2
+    assert "not a sweep directory" in capsys.readouterr().err
+    assert os.listdir(tmp_path) == []
