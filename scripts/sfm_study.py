@@ -6,7 +6,7 @@ each over several teacher training sets, evaluated on env seeds never used while
 
 Writes OUT/features.md, OUT/rank_default.md, OUT/rank_paper.md, OUT/rank_study.png and
 OUT/summary.json (means, [min..max], the teacher on the same seeds), and prints the tables.
-Training sets: 20 MKV-v0 teacher episodes each, env seeds 0.., 100.., 200.., ...; held-out runs
+Training sets: 20 MKV-v1 teacher episodes each, env seeds 0.., 100.., 200.., ...; held-out runs
 500..504; evaluation env seeds 2,000,000.. (the demo's).
 """
 
@@ -30,8 +30,8 @@ from sfm_learn.reporting.tables import study_markdown
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", type=int, default=5, help="training sets (default 5)")
-    ap.add_argument("--jam", type=int, default=100, help="MKVJam-v0 episodes per fit")
-    ap.add_argument("--wander", type=int, default=20, help="MKV-v0 episodes per fit")
+    ap.add_argument("--jam", type=int, default=100, help="MKVJam-v1 episodes per fit")
+    ap.add_argument("--wander", type=int, default=20, help="MKV-v1 episodes per fit")
     ap.add_argument("--seed", type=int, default=2_000_000, help="first evaluation env seed")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default="study_out")
@@ -41,11 +41,11 @@ def main() -> int:
         args.sets, args.jam, args.wander = 2, 10, 2
     os.makedirs(args.out, exist_ok=True)
     t0 = time.time()
-    trains = [record("MKV-v0", "teacher", 20, 100 * k) for k in range(args.sets)]
-    held = record("MKV-v0", "teacher", 5, 500)
+    trains = [record("MKV-v1", "teacher", 20, 100 * k) for k in range(args.sets)]
+    held = record("MKV-v1", "teacher", 5, 500)
     names = trains[0].sensor_names
-    teacher_jam = evaluate("MKVJam-v0", "teacher", args.jam, args.seed, n_boot=0).metrics
-    teacher_w = evaluate("MKV-v0", "teacher", args.wander, args.seed, n_boot=0).metrics
+    teacher_jam = evaluate("MKVJam-v1", "teacher", args.jam, args.seed, n_boot=0).metrics
+    teacher_w = evaluate("MKV-v1", "teacher", args.wander, args.seed, n_boot=0).metrics
     ranks = (1, 8, 30) if args.quick else None
     jobs = {"features": list(FEATURE_CONFIGS),
             "rank_default": rank_configs(names, "default", ranks),
@@ -79,8 +79,8 @@ def main() -> int:
                     for key, res in results.items()},
     }
     atomic_write_text(os.path.join(args.out, "summary.json"), json.dumps(summary, indent=1))
-    print(f"\nTeacher on the same seeds: MKVJam-v0 escape rate {teacher_jam['escape_rate']:.3f} "
-          f"({args.jam} episodes); MKV-v0 distance {teacher_w['distance_m']:.1f} m, stuck "
+    print(f"\nTeacher on the same seeds: MKVJam-v1 escape rate {teacher_jam['escape_rate']:.3f} "
+          f"({args.jam} episodes); MKV-v1 distance {teacher_w['distance_m']:.1f} m, stuck "
           f"{teacher_w['stuck_fraction']:.3f} ({args.wander} episodes). {time.time() - t0:.0f} s")
     return 0
 

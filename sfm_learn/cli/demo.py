@@ -1,14 +1,16 @@
-"""``mkv demo``: the main job end to end, on defaults (about 3-4 minutes on two cores).
+"""``mkv demo``: the main job end to end, on defaults (about 8-9 minutes on two cores).
 
 It runs, in order, the same commands a user would (each printed, so every number in the report
 can be reproduced by hand):
 
-1. ``mkv record`` the scripted teacher: training runs and held-out runs on ``MKV-v0``;
+1. ``mkv record`` the scripted teacher: training runs and held-out runs on ``MKV-v1``;
 2. ``mkv fit`` the shape-from-motion policy; ``mkv compare`` on the held-out runs (Figure 3);
-   the feature-set study (:mod:`sfm_learn.evaluation.study`) on the same data;
-3. ``mkv train-bc`` on the same training runs; ``mkv train-ppo`` on the ``MKV-v0`` reward;
-4. ``mkv eval`` teacher, random, SfM, BC and PPO on the same seeds of ``MKVJam-v0`` and ``MKV-v0``
-   (worker processes, bootstrap confidence intervals, bar plots);
+   the feature-set and rank studies (:mod:`sfm_learn.evaluation.study`) on the same data;
+3. ``mkv train-bc`` and ``mkv train-dagger`` with the same teacher budget; ``mkv train-ppo`` on
+   the ``MKVJam-v1`` and ``MKV-v1`` rewards (one seed each, a reduced budget: the report says so
+   and points to the sweep, ``sweeps/sample_efficiency.yml``, for 5 seeds and 1M steps);
+4. ``mkv eval`` teacher, random, stand-still, SfM, BC, DAgger and PPO on the same seeds of
+   ``MKVJam-v1`` and ``MKV-v1`` (worker processes, bootstrap confidence intervals, bar plots);
 5. ``calib trials`` (the paper's force-sensor simulation trials);
 
 and writes ``DIR/report.md`` with the tables, the plots (PNG, beside it) and conclusions drawn
@@ -35,6 +37,8 @@ from sfm_learn.cli.common import CliError, episodes_type, positive_int, seed, ti
 
 __all__ = ["add_arguments", "run", "Budget"]
 
+TEACHER_ENV, JAM_ENV, WANDER_ENV = "MKV-v1", "MKVJam-v1", "MKV-v1"
+
 
 @dataclass(frozen=True)
 class Budget:
@@ -50,7 +54,9 @@ class Budget:
     held_seed: int = 500
     episode_steps: int | None = None  # None: the env's default (600 steps = 60 s)
     bc_epochs: int = 30
-    ppo_timesteps: int = 200_000
+    dagger_rounds: int = 4
+    ppo_timesteps: int = 150_000
+    """Per PPO run (one on each v1 reward); the sweep uses up to 1,000,000 and 5 seeds."""
     ppo_eval_episodes: int = 10
     jam_episodes: int = 100
     wander_episodes: int = 20
@@ -59,7 +65,7 @@ class Budget:
     1000.., 10000.., 777000.. and the training/held-out seeds below 1000)."""
     study_jam_episodes: int = 50
     study_wander_episodes: int = 10
-    rank_study_ranks: tuple = (1, 2, 3, 4, 6, 8, 12, 16, 20, 24, 28, 30, 32)
+    rank_study_ranks: tuple = (1, 2, 4, 8, 16, 32)
     calib_seeds: int = 200
     workers: int = 2
 
@@ -68,6 +74,7 @@ class Budget:
 
 
 QUICK = Budget(train_sets=2, train_episodes=3, held_episodes=1, episode_steps=120, bc_epochs=2,
+               dagger_rounds=2,
                ppo_timesteps=1024, ppo_eval_episodes=2, jam_episodes=6, wander_episodes=2,
                study_jam_episodes=4, study_wander_episodes=1, rank_study_ranks=(1, 8, 32),
                calib_seeds=2, workers=2)
@@ -79,7 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help="tiny budgets: a smoke run in well under a minute")
     p.add_argument("--ppo-timesteps", type=timesteps_type, default=None, metavar="T",
-                   help=f"PPO budget in env steps (default {Budget.ppo_timesteps})")
+                   help=f"budget of each PPO run in env steps (default {Budget.ppo_timesteps})")
     p.add_argument("--train-episodes", type=episodes_type, default=None, metavar="N",
                    help=f"teacher episodes per training set (default {Budget.train_episodes})")
     p.add_argument("--train-sets", type=int_in_range(1, 100), default=None, metavar="K",
@@ -215,7 +222,7 @@ def _run(args, out: str, final: str) -> None:
         return os.path.join(out, *parts)
 
     t_start = time.perf_counter()
-    st = _Stages(total=12 - bool(args.skip_calib), quiet=args.quiet)
+    st = _Stages(total=14 - bool(args.skip_calib), quiet=args.quiet)
     env_kwargs = [] if b.episode_steps is None else [
         "--env-kwargs", json.dumps({"max_episode_steps": b.episode_steps})]
     sets = range(b.train_sets)
@@ -224,7 +231,8 @@ def _run(args, out: str, final: str) -> None:
     sfm = [p("policies", f"sfm_{k}.npz") for k in sets]
     paper = [p("policies", f"sfm_paper_{k}.npz") for k in sets]
     bc = [p("policies", f"bc_{k}.zip") for k in sets]
-    ppo = p("policies", "ppo.zip")
+    dagger = [p("policies", f"dagger_{k}.zip") for k in sets]
+    ppo = {JAM_ENV: p("policies", "ppo_jam.zip"), WANDER_ENV: p("policies", "ppo_wander.zip")}
 
     def each(fn):
         for k in sets:
@@ -234,16 +242,16 @@ def _run(args, out: str, final: str) -> None:
     def record_sets():
         from sfm_learn.cli.app import main
 
-        each(lambda k: main(["record", "--env", "MKV-v0", *env_kwargs, "--policy", "teacher",
+        each(lambda k: main(["record", "--env", TEACHER_ENV, *env_kwargs, "--policy", "teacher",
                              "--episodes", str(b.train_episodes), "--seed",
                              str(b.train_seeds()[k]), "--out", trains[k], "--quiet"]))
 
     st.call(f"record {b.train_sets} teacher training sets",
-            f"for S in {' '.join(map(str, b.train_seeds()))}: mkv record --env MKV-v0 "
+            f"for S in {' '.join(map(str, b.train_seeds()))}: mkv record --env {TEACHER_ENV} "
             f"--policy teacher --episodes {b.train_episodes} --seed S "
             "--out data/teacher_train_K.npz", record_sets)
     st.mkv("record held-out teacher runs", [
-        "record", "--env", "MKV-v0", *env_kwargs, "--policy", "teacher",
+        "record", "--env", TEACHER_ENV, *env_kwargs, "--policy", "teacher",
         "--episodes", b.held_episodes, "--seed", b.held_seed, "--out", held])
 
     def fit_sets():
@@ -309,22 +317,39 @@ def _run(args, out: str, final: str) -> None:
     st.call("behaviour cloning on every training set",
             f"mkv train-bc data/teacher_train_K.npz --out policies/bc_K.zip --epochs "
             f"{b.bc_epochs} --held-out 0", bc_sets)
-    st.mkv("PPO on the MKV-v0 reward", [
-        "train-ppo", "--env", "MKV-v0", "--timesteps", b.ppo_timesteps, "--out", ppo,
-        "--seed", b.train_seed, "--eval-episodes", b.ppo_eval_episodes])
+    steps_per_set = b.train_episodes * (b.episode_steps or 600)
+
+    def dagger_sets():
+        from sfm_learn.cli.app import main
+
+        each(lambda k: main(["train-dagger", "--env", TEACHER_ENV, *env_kwargs, "--steps",
+                             str(steps_per_set), "--rounds", str(b.dagger_rounds), "--seed",
+                             str(b.train_seeds()[k]), "--epochs", str(b.bc_epochs), "--out",
+                             dagger[k], "--quiet"]))
+
+    st.call("DAgger with the same teacher budget on every training seed",
+            f"mkv train-dagger --env {TEACHER_ENV} --steps {steps_per_set} --rounds "
+            f"{b.dagger_rounds} --seed S --epochs {b.bc_epochs} --out policies/dagger_K.zip",
+            dagger_sets)
+    for env_id in (JAM_ENV, WANDER_ENV):
+        st.mkv(f"PPO on the {env_id} reward (one seed, reduced budget)", [
+            "train-ppo", "--env", env_id, "--timesteps", b.ppo_timesteps, "--out", ppo[env_id],
+            "--seed", b.train_seed, "--eval-episodes", b.ppo_eval_episodes])
 
     learners = {"SfM": [f"sfm:{x}" for x in sfm], "SfM paper": [f"sfm:{x}" for x in paper],
-                "BC": [f"bc:{x}" for x in bc]}
+                "BC": [f"bc:{x}" for x in bc], "DAgger": [f"dagger:{x}" for x in dagger]}
+    ppo_specs = {"PPO jam": f"ppo:{ppo[JAM_ENV]}", "PPO wander": f"ppo:{ppo[WANDER_ENV]}"}
     evals = {}
-    for env_id, episodes, key in (("MKVJam-v0", b.jam_episodes, "jam"),
-                                  ("MKV-v0", b.wander_episodes, "wander")):
-        shown = (f"mkv eval --env {env_id} --policy teacher --policy random --policy "
-                 "sfm:policies/sfm_K.npz --policy sfm:policies/sfm_paper_K.npz --policy "
-                 f"bc:policies/bc_K.zip --policy ppo:policies/ppo.zip --episodes {episodes} "
-                 f"--seed {b.eval_seed} --workers {b.workers} (each K; pooled over K)")
+    for env_id, episodes, key in ((JAM_ENV, b.jam_episodes, "jam"),
+                                  (WANDER_ENV, b.wander_episodes, "wander")):
+        shown = (f"mkv eval --env {env_id} --policy teacher --policy random --policy const:still "
+                 "--policy sfm:policies/sfm_K.npz --policy sfm:policies/sfm_paper_K.npz --policy "
+                 "bc:policies/bc_K.zip --policy dagger:policies/dagger_K.zip --policy "
+                 "ppo:policies/ppo_jam.zip --policy ppo:policies/ppo_wander.zip --episodes "
+                 f"{episodes} --seed {b.eval_seed} --workers {b.workers} (each K; pooled over K)")
         st.call(f"evaluate every policy on {env_id}", shown,
                 lambda env_id=env_id, episodes=episodes, key=key: evals.__setitem__(
-                    key, _evaluate(env_id, learners, f"ppo:{ppo}", episodes, b,
+                    key, _evaluate(env_id, learners, ppo_specs, episodes, b,
                                    p("eval", key), args.quiet)))
     if not args.skip_calib:
         calib = {}
@@ -344,21 +369,22 @@ def _run(args, out: str, final: str) -> None:
     print(f"\nfinished in {time.perf_counter() - t_start:.0f} s")
 
 
-def _evaluate(env_id, learners: dict, ppo_spec: str, episodes, b: Budget, stem: str,
+def _evaluate(env_id, learners: dict, ppo_specs: dict, episodes, b: Budget, stem: str,
               quiet: bool) -> dict:
     """Every policy on the same seeds; each learner's training sets pooled into one evaluation
-    (records of set 0, then set 1, ...; PPO's one run repeated per set so records pair up).
+    (records of set 0, then set 1, ...; each PPO run repeated per set so records pair up).
 
     Returns ``{"table": [Evaluation, ...], "per_set": {learner: [Evaluation per set]},
-    "pooled": {name: Evaluation}}``."""
+    "pooled": {name: Evaluation}, "teacher", "random", "still", "ppo": {name: Evaluation}}``."""
     from sfm_learn.evaluation import evaluate_many, evaluations_json
     from sfm_learn.evaluation.runner import pool
     from sfm_learn.reporting.plots import plot_evaluations
     from sfm_learn.reporting.tables import format_markdown
 
-    specs = ["teacher", "random", *[s for v in learners.values() for s in v], ppo_spec]
-    names = ["teacher", "random", *[f"{n} set {k}" for n, v in learners.items()
-                                    for k in range(len(v))], "PPO"]
+    specs = ["teacher", "random", "const:still", *[s for v in learners.values() for s in v],
+             *ppo_specs.values()]
+    names = ["teacher", "random", "stand still", *[f"{n} set {k}" for n, v in learners.items()
+                                                   for k in range(len(v))], *ppo_specs]
     with progress(episodes * len(specs), f"eval {env_id}", unit="ep",
                   enabled=False if quiet else None) as bar:
         result = evaluate_many(env_id, specs, episodes, b.eval_seed, workers=b.workers,
@@ -367,8 +393,10 @@ def _evaluate(env_id, learners: dict, ppo_spec: str, episodes, b: Budget, stem: 
     per_set = {n: [by[f"{n} set {k}"] for k in range(len(v))] for n, v in learners.items()}
     n_sets = b.train_sets
     pooled = {n: pool(evs, f"{n} ({n_sets} sets)") for n, evs in per_set.items()}
-    pooled["PPO"] = pool([by["PPO"]] * n_sets, "PPO")
-    table = [by["teacher"], by["random"], *[pooled[n] for n in learners], by["PPO"]]
+    for n in ppo_specs:
+        pooled[n] = pool([by[n]] * n_sets, n)
+    table = [by["teacher"], by["random"], by["stand still"], *[pooled[n] for n in learners],
+             *[by[n] for n in ppo_specs]]
     atomic_write_text(stem + ".json", evaluations_json(table + [e for evs in per_set.values()
                                                                 for e in evs]))
     plot_evaluations(table, stem + ".png",
@@ -376,7 +404,8 @@ def _evaluate(env_id, learners: dict, ppo_spec: str, episodes, b: Budget, stem: 
                            f"seeds {b.eval_seed}..{b.eval_seed + episodes - 1}")
     print(format_markdown(table))
     return {"table": table, "per_set": per_set, "pooled": pooled,
-            "teacher": by["teacher"], "random": by["random"], "ppo": by["PPO"]}
+            "teacher": by["teacher"], "random": by["random"], "still": by["stand still"],
+            "ppo": {n: by[n] for n in ppo_specs}}
 
 
 def _calib(out: str, seeds: int, quiet: bool) -> dict:

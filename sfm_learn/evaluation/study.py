@@ -6,8 +6,9 @@ rank) on every training set (teacher recordings with different seeds), and measu
 
 * free-running agreement with held-out teacher runs (:func:`~sfm_learn.evaluation.compare.
   compare`: drive, steer timing, steer onsets hit within +-2 steps);
-* the closed loop on the same env seeds for every fit: escape rate on ``MKVJam-v0``, stuck
-  fraction and distance on ``MKV-v0`` (all fits evaluated together by
+* the closed loop on the same env seeds for every fit: escape rate on ``MKVJam-v1``, stuck
+  fraction and distance on ``MKV-v1`` (the v0 ids give the same numbers: only their rewards
+  differ, and the study reports no reward; all fits evaluated together by
   :func:`~sfm_learn.evaluation.runner.evaluate_many`, so worker processes share them out).
 
 Results are one row per (configuration, training set); tables report the mean over training
@@ -110,7 +111,8 @@ class StudyResult:
 
 def run_study(trains: Sequence, held, configs: Sequence[StudyConfig], *,
               jam_episodes: int = 100, wander_episodes: int = 20, seed: int = 1000,
-              workers: int = 1, on_episode: Callable[[], None] | None = None) -> StudyResult:
+              workers: int = 1, on_episode: Callable[[], None] | None = None,
+              jam_env: str = "MKVJam-v1", wander_env: str = "MKV-v1") -> StudyResult:
     """Fit every configuration on every training set; measure free-running agreement on ``held``
     and the closed loop on env seeds ``seed ..``; returns a :class:`StudyResult`."""
     names = tuple(trains[0].sensor_names)
@@ -129,9 +131,9 @@ def run_study(trains: Sequence, held, configs: Sequence[StudyConfig], *,
                                     free["steer_timing"], free["onset_hit_w2"])
                 specs.append(f"sfm:{pol.save(os.path.join(tmp, f'c{c}_s{s}.npz'))}")
         tick = None if on_episode is None else (lambda *a: on_episode())
-        jam = evaluate_many("MKVJam-v0", specs, jam_episodes, seed, workers=workers,
+        jam = evaluate_many(jam_env, specs, jam_episodes, seed, workers=workers,
                             on_episode=tick, n_boot=0)
-        wander = evaluate_many("MKV-v0", specs, wander_episodes, seed, workers=workers,
+        wander = evaluate_many(wander_env, specs, wander_episodes, seed, workers=workers,
                                on_episode=tick, n_boot=0)
     for k, (j, w) in enumerate(zip(jam, wander, strict=True)):
         c, s = divmod(k, len(trains))

@@ -245,10 +245,10 @@ def plot_rank_study(results: dict, path, *, teacher: dict | None = None, title=N
     [min, max] band, the rank the largest-ratio rule picks marked. ``teacher`` may hold the
     teacher's ``escape_rate`` / ``distance_m`` on the same seeds (dashed reference lines)."""
     plt = _pyplot()
-    panels = (("escape_rate", "MKVJam-v0 escape rate"),
+    panels = (("escape_rate", "MKVJam-v1 escape rate"),
               ("steer_timing", "free-running steer timing agreement"),
               ("onset_hit_w2", "teacher steer onsets hit within +-2 steps"),
-              ("distance_m", "MKV-v0 distance per episode [m]"))
+              ("distance_m", "MKV-v1 distance per episode [m]"))
     fig, axes = plt.subplots(1, len(panels), figsize=(16, 4))
     for color, (preset, res) in zip(("tab:orange", "tab:blue", "tab:green"), results.items(),
                                     strict=False):

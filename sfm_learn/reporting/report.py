@@ -36,7 +36,10 @@ HIGHER_IS_BETTER = {
 COMPARED = [("jam", "escape_rate"), ("jam", "mean_escape_time_s"), ("wander", "distance_m"),
             ("wander", "stuck_fraction"), ("wander", "collisions_per_min"),
             ("wander", "mean_return")]
-ENV_OF = {"jam": "MKVJam-v0", "wander": "MKV-v0"}
+ENV_OF = {"jam": "MKVJam-v1", "wander": "MKV-v1"}
+#: What the demo's PPO conclusions cannot claim.
+PPO_CAVEAT = ("one PPO seed at the demo's reduced budget: not checked over seeds here; "
+              "docs/baselines.md has PPO over 5 seeds up to 1M steps")
 
 
 def _by_name(evaluations):
@@ -47,11 +50,15 @@ def _fmt(v, digits=3):
     return "-" if v is None else f"{v:.{digits}f}"
 
 
-def conclusions(evals: dict, learner: str = "SfM", others=("BC", "PPO")) -> list[str]:
+def conclusions(evals: dict, learner: str = "SfM", others=("BC", "PPO"),
+                notes: dict | None = None) -> list[str]:
     """One sentence per (baseline, metric): better, worse, or no clear difference (95% paired
-    bootstrap interval of the difference excludes 0 or not)."""
+    bootstrap interval of the difference excludes 0 or not). ``notes[other]`` is appended to
+    every sentence about ``other`` (e.g. that a PPO result is one seed)."""
     lines = []
+    notes = notes or {}
     for other in others:
+        note = f" ({notes[other]})" if other in notes else ""
         wins, losses, ties = [], [], []
         for key, metric in COMPARED:
             ev = _by_name(evals[key])
@@ -71,12 +78,12 @@ def conclusions(evals: dict, learner: str = "SfM", others=("BC", "PPO")) -> list
             else:
                 ties.append(text)
         if losses:
-            lines.append(f"**{other} beats {learner}** on: " + "; ".join(losses) + ".")
+            lines.append(f"**{other} beats {learner}** on: " + "; ".join(losses) + note + ".")
         if wins:
-            lines.append(f"**{learner} beats {other}** on: " + "; ".join(wins) + ".")
+            lines.append(f"**{learner} beats {other}** on: " + "; ".join(wins) + note + ".")
         if ties:
             lines.append(f"No clear difference between {learner} and {other} (interval "
-                         f"includes 0) on: " + "; ".join(ties) + ".")
+                         f"includes 0) on: " + "; ".join(ties) + note + ".")
     return lines
 
 
@@ -114,7 +121,7 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
     :class:`~sfm_learn.evaluation.study.StudyResult` of the feature and rank studies.
     """
     from sfm_learn import __version__
-    from sfm_learn.baselines import bc, ppo
+    from sfm_learn.baselines import bc, dagger, ppo
     from sfm_learn.eigenspace.policy import SfMPolicy
     from sfm_learn.evaluation.study import COLUMNS, study_by_key
     from sfm_learn.reporting.plots import plot_learning_cost
@@ -126,7 +133,10 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
     sfm = SfMPolicy.load(p("policies", "sfm_0.npz"))
     paper = SfMPolicy.load(p("policies", "sfm_paper_0.npz"))
     bc_meta = bc.read_metadata(p("policies", "bc_0.zip"))
-    ppo_meta = ppo.read_metadata(p("policies", "ppo.zip"))
+    dagger_meta = dagger.read_metadata(p("policies", "dagger_0.zip"))
+    ppo_jam = ppo.read_metadata(p("policies", "ppo_jam.zip"))
+    ppo_wander = ppo.read_metadata(p("policies", "ppo_wander.zip"))
+    jenv, wenv = ENV_OF["jam"], ENV_OF["wander"]
     cmp = _read_json(p("compare.json"))
     cmp_paper = _read_json(p("compare_paper.json"))
     jam, wander = evals["jam"], evals["wander"]
@@ -144,7 +154,7 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
     steps = budget.episode_steps or 600
     L += ["## Set-up: data, seeds and budgets", "",
           "| what | value |", "|---|---|",
-          f"| teacher training sets | {n_sets} sets of {budget.train_episodes} MKV-v0 episodes "
+          f"| teacher training sets | {n_sets} sets of {budget.train_episodes} {wenv} episodes "
           f"x {steps} steps ({sfm.training['rows']} steps each), env seeds "
           + ", ".join(f"{s}..{s + budget.train_episodes - 1}" for s in seeds) + " |",
           f"| held-out teacher runs (Figure 3) | {budget.held_episodes} episodes, env seeds "
@@ -159,9 +169,16 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           "quantisation |",
           f"| BC | SB3 ActorCriticPolicy, {_arch(bc_meta.get('net_arch'))} MLP, "
           f"{bc_meta['epochs']} epochs, the SfM default features, one per training set |",
-          f"| PPO | SB3 PPO MlpPolicy on the MKV-v0 reward, {ppo_meta['timesteps']} env steps, "
-          f"{ppo_meta.get('n_envs')} envs, one seed ({ppo_meta.get('seed')}) |",
-          f"| evaluation | MKVJam-v0 {budget.jam_episodes} and MKV-v0 {budget.wander_episodes} "
+          f"| DAgger | the BC network and features; {dagger_meta['dagger']['rounds']} rounds, "
+          f"{dagger_meta['teacher_steps']} teacher queries per training seed (the same budget as "
+          "BC and SfM), round 0 the teacher driving, then the learner with the teacher labelling "
+          "in shadow |",
+          *[f"| PPO {k} | SB3 PPO on the {m['env_id']} reward, {m['timesteps']} env steps, "
+            f"{m.get('n_envs')} envs, {m.get('observation', 'raw')} observation, packaged "
+            f"hyperparameters, **one seed ({m.get('seed')}), reduced budget**: the sweep "
+            "(`mkv sweep sweeps/sample_efficiency.yml`, docs/baselines.md) runs 5 seeds up to "
+            "1M steps |" for k, m in (("jam", ppo_jam), ("wander", ppo_wander))],
+          f"| evaluation | {jenv} {budget.jam_episodes} and {wenv} {budget.wander_episodes} "
           f"episodes per policy and training set, env seeds {budget.eval_seed}.. (never used "
           f"while developing); studies: {budget.study_jam_episodes} / "
           f"{budget.study_wander_episodes} episodes on the same seeds |", ""]
@@ -217,8 +234,8 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           f"Fitted on each of the {n_sets} training sets and driven in closed loop on the same "
           f"seeds, the paper's configuration escapes "
           f"{_over_sets(jam['per_set']['SfM paper'], 'escape_rate')} (mean [min..max] over "
-          f"training sets) of MKVJam-v0 jams, against the teacher's {_fmt(t_rate, 2)}, and "
-          f"travels {_over_sets(wander['per_set']['SfM paper'], 'distance_m', 1)} m per MKV-v0 "
+          f"training sets) of {jenv} jams, against the teacher's {_fmt(t_rate, 2)}, and "
+          f"travels {_over_sets(wander['per_set']['SfM paper'], 'distance_m', 1)} m per {wenv} "
           f"episode (teacher {wander['teacher'].metrics['distance_m']:.1f} m). Its rule keeps "
           f"n = {paper.n_components} eigenvectors of {paper.projector.n_features_in_} columns "
           f"({paper.projector.n_known_} sensors, 2 commands). With "
@@ -265,13 +282,14 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
 
     # ------------------------------------------------------------ closed loop
     L += ["## Closed loop: every policy on the same seeds", "",
-          f"SfM, the paper preset and BC pool their {n_sets} training sets ({n_sets} x the "
-          "episodes; intervals resample (training set, episode) pairs); PPO is one training "
-          "run.", "",
-          format_markdown(jam["table"]), "", "![MKVJam-v0](eval/jam.png)", "",
-          format_markdown(wander["table"]), "", "![MKV-v0](eval/wander.png)", "",
+          f"SfM, the paper preset, BC and DAgger pool their {n_sets} training sets ({n_sets} x "
+          "the episodes; intervals resample (training set, episode) pairs); each PPO is one "
+          "training run on its env's reward (jam or wander), evaluated on both envs. Stand "
+          "still is the constant baseline (drive and steering off).", "",
+          format_markdown(jam["table"]), "", f"![{jenv}](eval/jam.png)", "",
+          format_markdown(wander["table"]), "", f"![{wenv}](eval/wander.png)", "",
           "Per training set (mean [min..max] over sets):", "",
-          "| learner | MKVJam-v0 escape rate | MKV-v0 distance [m] | MKV-v0 stuck fraction |",
+          f"| learner | {jenv} escape rate | {wenv} distance [m] | {wenv} stuck fraction |",
           "|---|---:|---:|---:|"]
     for name in jam["per_set"]:
         L.append(f"| {name} | {_over_sets(jam['per_set'][name], 'escape_rate')} | "
@@ -292,38 +310,48 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
     points = [("SfM (teacher steps)", sfm.training["rows"],
                pooled_w["SfM"].metrics["mean_return"]),
               ("BC (teacher steps)", bc_meta["teacher_steps"],
-               pooled_w["BC"].metrics["mean_return"])]
-    plot_learning_cost(ppo_meta["learning_curve"], points, p("learning_cost.png"),
-                       metric="mean_return", ylabel="mean return on MKV-v0",
+               pooled_w["BC"].metrics["mean_return"]),
+              ("DAgger (teacher queries)", dagger_meta["teacher_steps"],
+               pooled_w["DAgger"].metrics["mean_return"])]
+    plot_learning_cost(ppo_wander["learning_curve"], points, p("learning_cost.png"),
+                       metric="mean_return", ylabel=f"mean return on {wenv}",
                        reference=("teacher", teacher_return),
-                       title="What each learner needed: data vs score on MKV-v0")
+                       title=f"What each learner needed: data vs score on {wenv}")
     L += ["## Learning cost", "",
-          "| learner | data used | training wall time | MKVJam-v0 escape rate | "
-          "MKV-v0 mean return |", "|---|---|---:|---:|---:|",
+          f"| learner | data used | training wall time | {jenv} escape rate | "
+          f"{wenv} mean return |", "|---|---|---:|---:|---:|",
           f"| SfM | {sfm.training['rows']} teacher steps | {sfm.training['wall_s']:.2f} s | "
           f"{_over_sets(jam['per_set']['SfM'], 'escape_rate')} | "
           f"{_over_sets(wander['per_set']['SfM'], 'mean_return')} |",
           f"| BC | {bc_meta['teacher_steps']} teacher steps | {bc_meta['train_wall_s']:.1f} s | "
           f"{_over_sets(jam['per_set']['BC'], 'escape_rate')} | "
           f"{_over_sets(wander['per_set']['BC'], 'mean_return')} |",
-          f"| PPO | {ppo_meta['timesteps']} env steps (reward) | {ppo_meta['train_wall_s']:.1f} s |"
-          f" {_fmt(jam['ppo'].metrics['escape_rate'])} | "
-          f"{_fmt(wander['ppo'].metrics['mean_return'], 2)} |", "",
+          f"| DAgger | {dagger_meta['teacher_steps']} teacher queries | "
+          f"{dagger_meta['train_wall_s']:.1f} s (last round's fit) | "
+          f"{_over_sets(jam['per_set']['DAgger'], 'escape_rate')} | "
+          f"{_over_sets(wander['per_set']['DAgger'], 'mean_return')} |",
+          *[f"| PPO {k} | {m['timesteps']} env steps ({m['env_id']} reward) | "
+            f"{m['train_wall_s']:.1f} s | {_fmt(jam['ppo'][f'PPO {k}'].metrics['escape_rate'])} | "
+            f"{_fmt(wander['ppo'][f'PPO {k}'].metrics['mean_return'], 2)} |"
+            for k, m in (("jam", ppo_jam), ("wander", ppo_wander))], "",
           "![learning cost](learning_cost.png)", "",
-          f"PPO's curve is its periodic evaluation during training ({ppo_meta['eval']['episodes']}"
-          f" episodes on env seeds {ppo_meta['eval']['seed']}.., deterministic actions); the SfM "
-          f"and BC points and the teacher line are from the evaluation above. Teacher steps are "
-          f"a human's time on a real robot; env steps are simulated.", ""]
+          f"The PPO curve is the {wenv}-reward run's periodic evaluation during training "
+          f"({ppo_wander['eval']['episodes']} episodes on env seeds "
+          f"{ppo_wander['eval']['seed']}.., deterministic actions); the SfM, BC and DAgger points "
+          "and the teacher line are from the evaluation above. Teacher steps are a human's time "
+          "on a real robot; env steps are simulated. Curves over 5 seeds and budgets from 1k to "
+          "50k teacher steps (and up to 1M PPO env steps): docs/baselines.md.", ""]
 
     # ------------------------------------------------------------ conclusions
     pooled_evals = {key: list(ev["pooled"].values()) for key, ev in evals.items()}
-    names = {n: f"{n} ({n_sets} sets)" for n in ("SfM", "SfM paper", "BC")}
-    names["PPO"] = "PPO"
+    names = {n: f"{n} ({n_sets} sets)" for n in ("SfM", "SfM paper", "BC", "DAgger")}
     L += ["## Conclusions (computed from the numbers above)", "",
-          "Paired bootstrap over the same (training set, episode) pairs; PPO's one run is "
+          "Paired bootstrap over the same (training set, episode) pairs; each PPO run is "
           "paired with each training set's episodes.", ""]
-    L += [f"- {line}" for line in conclusions(pooled_evals, learner=names["SfM"],
-                                              others=(names["BC"], "PPO", names["SfM paper"]))]
+    L += [f"- {line}" for line in conclusions(
+        pooled_evals, learner=names["SfM"],
+        others=(names["BC"], names["DAgger"], "PPO jam", "PPO wander", names["SfM paper"]),
+        notes={"PPO jam": PPO_CAVEAT, "PPO wander": PPO_CAVEAT})]
     L += [""]
 
     # ------------------------------------------------------------ calib
@@ -352,6 +380,16 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
 
 
 def environment_line() -> str:
-    """Python, platform and CPU count, for the report."""
-    return (f"Python {platform.python_version()} on {platform.system()} {platform.machine()}, "
-            f"{os.cpu_count()} CPUs; {sys.executable}")
+    """Python, platform, CPU count and the thread settings that decide training speed and (for
+    torch) bit-reproducibility, for the report."""
+    line = (f"Python {platform.python_version()} on {platform.system()} {platform.machine()} "
+            f"({platform.processor() or 'unknown CPU'}), {os.cpu_count()} CPUs; "
+            f"{sys.executable}")
+    try:
+        import torch
+    except ImportError:
+        return line
+    threads = ", ".join(f"{v}={os.environ[v]}" for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
+                        if v in os.environ) or "OMP/MKL_NUM_THREADS unset"
+    return (f"{line}; torch {torch.__version__} ({torch.get_num_threads()} intra-op thread(s) "
+            f"as the baselines set them, {threads})")

@@ -144,7 +144,7 @@ def study_markdown(result) -> str:
     n_sets = result.values.shape[1]
     rng = " [min..max]" if n_sets > 1 else ""
     head = ("| configuration | rank n / known | free-running drive | free-running steer timing"
-            " | onsets hit +-2 | MKVJam escape" + rng + " | MKV-v0 stuck | MKV-v0 distance [m] |")
+            " | onsets hit +-2 | MKVJam escape" + rng + " | MKV stuck | MKV distance [m] |")
     lines = [head, "|---|---|---|---|---|---|---|---|"]
     for c, config in enumerate(result.configs):
         r = result.values[c]

@@ -32,23 +32,27 @@ def test_quick_demo_writes_the_report_and_every_file_it_links(demo_dir):
 
 
 def test_quick_demo_evaluates_every_policy_on_the_same_seeds(demo_dir):
-    for key, env in (("jam", "MKVJam-v0"), ("wander", "MKV-v0")):
+    head = ["teacher", "random", "stand still", "SfM (2 sets)", "SfM paper (2 sets)",
+            "BC (2 sets)", "DAgger (2 sets)", "PPO jam", "PPO wander"]
+    for key, env in (("jam", "MKVJam-v1"), ("wander", "MKV-v1")):
         doc = json.loads((demo_dir / "eval" / f"{key}.json").read_text())
         names = [d["policy"] for d in doc]
-        assert names[:6] == ["teacher", "random", "SfM (2 sets)", "SfM paper (2 sets)",
-                             "BC (2 sets)", "PPO"]
+        assert names[:9] == head
         # then every training set's own evaluation
-        assert names[6:] == [f"{n} set {k}" for n in ("SfM", "SfM paper", "BC")
+        assert names[9:] == [f"{n} set {k}" for n in ("SfM", "SfM paper", "BC", "DAgger")
                              for k in range(2)]
         assert all(d["env"] == env and d["seed"] == 2_000_000 for d in doc)
         assert all(set(d["metrics_ci"]) == set(d["metrics"]) for d in doc)
-        assert [d.get("training_sets", 1) for d in doc[:6]] == [1, 1, 2, 2, 2, 1]
+        assert [d.get("training_sets", 1) for d in doc[:9]] == [1, 1, 1, 2, 2, 2, 2, 1, 1]
         # a pooled learner is the mean of its training sets
-        pooled = doc[2]["metrics"]["distance_m"]
-        sets = [d["metrics"]["distance_m"] for d in doc[6:8]]
+        pooled = doc[3]["metrics"]["distance_m"]
+        sets = [d["metrics"]["distance_m"] for d in doc[9:11]]
         assert abs(pooled - sum(sets) / 2) < 1e-9
+        assert doc[2]["metrics"]["distance_m"] < 0.05          # stand still stands still
     report = (demo_dir / "report.md").read_text()
-    sfm = json.loads((demo_dir / "eval" / "jam.json").read_text())[2]
+    assert "one PPO seed at the demo's reduced budget" in report
+    assert "intra-op thread" in report                          # thread settings printed
+    sfm = json.loads((demo_dir / "eval" / "jam.json").read_text())[3]
     assert f"| SfM (2 sets) | {sfm['metrics']['escape_rate']:.3f}" in report
     cmp = json.loads((demo_dir / "compare.json").read_text())
     assert set(cmp["modes"]) == {"teacher_forced", "free_running"}
@@ -70,7 +74,7 @@ def _records(values, metric_field="distance_m"):
 
 def _ev(name, values):
     recs = _records(values)
-    return Evaluation("MKV-v0", name, len(recs), 0, aggregate(recs), recs)
+    return Evaluation("MKV-v1", name, len(recs), 0, aggregate(recs), recs)
 
 
 def test_conclusions_say_when_a_baseline_beats_sfm_and_when_it_is_a_tie():
@@ -83,7 +87,7 @@ def test_conclusions_say_when_a_baseline_beats_sfm_and_when_it_is_a_tie():
     lines = conclusions(evals)
     ppo = [line for line in lines if "PPO" in line]
     assert len(ppo) == 2
-    assert ppo[0].startswith("**PPO beats SfM** on: distance per episode [m] on MKV-v0")
+    assert ppo[0].startswith("**PPO beats SfM** on: distance per episode [m] on MKV-v1")
     assert "difference -3.000" in ppo[0]
     bc = [line for line in lines if "BC" in line]
     assert any(line.startswith("No clear difference between SfM and BC") for line in bc)
@@ -94,10 +98,11 @@ def test_every_policy_kind_gives_the_same_numbers_for_any_worker_count(demo_dir)
 
     specs = [f"sfm:{demo_dir / 'policies' / 'sfm_0.npz'}",
              f"bc:{demo_dir / 'policies' / 'bc_0.zip'}",
-             f"ppo:{demo_dir / 'policies' / 'ppo.zip'}"]
-    one = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=1))
-    two = evaluations_json(evaluate_many("MKVJam-v0", specs, 4, 77, workers=2))
+             f"ppo:{demo_dir / 'policies' / 'ppo_jam.zip'}",
+             f"dagger:{demo_dir / 'policies' / 'dagger_0.zip'}"]
+    one = evaluations_json(evaluate_many("MKVJam-v1", specs, 4, 77, workers=1))
+    two = evaluations_json(evaluate_many("MKVJam-v1", specs, 4, 77, workers=2))
     assert one == two
     doc = json.loads(one)
     assert [set(d) for d in doc] == [{"env", "policy", "episodes", "seed", "metrics",
-                                      "metrics_ci"}] * 3
+                                      "metrics_ci"}] * 4
