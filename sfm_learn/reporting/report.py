@@ -383,7 +383,7 @@ def environment_line() -> str:
     """Python, platform, CPU count and the thread settings that decide training speed and (for
     torch) bit-reproducibility, for the report."""
     line = (f"Python {platform.python_version()} on {platform.system()} {platform.machine()} "
-            f"({platform.processor() or 'unknown CPU'}), {os.cpu_count()} CPUs; "
+            f"({_cpu_model()}), {os.cpu_count()} CPUs; "
             f"{sys.executable}")
     try:
         import torch
@@ -393,3 +393,15 @@ def environment_line() -> str:
                         if v in os.environ) or "OMP/MKL_NUM_THREADS unset"
     return (f"{line}; torch {torch.__version__} ({torch.get_num_threads()} intra-op thread(s) "
             f"as the baselines set them, {threads})")
+
+
+def _cpu_model() -> str:
+    """The CPU model name (Linux /proc/cpuinfo), else what platform knows."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
