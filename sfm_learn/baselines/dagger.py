@@ -11,8 +11,9 @@ every later round the current network drives (mixing coefficient beta_i = 1 for 
 the choice the paper recommends in practice) while the scripted teacher runs in shadow on the same
 observations and labels every step with the command it would send. All rows are aggregated and
 the network is refitted from scratch on them. Each round collects ``steps / rounds`` labelled steps
-(whole episodes of at most the env's limit; seeds ``seed + 1000 * round + i``), so the teacher is
-queried exactly ``steps`` times, the budget that compares with BC's and SfM's teacher steps.
+(episodes on seeds ``seed + 1000 * round + i``, run to their end, the last one cut where the
+round's budget runs out), so the teacher is queried exactly ``steps`` times, the budget that
+compares with BC's and SfM's teacher steps.
 
 The teacher in shadow keeps its own timers as if its commands had been sent (it has no other way
 to know what it "is doing"); its labels react to what the sensors show (bumps, stalls, spinning),
@@ -26,7 +27,6 @@ and the commands actually sent); the file's format is ``mkv-dagger`` with the BC
 
 from __future__ import annotations
 
-import math
 import os
 
 import numpy as np
@@ -37,27 +37,23 @@ from sfm_learn.baselines import bc, sb3
 FORMAT = "mkv-dagger"
 FORMAT_VERSION = 1
 DEFAULTS = {"rounds": 4, "epochs": 30, "batch_size": 256, "lr": 1e-3}
-MAX_EPISODE_STEPS = 600
 
 
-def episode_plan(steps: int, limit: int = MAX_EPISODE_STEPS) -> tuple[int, int]:
-    """``(episodes, steps_per_episode)`` covering ``steps`` with episodes of at most ``limit``
-    steps: ``episodes * steps_per_episode <= steps`` (equal when ``steps`` divides evenly)."""
-    episodes = max(1, math.ceil(steps / limit))
-    return episodes, max(1, steps // episodes)
-
-
-def _rollout(env, actor, teacher, seeds, max_steps):
-    """Run ``actor`` (None: the teacher itself) for one episode per seed; the teacher labels every
-    step. Returns observations, actions sent, teacher labels, episode-start flags."""
+def _rollout(env, actor, teacher, first_seed: int, n_steps: int):
+    """Run ``actor`` (None: the teacher itself) for ``n_steps`` steps, episodes on seeds
+    ``first_seed + i``; the teacher labels every step. Returns observations, actions sent,
+    teacher labels, episode-start flags, and the number of episodes (begun)."""
     obs_l, sent_l, label_l, start_l = [], [], [], []
-    for seed in seeds:
+    episodes = 0
+    while len(obs_l) < n_steps:
+        seed = first_seed + episodes
+        episodes += 1
         obs, _ = env.reset(seed=int(seed))
         teacher.reset(seed=int(seed))
         if actor is not None:
             actor.reset(seed=int(seed))
         start = True
-        for _ in range(max_steps):
+        while len(obs_l) < n_steps:
             label, _ = teacher.predict(obs, episode_start=start)
             if actor is None:
                 action = label
@@ -71,7 +67,8 @@ def _rollout(env, actor, teacher, seeds, max_steps):
             obs, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:
                 break
-    return (np.array(obs_l), np.array(sent_l), np.array(label_l), np.array(start_l, dtype=bool))
+    return (np.array(obs_l), np.array(sent_l), np.array(label_l), np.array(start_l, dtype=bool),
+            episodes)
 
 
 def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
@@ -97,9 +94,8 @@ def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
         parts, log = [], []
         policy, fit, learner = None, None, None
         for r in range(rounds):
-            episodes, cap = episode_plan(per_round[r])
-            seeds = [seed + 1000 * r + i for i in range(episodes)]
-            obs, sent, labels, starts = _rollout(env, learner, expert, seeds, cap)
+            obs, sent, labels, starts, episodes = _rollout(env, learner, expert,
+                                                           seed + 1000 * r, per_round[r])
             parts.append((obs, sent, labels, starts))
             x = np.concatenate([builder.transform(o, s, st) for o, s, _, st in parts])
             y = np.concatenate([lab for _, _, lab, _ in parts])
@@ -155,4 +151,4 @@ def load_spec(arg, env, seed):
         lambda net, meta: bc.BCPolicy(net, meta, seed))
 
 
-__all__ = ["DEFAULTS", "FORMAT", "episode_plan", "load_spec", "read_metadata", "save", "train"]
+__all__ = ["DEFAULTS", "FORMAT", "load_spec", "read_metadata", "save", "train"]

@@ -75,7 +75,10 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys, argv, message):
     assert not out.exists()
 
 
-def test_episode_plan_covers_the_budget():
-    assert dagger.episode_plan(1200) == (2, 600)
-    assert dagger.episode_plan(601) == (2, 300)
-    assert dagger.episode_plan(5) == (1, 5)
+def test_budget_is_met_exactly_when_episodes_end_early(tmp_path):
+    """Episodes shorter than a round's share (time limit 50) do not shrink the budget."""
+    policy, meta = dagger.train("MKV-v1", 330, rounds=2, env_kwargs={"max_episode_steps": 50},
+                                epochs=1)
+    log = meta["dagger"]["log"]
+    assert [r["rows"] for r in log] == [165, 165] and [r["episodes"] for r in log] == [4, 4]
+    assert meta["teacher_steps"] == 330
