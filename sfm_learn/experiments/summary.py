@@ -82,42 +82,11 @@ def markdown_table(agg: dict, env_id: str, metric: str, units: dict[str, str]) -
 
 def plot_curves(agg: dict, panels: list[tuple[str, str]], path: str,
                 units: dict[str, str], title: str = "") -> str:
-    """One panel per (env, metric): a line per learner (mean) with its 95% band, against
-    steps on a log axis (teacher steps solid, PPO env steps dashed). Written atomically."""
-    import matplotlib
+    """Draw :func:`aggregate`'s curves (:func:`sfm_learn.reporting.plots.plot_sweep_curves`)."""
+    from sfm_learn.reporting.plots import plot_sweep_curves
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sfm_common.files import atomic_path
-
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
-    learners = sorted({k[0] for k in agg["curves"]})
-    colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(learners)}
-    for ax, (env_id, metric) in zip(axes[0], panels, strict=True):
-        for learner in learners:
-            pts = agg["curves"].get((learner, env_id, metric))
-            if not pts:
-                continue
-            x = [p[1] for p in pts]
-            mean, lo, hi = ([p[i] for p in pts] for i in (2, 3, 4))
-            env_steps = units.get(learner) == "env steps"
-            ax.plot(x, mean, "--" if env_steps else "-", marker="o", ms=3,
-                    color=colours[learner], label=f"{learner} ({units.get(learner, 'steps')})")
-            ax.fill_between(x, lo, hi, color=colours[learner], alpha=0.15, lw=0)
-        ax.set_xscale("log")
-        ax.set_xlabel("teacher steps (solid) / PPO env steps (dashed)")
-        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
-        ax.set_title(env_id)
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="best")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_path(path, ".png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    labels = {m: METRIC_LABELS.get(m, m) for _, m in panels}
+    return plot_sweep_curves(agg["curves"], panels, path, units, labels, title)
 
 
 __all__ = ["aggregate", "markdown_table", "plot_curves", "t_interval"]

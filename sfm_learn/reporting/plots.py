@@ -20,7 +20,7 @@ from sfm_learn.evaluation.records import METRIC_KEYS, Evaluation
 from sfm_learn.reporting.tables import METRIC_LABELS, seed_range, short_name
 
 __all__ = ["plot_figure3", "plot_spectrum", "plot_learning_cost", "plot_evaluations",
-           "plot_rank_study",
+           "plot_rank_study", "plot_sweep_curves",
            "MatplotlibMissing"]
 
 _COMMAND_TICKS = VALUE_NAMES  # axis labels of each command's three values
@@ -272,5 +272,37 @@ def plot_rank_study(results: dict, path, *, teacher: dict | None = None, title=N
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_sweep_curves(curves: dict, panels, path, units: dict, labels: dict,
+                      title: str = "") -> str:
+    """A sweep's curves, one panel per ``(env, metric)``: a line per learner (mean over training
+    seeds) with its 95% band, against steps on a log axis (teacher steps solid, env steps
+    dashed). ``curves[(learner, env, metric)]`` holds ``(budget, steps, mean, lo, hi, n)``."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
+    learners = sorted({k[0] for k in curves})
+    colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(learners)}
+    for ax, (env_id, metric) in zip(axes[0], panels, strict=True):
+        for learner in learners:
+            pts = curves.get((learner, env_id, metric))
+            if not pts:
+                continue
+            x = [p[1] for p in pts]
+            mean, lo, hi = ([p[i] for p in pts] for i in (2, 3, 4))
+            dashed = units.get(learner) == "env steps"
+            ax.plot(x, mean, "--" if dashed else "-", marker="o", ms=3, color=colours[learner],
+                    label=f"{learner} ({units.get(learner, 'steps')})")
+            ax.fill_between(x, lo, hi, color=colours[learner], alpha=0.15, lw=0)
+        ax.set_xscale("log")
+        ax.set_xlabel("teacher steps (solid) / PPO env steps (dashed)")
+        ax.set_ylabel(labels.get(metric, metric))
+        ax.set_title(env_id)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="best")
+    if title:
+        fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path)
