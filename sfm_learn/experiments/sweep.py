@@ -13,6 +13,7 @@ A spec (JSON, or YAML with PyYAML installed) names what to run::
       bc: {epochs: 30}
       dagger: {rounds: 4}
       ppo-jam: {kind: ppo, env: MKVJam-v1, eval_env: [MKVJam-v1]}
+      ppo-raw: {kind: ppo, env: MKVJam-v1, hyperparams: ppo_raw.yml}   # relative to SPEC
     budgets:                       # teacher steps (sfm, bc, dagger) or env steps (ppo)
       sfm: [1200, 3000, 12000]
       ppo-jam: [50000, 200000]
@@ -103,7 +104,14 @@ def load_spec(path: str) -> dict:
             doc = json.loads(text)
         except json.JSONDecodeError as e:
             raise SpecError(f"sweep spec {path} is not valid JSON: {e}") from None
-    return check_spec(doc)
+    spec = check_spec(doc)
+    # a PPO learner's hyperparameter file is named relative to the spec file
+    for lr in spec["learners"].values():
+        hp = lr["options"].get("hyperparams")
+        if isinstance(hp, str) and not os.path.isabs(hp):
+            lr["options"]["hyperparams"] = os.path.normpath(
+                os.path.join(os.path.dirname(os.path.abspath(path)), hp))
+    return spec
 
 
 def _int_list(value, what, lo=0, hi=10**12) -> list[int]:
@@ -167,6 +175,8 @@ def check_spec(doc) -> dict:
         if set(opts) - allowed:
             raise SpecError(f"learner {name!r} ({kind}): unknown option(s) "
                             f"{sorted(set(opts) - allowed)}; known: {sorted(allowed)}")
+        if "hyperparams" in opts and not isinstance(opts["hyperparams"], str):
+            raise SpecError(f"learner {name!r}: hyperparams must be a file name")
         if "eval_env" in opts:
             opts["eval_env"] = _env_list(opts["eval_env"], f"{name}.eval_env")
         if kind == "ppo":

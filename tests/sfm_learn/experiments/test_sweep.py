@@ -153,3 +153,14 @@ def test_summary_of_a_non_sweep_directory(tmp_path, capsys):
     assert main(["sweep", "--summary", str(tmp_path)]) == 2
     assert "not a sweep directory" in capsys.readouterr().err
     assert os.listdir(tmp_path) == []
+
+
+def test_ppo_hyperparameter_file_is_relative_to_the_spec(tmp_path):
+    pytest.importorskip("yaml")
+    (tmp_path / "sub").mkdir()
+    spec = tmp_path / "sub" / "s.yml"
+    spec.write_text("env: MKVJam-v1\nseeds: [0]\nlearners: {ppo: {hyperparams: hp.yml}}\n"
+                    "budgets: {ppo: [100]}\n")
+    loaded = sweep.load_spec(str(spec))
+    assert loaded["learners"]["ppo"]["options"]["hyperparams"] == str(tmp_path / "sub" / "hp.yml")
+    assert loaded["learners"]["ppo"]["options"]["env"] == "MKVJam-v1"
