@@ -116,3 +116,25 @@ def test_hyperparameter_file_cannot_be_the_output(tmp_path, capsys):
     assert main(["train-ppo", "--env", "MKVJam-v1", "--hyperparams", str(f), "--out", str(f),
                  "--quiet"]) == 2
     assert f.read_text() == "default: {n_envs: 2}\n"
+
+
+def test_same_seed_same_weights_with_features_on_v1():
+    def params(seed):
+        model, _ = ppo.train("MKVJam-v1", 128, seed=seed, n_envs=2, eval_episodes=1,
+                             env_kwargs={"max_episode_steps": 20}, observation="features",
+                             hyperparameters={"n_steps": 32, "batch_size": 32})
+        return {k: v.detach().clone().numpy() for k, v in model.policy.state_dict().items()}
+
+    a, b, c = params(3), params(3), params(4)
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    assert not all(np.array_equal(a[k], c[k]) for k in a)
+
+
+def test_eval_at_checkpoints_at_the_first_rollout_boundary_after_each_budget(tmp_path):
+    _, meta = ppo.train("MKVJam-v1", 256, n_envs=2, eval_episodes=1, eval_at=[60, 130, 256],
+                        env_kwargs={"max_episode_steps": 20}, checkpoint_dir=str(tmp_path),
+                        hyperparameters={"n_steps": 32, "batch_size": 32})
+    # rollouts of 2 x 32 = 64 steps: 0, then the first boundary >= 60, >= 130, and the end
+    assert [p["env_steps"] for p in meta["learning_curve"]] == [0, 64, 192, 256]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        f"ppo_{s:08d}.zip" for s in (0, 64, 192, 256)]
