@@ -86,7 +86,7 @@ def run(args) -> int:
         return _summary(args.summary, args.plot)
     if not args.spec or not args.out:
         raise CliError("give SPEC and --out DIR (or --summary DIR)")
-    from sfm_learn.experiments.sweep import check_envs, load_spec, plan, run_sweep
+    from sfm_learn.experiments.sweep import check_envs, load_spec, pending, plan, run_sweep
 
     try:
         spec = load_spec(args.spec)
@@ -108,6 +108,7 @@ def run(args) -> int:
 
     n_jobs = len(plan(spec))
     with progress_for(args, n_jobs, f"sweep {spec['name']}", unit="job") as bar:
+        bar.update(n_jobs - len(pending(spec, args.out)))   # finished in an earlier run
         def on_job(job, rows):
             bar.update(1)
             for r in rows:
