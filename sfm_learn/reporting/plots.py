@@ -285,6 +285,9 @@ def plot_sweep_curves(curves: dict, panels, path, units: dict, labels: dict,
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
     learners = sorted({k[0] for k in curves})
     colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(learners)}
+    kinds = {units.get(n, "steps") for n in learners}
+    xlabel = ("teacher steps (solid) / PPO env steps (dashed)" if len(kinds) > 1
+              else next(iter(kinds), "steps"))
     for ax, (env_id, metric) in zip(axes[0], panels, strict=True):
         for learner in learners:
             pts = curves.get((learner, env_id, metric))
@@ -297,7 +300,7 @@ def plot_sweep_curves(curves: dict, panels, path, units: dict, labels: dict,
                     label=f"{learner} ({units.get(learner, 'steps')})")
             ax.fill_between(x, lo, hi, color=colours[learner], alpha=0.15, lw=0)
         ax.set_xscale("log")
-        ax.set_xlabel("teacher steps (solid) / PPO env steps (dashed)")
+        ax.set_xlabel(xlabel)
         ax.set_ylabel(labels.get(metric, metric))
         ax.set_title(env_id)
         ax.grid(alpha=0.3)
