@@ -304,8 +304,13 @@ def plot_sweep_curves(curves: dict, panels, path, units: dict, labels: dict,
         ax.set_ylabel(labels.get(metric, metric))
         ax.set_title(env_id)
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="best")
+    handles = {}
+    for ax in axes[0]:          # every learner once, whichever panel drew it
+        for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, h)
+    fig.legend(list(handles.values()), list(handles), fontsize=8, loc="lower center",
+               ncol=min(len(handles), 6), frameon=False)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     return _save(fig, path)
