@@ -363,7 +363,8 @@ def _run(args, out: str, final: str) -> None:
         from sfm_learn.reporting.report import write_report
 
         write_report(out, b, evals, calib, st.log, time.perf_counter() - t_start,
-                     quick=args.quick, studies=studies)
+                     quick=args.quick, studies=studies,
+                     sweep=_reference_sweep(p("sample_efficiency.png")))
 
     st.call("learning-cost plot and report", "(mkv demo) report.md", write)
     print(f"\nfinished in {time.perf_counter() - t_start:.0f} s")
@@ -406,6 +407,32 @@ def _evaluate(env_id, learners: dict, ppo_specs: dict, episodes, b: Budget, stem
     return {"table": table, "per_set": per_set, "pooled": pooled,
             "teacher": by["teacher"], "random": by["random"], "still": by["stand still"],
             "ppo": {n: by[n] for n in ppo_specs}}
+
+
+def _reference_sweep(png: str) -> dict | None:
+    """The bundled sample-efficiency sweep (5 seeds per point; too long for the demo to rerun):
+    its table and its curves drawn into ``png``. None when the bundle is missing."""
+    from sfm_learn.experiments.summary import (
+        aggregate,
+        combined_table,
+        load_reference,
+        plot_curves,
+    )
+
+    try:
+        doc = load_reference()
+    except (OSError, ValueError):
+        return None
+    agg = aggregate(doc["rows"])
+    units = {n: ("env steps" if lr["kind"] == "ppo" else "teacher steps")
+             for n, lr in doc["spec"]["learners"].items()}
+    columns = [("MKVJam-v1", "escape_rate", "MKVJam-v1 escape rate"),
+               ("MKV-v1", "distance_m", "MKV-v1 distance [m]"),
+               ("MKV-v1", "stuck_fraction", "MKV-v1 stuck fraction")]
+    plot_curves(agg, [(e, m) for e, m, _ in columns], png, units, doc["spec"].get("name", ""))
+    return {"about": doc.get("about", ""), "table": combined_table(agg, units, columns),
+            "plot": os.path.basename(png), "eval": doc["spec"]["eval"],
+            "seeds": doc["spec"]["seeds"]}
 
 
 def _calib(out: str, seeds: int, quiet: bool) -> dict:

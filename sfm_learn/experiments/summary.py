@@ -9,7 +9,9 @@ counted and listed, never averaged.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from collections import defaultdict
 
 import numpy as np
@@ -89,4 +91,44 @@ def plot_curves(agg: dict, panels: list[tuple[str, str]], path: str,
     return plot_sweep_curves(agg["curves"], panels, path, units, labels, title)
 
 
-__all__ = ["aggregate", "markdown_table", "plot_curves", "t_interval"]
+REFERENCE = os.path.join(os.path.dirname(__file__), "reference", "sample_efficiency.json")
+"""Rows of the sample-efficiency sweep shipped with the package (``mkv demo`` shows them)."""
+
+
+def load_reference(path: str = REFERENCE) -> dict:
+    """``{"about", "spec", "rows"}`` of a bundled sweep (:data:`REFERENCE`)."""
+    with open(path, encoding="utf-8") as f:
+        doc = json.load(f)
+    if not isinstance(doc, dict) or not {"spec", "rows"} <= set(doc):
+        raise ValueError(f"{path} is not a bundled sweep")
+    return doc
+
+
+def combined_table(agg: dict, units: dict[str, str], columns) -> str:
+    """One Markdown row per (learner, budget): ``columns`` are ``(env, metric, header)``;
+    each cell is the mean over seeds [95% t-interval] ("-" where the learner was not
+    evaluated on that env)."""
+    lines = ["| learner | budget | " + " | ".join(h for *_, h in columns) + " | seeds |",
+             "|:---|---:|" + "---:|" * len(columns) + "---:|"]
+    learners = sorted({k[0] for k in agg["curves"]})
+    for learner in learners:
+        budgets = sorted({p[0] for k, pts in agg["curves"].items() if k[0] == learner
+                          for p in pts})
+        for b in budgets:
+            cells, n = [], 0
+            for env_id, metric, _ in columns:
+                pt = next((p for p in agg["curves"].get((learner, env_id, metric), [])
+                           if p[0] == b), None)
+                if pt is None:
+                    cells.append("-")
+                    continue
+                digits = 1 if metric == "distance_m" else 3
+                cells.append(f"{pt[2]:.{digits}f} [{pt[3]:.{digits}f}, {pt[4]:.{digits}f}]")
+                n = max(n, pt[5])
+            unit = units.get(learner, "steps")
+            lines.append(f"| {learner} | {b:,} {unit} | " + " | ".join(cells) + f" | {n} |")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["REFERENCE", "aggregate", "combined_table", "load_reference", "markdown_table",
+           "plot_curves", "t_interval"]

@@ -113,12 +113,14 @@ def _over_sets(evs, key: str, digits: int = 2) -> str:
 
 
 def write_report(out: str, budget, evals: dict, calib: dict | None, stages, total_wall_s: float,
-                 quick: bool = False, studies: dict | None = None) -> str:
+                 quick: bool = False, studies: dict | None = None,
+                 sweep: dict | None = None) -> str:
     """Write ``out/report.md`` (and ``out/learning_cost.png``); returns the report path.
 
     ``evals`` maps ``"jam"``/``"wander"`` to what the demo's evaluation returned (``table``,
     ``per_set``, ``pooled``, ``teacher``, ``random``, ``ppo``); ``studies`` holds the
-    :class:`~sfm_learn.evaluation.study.StudyResult` of the feature and rank studies.
+    :class:`~sfm_learn.evaluation.study.StudyResult` of the feature and rank studies; ``sweep``
+    the bundled sample-efficiency sweep (``about``, ``table``, ``plot``, ``eval``, ``seeds``).
     """
     from sfm_learn import __version__
     from sfm_learn.baselines import bc, dagger, ppo
@@ -341,6 +343,18 @@ def write_report(out: str, budget, evals: dict, calib: dict | None, stages, tota
           "and the teacher line are from the evaluation above. Teacher steps are a human's time "
           "on a real robot; env steps are simulated. Curves over 5 seeds and budgets from 1k to "
           "50k teacher steps (and up to 1M PPO env steps): docs/baselines.md.", ""]
+
+    # ------------------------------------------------------------ sample efficiency
+    if sweep is not None:
+        L += ["## Sample efficiency over 5 seeds (the bundled sweep, not rerun here)", "",
+              f"The demo trains each learner once per training set at one budget. How they "
+              f"scale with data, and PPO over {len(sweep['seeds'])} seeds up to 1M env steps, "
+              f"comes from the sweep `mkv sweep sweeps/sample_efficiency.yml` (about 100 "
+              f"minutes on 2 cores), whose rows ship with the package: {sweep['about']} "
+              f"Evaluation: {sweep['eval']['episodes']} episodes per env on seeds "
+              f"{sweep['eval']['seed']}..; mean over seeds [95% t-interval]. "
+              "Discussion: docs/baselines.md.", "",
+              f"![sample efficiency]({sweep['plot']})", "", sweep["table"], ""]
 
     # ------------------------------------------------------------ conclusions
     pooled_evals = {key: list(ev["pooled"].values()) for key, ev in evals.items()}

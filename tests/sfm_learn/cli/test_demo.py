@@ -51,6 +51,8 @@ def test_quick_demo_evaluates_every_policy_on_the_same_seeds(demo_dir):
         assert doc[2]["metrics"]["distance_m"] < 0.05          # stand still stands still
     report = (demo_dir / "report.md").read_text()
     assert "one PPO seed at the demo's reduced budget" in report
+    assert "## Sample efficiency over 5 seeds (the bundled sweep" in report
+    assert (demo_dir / "sample_efficiency.png").read_bytes()[:4] == b"\x89PNG"
     assert "intra-op thread" in report                          # thread settings printed
     sfm = json.loads((demo_dir / "eval" / "jam.json").read_text())[3]
     assert f"| SfM (2 sets) | {sfm['metrics']['escape_rate']:.3f}" in report

@@ -164,3 +164,19 @@ def test_ppo_hyperparameter_file_is_relative_to_the_spec(tmp_path):
     loaded = sweep.load_spec(str(spec))
     assert loaded["learners"]["ppo"]["options"]["hyperparams"] == str(tmp_path / "sub" / "hp.yml")
     assert loaded["learners"]["ppo"]["options"]["env"] == "MKVJam-v1"
+
+
+def test_bundled_reference_sweep_is_complete_and_all_ok():
+    from sfm_learn.experiments.summary import combined_table, load_reference
+
+    doc = load_reference()
+    spec = doc["spec"]                      # already normalised (spec.json of the run)
+    expected = {n for j in sweep.plan(spec) for n in j.names}
+    rows = doc["rows"]
+    assert len(rows) == len(expected) == 175
+    assert all(r["status"] == "ok" for r in rows)
+    assert {sweep.row_name(r["learner"], r["seed"], r["budget"]) for r in rows} == expected
+    agg = aggregate(rows)
+    table = combined_table(agg, {"sfm": "teacher steps"},
+                           [("MKVJam-v1", "escape_rate", "escape")])
+    assert "| sfm | 1,200 teacher steps | " in table and table.count("\n") == 2 + 35
