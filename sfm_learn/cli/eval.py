@@ -3,7 +3,8 @@
 ::
 
     mkv eval --env MKVJam-v0 --policy teacher [--policy random ...] --episodes N [--seed S]
-             [--workers N] [--json OUT.json] [--plot OUT.png] [--env-kwargs JSON] [--quiet]
+             [--workers N] [--backend local|ray] [--address ADDR] [--json OUT.json]
+             [--plot OUT.png] [--env-kwargs JSON] [--quiet]
 
 Every ``--policy`` runs episodes with env seeds ``S .. S+N-1``. Stdout gets a Markdown table
 (one row per policy, one column per metric, ``value [low, high]`` with a bootstrap confidence
@@ -61,6 +62,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=_workers, default=1, metavar="N",
                    help="worker processes (default 1: run in this process); the numbers do "
                         "not depend on it")
+    p.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help="local: processes on this machine (default); ray: the same work units "
+                        "as Ray tasks (the scale extra); identical numbers")
+    p.add_argument("--address", default=None, metavar="ADDR",
+                   help="with --backend ray: a Ray cluster address (default: start Ray here "
+                        "with --workers CPUs)")
     p.add_argument("--json", metavar="OUT.json",
                    help="also write the metrics and confidence intervals as JSON")
     p.add_argument("--plot", metavar="OUT.png",
@@ -100,11 +107,21 @@ def run(args) -> int:
         _check_plot(args.plot)
         check_writable(args.plot, "plot")
     check_env_and_policies(args.env, args.env_kwargs, specs)
+    if args.address and args.backend != "ray":
+        raise CliError("--address is for --backend ray")
+    if args.backend == "ray":
+        from sfm_learn.evaluation.ray_eval import init_ray
+
+        try:
+            init_ray(args.address, args.workers)   # one-line error before any episode runs
+        except ValueError as e:
+            raise CliError(str(e)) from None
 
     desc = f"eval {specs[0]}" if len(specs) == 1 else f"eval {len(specs)} policies"
     with progress_for(args, args.episodes * len(specs), desc) as bar:
         results = evaluate_many(args.env, specs, args.episodes, args.seed, args.env_kwargs,
-                                workers=args.workers, on_episode=lambda p, i, n: bar.update(1))
+                                workers=args.workers, on_episode=lambda p, i, n: bar.update(1),
+                                backend=args.backend, address=args.address)
     print(format_markdown(results))
     if args.plot:
         from sfm_learn.reporting.plots import plot_evaluations

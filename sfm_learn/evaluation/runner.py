@@ -251,7 +251,8 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
                   on_episode: Callable[[int, int, int], None] | None = None,
                   ci_level: float = CI_LEVEL, n_boot: int = N_BOOT,
                   start_method: str | None = None,
-                  policy_names: Sequence[str] | None = None) -> list[Evaluation]:
+                  policy_names: Sequence[str] | None = None,
+                  backend: str = "local", address: str | None = None) -> list[Evaluation]:
     """Evaluate several policies on the same seeded episodes, optionally in worker processes.
 
     Args:
@@ -271,6 +272,10 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
         ci_level, n_boot: bootstrap confidence intervals (:func:`bootstrap_ci`); ``n_boot=0``
             skips them (``metrics_ci`` is None).
         policy_names: names for reports (default: the spec, or the object's ``spec`` attribute).
+        backend: ``"local"`` (processes on this machine) or ``"ray"`` (the same units as Ray
+            tasks, :mod:`sfm_learn.evaluation.ray_eval`; spec strings only): identical results.
+        address: with ``backend="ray"``, a Ray cluster address (default: start Ray locally with
+            ``workers`` CPUs).
 
     Returns:
         One :class:`Evaluation` per policy, in the given order, with records, metrics and
@@ -297,6 +302,10 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"policy {dup[0]!r} given more than once")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if backend == "ray" and not all(isinstance(p, str) for p in policies):
+        raise ValueError("the ray backend takes policy spec strings, not objects")
     units = plan_units(len(policies), int(episodes), int(workers))
     workers = min(int(workers), len(units))
     if workers > 1 and not all(isinstance(p, str) for p in policies):
@@ -310,7 +319,12 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
             p, first, _ = units[uid]
             on_episode(p, first + i, n)
 
-    if workers == 1:
+    if backend == "ray":
+        from sfm_learn.evaluation.ray_eval import run_units
+
+        unit_records = run_units(env_id, env_kwargs, policies, seed, units, int(workers),
+                                 address, unit_progress)
+    elif workers == 1:
         unit_records = [_run_unit(env_id, env_kwargs, policies[p], seed, seed + first, count,
                                   lambda i, n, uid=uid: unit_progress(uid, i, n))
                         for uid, (p, first, count) in enumerate(units)]

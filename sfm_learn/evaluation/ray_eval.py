@@ -1,0 +1,106 @@
+"""Evaluation units as Ray tasks (``mkv eval --backend ray``), and the one place Ray is started.
+
+The units are exactly the local backend's (:func:`~sfm_learn.evaluation.runner.plan_units`); each
+builds its own env and policy from the spec with the evaluation's policy seed, so the records, and
+the JSON written from them, are identical on either backend. Ray is imported only here and in
+:mod:`sfm_learn.experiments.ray_backend`, never by the local backends or ``mkv --help``.
+
+Ray core tasks, not Ray Tune: a unit (or a sweep job) is a plain function call with a result,
+with no trials to schedule adaptively, and core tasks keep the code path the local backend runs.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+INSTALL_HINT = "the ray backend needs the scale extra: pip install 'mkv-sfm[scale]'"
+
+
+def import_ray():
+    """``ray``, or ValueError with the install hint (one line)."""
+    try:
+        import ray
+    except ImportError:
+        raise ValueError(INSTALL_HINT) from None
+    return ray
+
+
+def init_ray(address: str | None, workers: int):
+    """Connect to the cluster at ``address``, or start a local Ray with ``workers`` CPUs (no
+    dashboard, worker logs not forwarded). Reuses a running session. ValueError (one line) when
+    the cluster cannot be reached."""
+    ray = import_ray()
+    if ray.is_initialized():
+        return ray
+    if address and address != "auto":
+        check_reachable(address)
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    kwargs = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+    try:
+        if address:
+            ray.init(address=address, **kwargs)
+        else:
+            ray.init(num_cpus=int(workers), **kwargs)
+    except Exception as e:  # noqa: BLE001  (ConnectionError, RuntimeError, ...: one line)
+        text = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        where = f"the Ray cluster at {address}" if address else "a local Ray"
+        raise ValueError(f"cannot start or reach {where}: {text}") from None
+    return ray
+
+
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """A TCP connection to ``host:port`` (``ray://`` stripped) within ``timeout_s``, else
+    ValueError (one line): Ray itself retries an unreachable address for minutes."""
+    import socket
+
+    hostport = address.split("://", 1)[-1]
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"Ray address {address!r} is not host:port")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise ValueError(f"cannot reach the Ray cluster at {address}: "
+                         f"{e.strerror or type(e).__name__}") from None
+
+
+def _ray_unit(env_id, env_kwargs, spec, eval_seed, first, count):
+    import mkv_env  # noqa: F401  (registers the ids in a fresh Ray worker)
+    import sfm_learn  # noqa: F401  (and the policy specs)
+    from sfm_learn.evaluation.runner import _run_unit
+
+    return _run_unit(env_id, env_kwargs, spec, eval_seed, first, count, None)
+
+
+def run_units(env_id: str, env_kwargs: dict, specs, seed: int, units, workers: int,
+              address: str | None,
+              on_unit_episode: Callable[[int, int, int], None] | None = None) -> list:
+    """Run every unit as a Ray task; returns the records of each unit, by unit. Progress is
+    reported per finished unit (one call per episode of it, in episode order)."""
+    ray = init_ray(address, workers)
+    task = ray.remote(num_cpus=1, max_retries=0)(_ray_unit)
+    refs = {task.remote(env_id, env_kwargs, specs[p], seed, seed + first, count): uid
+            for uid, (p, first, count) in enumerate(units)}
+    results = {}
+    pending = list(refs)
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1, timeout=0.5)
+            for ref in done:
+                uid = refs[ref]
+                try:
+                    results[uid] = ray.get(ref)
+                except ray.exceptions.RayTaskError as e:
+                    raise e.as_instanceof_cause() from None
+                if on_unit_episode is not None:
+                    for i, rec in enumerate(results[uid]):
+                        on_unit_episode(uid, i, rec.steps)
+    except BaseException:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+    return [results[uid] for uid in range(len(units))]
+
+
+__all__ = ["INSTALL_HINT", "check_reachable", "import_ray", "init_ray", "run_units"]

@@ -1,0 +1,47 @@
+"""``mkv sweep --backend ray``: every sweep job as one Ray core task.
+
+A job is one plain call (record, fit or train, evaluate, write its rows), so Ray core tasks fit
+it directly: no trials to schedule adaptively (Ray Tune's job), and the task runs exactly the code
+the local backend runs, which is why the rows are the same on either backend. A job's own failure
+is already an error row (written by the job); a task that dies (a killed worker, out of memory)
+is written as an error row here, so the sweep goes on and a rerun retries it. Ctrl-C cancels the
+tasks still running; rows of finished jobs stay.
+"""
+
+from __future__ import annotations
+
+
+def run(job_fn, spec: dict, jobs, out_dir: str, *, workers: int = 1,
+        address: str | None = None, on_done=None) -> None:
+    """Run ``job_fn(spec, job, out_dir)`` for every job as a Ray task (1 CPU each);
+    ``on_done(job, rows)`` as each finishes."""
+    from sfm_learn.evaluation.ray_eval import init_ray
+    from sfm_learn.experiments.sweep import write_row
+
+    ray = init_ray(address, workers)
+    task = ray.remote(num_cpus=1, max_retries=0)(job_fn)
+    refs = {task.remote(spec, job, out_dir): job for job in jobs}
+    pending = list(refs)
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1, timeout=0.5)
+            for ref in done:
+                job = refs[ref]
+                try:
+                    rows = ray.get(ref)
+                except (ray.exceptions.RayError, OSError) as e:
+                    text = (str(e).strip().splitlines() or [type(e).__name__])[0]
+                    rows = [{"learner": job.learner, "seed": job.seed, "budget": b,
+                             "status": "error", "error": f"{type(e).__name__}: {text}"}
+                            for b in job.budgets]
+                    for row, name in zip(rows, job.names, strict=True):
+                        write_row(out_dir, name, row)
+                if on_done is not None:
+                    on_done(job, rows)
+    except BaseException:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+
+
+__all__ = ["run"]
