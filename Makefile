@@ -37,6 +37,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/recorder_overhead.py
 	$(BIN)/python benchmarks/calib_speed.py
 	$(BIN)/python benchmarks/calib_csv_speed.py
+	$(BIN)/python benchmarks/sweep_scaling.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo_out
