@@ -65,22 +65,22 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
                          f"{e.strerror or type(e).__name__}") from None
 
 
-def _ray_unit(env_id, env_kwargs, spec, eval_seed, first, count):
+def _ray_unit(unit_fn, env_id, env_kwargs, spec, eval_seed, first, count):
     import mkv_env  # noqa: F401  (registers the ids in a fresh Ray worker)
     import sfm_learn  # noqa: F401  (and the policy specs)
-    from sfm_learn.evaluation.runner import _run_unit
 
-    return _run_unit(env_id, env_kwargs, spec, eval_seed, first, count, None)
+    return unit_fn(env_id, env_kwargs, spec, eval_seed, first, count, None)
 
 
-def run_units(env_id: str, env_kwargs: dict, specs, seed: int, units, workers: int,
+def run_units(unit_fn, env_id: str, env_kwargs: dict, specs, seed: int, units, workers: int,
               address: str | None,
               on_unit_episode: Callable[[int, int, int], None] | None = None) -> list:
-    """Run every unit as a Ray task; returns the records of each unit, by unit. Progress is
-    reported per finished unit (one call per episode of it, in episode order)."""
+    """Run every unit as a Ray task calling ``unit_fn`` (the runner's own unit function, passed
+    in so this module does not import the runner); returns the records of each unit, by unit.
+    Progress is reported per finished unit (one call per episode of it, in episode order)."""
     ray = init_ray(address, workers)
     task = ray.remote(num_cpus=1, max_retries=0)(_ray_unit)
-    refs = {task.remote(env_id, env_kwargs, specs[p], seed, seed + first, count): uid
+    refs = {task.remote(unit_fn, env_id, env_kwargs, specs[p], seed, seed + first, count): uid
             for uid, (p, first, count) in enumerate(units)}
     results = {}
     pending = list(refs)

@@ -322,8 +322,8 @@ def evaluate_many(env_id: str, policies: Sequence, episodes: int, seed: int = 0,
     if backend == "ray":
         from sfm_learn.evaluation.ray_eval import run_units
 
-        unit_records = run_units(env_id, env_kwargs, policies, seed, units, int(workers),
-                                 address, unit_progress)
+        unit_records = run_units(_run_unit, env_id, env_kwargs, policies, seed, units,
+                                 int(workers), address, unit_progress)
     elif workers == 1:
         unit_records = [_run_unit(env_id, env_kwargs, policies[p], seed, seed + first, count,
                                   lambda i, n, uid=uid: unit_progress(uid, i, n))

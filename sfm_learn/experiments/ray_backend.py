@@ -12,11 +12,11 @@ from __future__ import annotations
 
 
 def run(job_fn, spec: dict, jobs, out_dir: str, *, workers: int = 1,
-        address: str | None = None, on_done=None) -> None:
+        address: str | None = None, on_done=None, on_lost=None) -> None:
     """Run ``job_fn(spec, job, out_dir)`` for every job as a Ray task (1 CPU each);
-    ``on_done(job, rows)`` as each finishes."""
+    ``on_done(job, rows)`` as each finishes; a task that died is handed to
+    ``on_lost(job, error_text) -> rows`` (the sweep writes error rows)."""
     from sfm_learn.evaluation.ray_eval import init_ray
-    from sfm_learn.experiments.sweep import write_row
 
     ray = init_ray(address, workers)
     task = ray.remote(num_cpus=1, max_retries=0)(job_fn)
@@ -31,11 +31,7 @@ def run(job_fn, spec: dict, jobs, out_dir: str, *, workers: int = 1,
                     rows = ray.get(ref)
                 except (ray.exceptions.RayError, OSError) as e:
                     text = (str(e).strip().splitlines() or [type(e).__name__])[0]
-                    rows = [{"learner": job.learner, "seed": job.seed, "budget": b,
-                             "status": "error", "error": f"{type(e).__name__}: {text}"}
-                            for b in job.budgets]
-                    for row, name in zip(rows, job.names, strict=True):
-                        write_row(out_dir, name, row)
+                    rows = on_lost(job, f"{type(e).__name__}: {text}") if on_lost else []
                 if on_done is not None:
                     on_done(job, rows)
     except BaseException:

@@ -397,8 +397,16 @@ def run_sweep(spec: dict, out_dir: str, *, backend: str = "local", workers: int 
     if backend == "ray":
         from sfm_learn.experiments import ray_backend
 
+        def lost(job, error):
+            rows = [{"learner": job.learner, "kind": spec["learners"][job.learner]["kind"],
+                     "seed": job.seed, "budget": b, "status": "error", "error": error}
+                    for b in job.budgets]
+            for row, name in zip(rows, job.names, strict=True):
+                write_row(out_dir, name, row)
+            return rows
+
         ray_backend.run(_job_entry, spec, todo, out_dir, workers=workers, address=address,
-                        on_done=done)
+                        on_done=done, on_lost=lost)
     elif backend != "local":
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     elif workers <= 1:
