@@ -343,11 +343,12 @@ def write_row(out_dir: str, name: str, row: dict) -> None:
 
 
 def read_rows(out_dir: str) -> list[dict]:
-    """Every row in ``out_dir/rows`` (unreadable files are skipped)."""
+    """Every row in ``out_dir/rows`` (unreadable files, and the hidden temporary files of a write
+    that a kill interrupted, are skipped)."""
     d = os.path.join(out_dir, "rows")
     rows = []
     for name in sorted(os.listdir(d)) if os.path.isdir(d) else []:
-        if not name.endswith(".json"):
+        if not name.endswith(".json") or name.startswith("."):
             continue
         try:
             with open(os.path.join(d, name), encoding="utf-8") as f:
@@ -380,6 +381,10 @@ def run_sweep(spec: dict, out_dir: str, *, backend: str = "local", workers: int 
     """Run every pending job of ``spec`` into ``out_dir``; returns counts
     ``{"jobs", "skipped", "ok", "error"}``. ``on_job(job, rows)`` after each finished job."""
     os.makedirs(out_dir, exist_ok=True)
+    rows_dir = os.path.join(out_dir, "rows")
+    for name in os.listdir(rows_dir) if os.path.isdir(rows_dir) else []:
+        if name.startswith(".tmp-"):   # a write a kill interrupted in an earlier run
+            os.unlink(os.path.join(rows_dir, name))
     atomic_write_text(os.path.join(out_dir, "spec.json"),
                       json.dumps(spec, indent=1, sort_keys=True) + "\n")
     # longest first (PPO runs), so no long job starts last while the other workers idle

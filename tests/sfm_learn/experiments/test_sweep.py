@@ -180,3 +180,15 @@ def test_bundled_reference_sweep_is_complete_and_all_ok():
     table = combined_table(agg, {"sfm": "teacher steps"},
                            [("MKVJam-v1", "escape_rate", "escape")])
     assert "| sfm | 1,200 teacher steps | " in table and table.count("\n") == 2 + 35
+
+
+def test_temporary_files_of_an_interrupted_write_are_not_rows(full, tmp_path):
+    import shutil
+
+    d = tmp_path / "copy"
+    shutil.copytree(full, d)
+    name = sweep.row_name("sfm", 0, 200)
+    (d / "rows" / f".tmp-abc{name}").write_text((d / "rows" / name).read_text())
+    assert len(sweep.read_rows(str(d))) == 6
+    assert sweep.run_sweep(sweep.check_spec(SPEC), str(d))["skipped"] == 6
+    assert not [n for n in os.listdir(d / "rows") if n.startswith(".")]   # cleaned up
