@@ -38,6 +38,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/calib_speed.py
 	$(BIN)/python benchmarks/calib_csv_speed.py
 	$(BIN)/python benchmarks/sweep_scaling.py
+	$(BIN)/python benchmarks/ppo_env_speed.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo_out
