@@ -9,20 +9,50 @@ result is stable at any substep and the blocked wheel stalls or spins by the tru
 stall force against traction. The caster carries load only.
 
 Everything here is pure float arithmetic on a handful of values, read from and written to the
-pymunk body once per substep: this is the simulator's hot path.
+pymunk body once per substep: this is the simulator's hot path. It exists twice: the Python loop
+below (readable, the reference) and the same loop in C (``mkv_env/_fastsim.c``, built by
+setup.py; about 4x faster), written operation for operation so both give the same bits
+(``tests/mkv_env/test_kernel.py`` compares whole episodes). Without a C compiler the Python loop
+runs and nothing else changes.
 """
 
 from __future__ import annotations
 
+import array
 import math
 from dataclasses import dataclass
 
 import pymunk
 
 try:  # pymunk's own cffi layer: the same calls its properties make, minus the wrappers
+    from pymunk._chipmunk import ffi as _ffi
     from pymunk._chipmunk import lib as _cp
 except ImportError:  # pragma: no cover - other pymunk builds
-    _cp = None
+    _cp = _ffi = None
+
+try:  # the same loop compiled (setup.py builds it; without a compiler it is skipped)
+    from mkv_env import _fastsim
+except ImportError:  # pragma: no cover - installed without a C compiler
+    _fastsim = None
+
+
+def bind_kernel(hypot=math.hypot) -> None:
+    """Hand the compiled loop Chipmunk's entry points (from pymunk's cffi module) and the
+    ``hypot`` it calls back (``math.hypot``; tests pass a counting wrapper)."""
+    _fastsim.bind(*(int(_ffi.cast("uintptr_t", _ffi.addressof(_cp, name))) for name in (
+        "cpBodyGetVelocity", "cpBodyGetAngularVelocity", "cpBodyGetAngle", "cpBodySetForce",
+        "cpBodySetTorque", "cpSpaceStep")), hypot)
+
+
+if _fastsim is not None and _cp is not None:
+    bind_kernel()
+else:  # pragma: no cover
+    _fastsim = None
+
+#: Which implementation of :meth:`Robot.advance` runs by default: ``"c"`` (the compiled loop),
+#: ``"cffi"`` (the Python loop calling Chipmunk through cffi) or ``"api"`` (the Python loop on
+#: pymunk's public properties). All three give the same bits (tests/mkv_env/test_kernel.py).
+DEFAULT_KERNEL = "c" if _fastsim is not None else ("cffi" if _cp is not None else "api")
 
 from mkv_env.params import GRAVITY_MPS2, RobotParams
 
@@ -79,7 +109,8 @@ class Robot:
         space.add(self.body, *self.shapes)
         self.state = WheelState()
         self._mu_scale = 1.0
-        self.fast = True  # use the cffi hot path (False: public API, for cross-checks)
+        self.kernel = DEFAULT_KERNEL  # "c", "cffi" or "api" (same results; see DEFAULT_KERNEL)
+        self._ptrs: tuple | None = None  # (space, cpBody address, cpSpace address)
         self._precompute()
 
     def _precompute(self) -> None:
@@ -97,6 +128,42 @@ class Robot:
         self._s_k, self._s_r, self._s_v = sm.k_nm_per_a, sm.resistance_ohm, sm.supply_v
         self._s_c = sm.k_nm_per_a**2 / sm.resistance_ohm + sm.viscous_nms
         self._s_j = sm.inertia_kgm2
+        if _fastsim is not None:
+            # the compiled loop's constants, in the order of _fastsim.c's K_* enum
+            self.kernel_constants = array.array("d", (
+                p.drive_x_m, p.steer_x_m, p.drive_wheel_radius_m, 1.0 / p.steer_wheel_radius_m,
+                p.steer_limit_rad, self._im, self._iI, p.tire_friction, self._n_drive,
+                self._n_steer, self._s_v, self._s_k, self._s_r, self._s_j, self._s_c,
+                p.steer_coulomb_nm, self._d_v, self._d_k, self._d_r, self._d_j, self._d_c,
+                p.mass_kg, self.body.moment))
+            assert len(self.kernel_constants) == _fastsim.N_CONSTANTS
+
+    @property
+    def fast(self) -> bool:
+        """False when the slow, public-API loop is forced (kept for cross-checks)."""
+        return self.kernel != "api"
+
+    @fast.setter
+    def fast(self, value: bool) -> None:
+        self.kernel = DEFAULT_KERNEL if value else "api"
+
+    def pointers(self, space) -> tuple:
+        """(space, address of the cpBody, address of ``space``'s cpSpace), cached, for the
+        compiled loop. Never pickled: a copy has new Chipmunk objects."""
+        ptrs = self._ptrs
+        if ptrs is None or ptrs[0] is not space:
+            ptrs = self._ptrs = (space, int(_ffi.cast("uintptr_t", self.body._body)),
+                                 int(_ffi.cast("uintptr_t", space._space)))
+        return ptrs
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_ptrs"] = None
+        return state
+
+    def can_use_c(self, space) -> bool:
+        """True when :meth:`advance` on ``space`` runs the compiled loop."""
+        return self.kernel == "c" and _fastsim is not None and not space._bodies_to_check
 
     def set_floor_friction_scale(self, scale: float) -> None:
         """Multiply the tyre friction (slippery floor patches under the robot)."""
@@ -112,6 +179,11 @@ class Robot:
         its cffi layer (``pymunk._chipmunk.lib``) when available: the public properties cost
         several times more and this loop is the simulator's whole budget.
         """
+        if self.kernel == "c" and _fastsim is not None and not space._bodies_to_check:
+            _, body_ptr, space_ptr = self.pointers(space)
+            _fastsim.advance(self.kernel_constants, body_ptr, space_ptr, drive_cmd, steer_cmd, dt,
+                             n, self._mu_scale, self.state)
+            return
         p = self.params
         st = self.state
         xd, xs = p.drive_x_m, p.steer_x_m
@@ -250,7 +322,7 @@ class Robot:
     def _accessors(self, space):
         """(get_velocity, get_angular_velocity, get_angle, set_force, set_torque,
         space_step, body_handle), through cffi when possible, else the public pymunk API."""
-        if _cp is not None and not space._bodies_to_check and self.fast:
+        if _cp is not None and not space._bodies_to_check and self.kernel != "api":
             cpspace = space._space
             cp_step = _cp.cpSpaceStep
 
