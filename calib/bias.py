@@ -27,8 +27,11 @@ from .ellipsoid import fit_ellipsoid
 from .result import (
     Calibration,
     CalibrationError,
+    add_uncertainty,
+    channel_span,
     coverage_diagnostics,
     excitation_is_poor,
+    propagate,
     warn,
 )
 from .sfm import CHUNK_ROWS, finish_frame, fit_unit_quadric, principal, rank_gap
@@ -99,6 +102,7 @@ def _finish(
     magnitude,
     offset_stderr=None,
     U=None,
+    uncertainty=None,
 ):
     if U is None:
         U = (Z - offset) @ C_unit.T
@@ -116,8 +120,6 @@ def _finish(
         "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
         "magnitude_mean": float(mags.mean()),
     }
-    if offset_stderr is not None:
-        diag["offset_stderr"] = offset_stderr
     diag.update(extra)
     poor = excitation_is_poor(cov)
     diag["excitation_poor"] = bool(poor)
@@ -127,7 +129,16 @@ def _finish(
             f"{cov['cap_half_angle_deg']:.0f} deg of their mean): the offset is unreliable"
         )
     cal = Calibration(C=C_unit, offset=offset, dof=dof, method=method, diagnostics=diag)
-    return finish_frame(cal, known_Z, known_M, magnitude)
+    cal = finish_frame(cal, known_Z, known_M, magnitude)
+    if uncertainty is not None:
+        # C = A C_unit: the frame (known pairs or magnitude) is held fixed
+        A = cal.C @ np.linalg.pinv(C_unit)
+        x, cov, fn = uncertainty
+        off_se, C_se = propagate(lambda t: fn(t, A), x, cov, len(offset))
+        if offset_stderr is not None:  # extra variance the parameter covariance leaves out
+            off_se = np.sqrt(off_se**2 + offset_stderr**2)
+        add_uncertainty(cal, off_se, C_se, channel_span(Z))
+    return cal
 
 
 # --------------------------------------------------------------------------------- centered
@@ -141,7 +152,7 @@ def fit_centered(
     magnitude: float | None = None,
     drop_nonfinite: bool = False,
     refine: bool = True,
-    isotropy_prior: float | None = 0.1,
+    isotropy_prior: float | str | None = "auto",
 ) -> Calibration:
     """Mean removal, rank-r PCA, ellipsoid fit; see the module docstring. Works for p >= r.
 
@@ -161,7 +172,20 @@ def fit_centered(
     fit = fit_ellipsoid(Y, refine=refine, isotropy_prior=isotropy_prior)
     offset = mu + Vr @ fit.centre
     C_unit = fit.W @ Vr.T
-    stderr = np.sqrt((Vr**2) @ fit.centre_stderr**2)
+    # the mean's own error in the p - r directions the ellipsoid does not see (s^2 / n is the
+    # variance there, / n again for the mean)
+    n = len(Z)
+    perp = (V[:, r:] ** 2) @ (s[r:] ** 2 / max(n * (n - 1), 1))
+    stderr = np.sqrt(perp)
+    idx = [(j, k) for j in range(r) for k in range(j, r)]
+
+    def fn(theta, A, mu=mu, Vr=Vr, idx=idx, r=r):
+        W = np.zeros((r, r))
+        for a, (j, k) in enumerate(idx):
+            W[j, k] = W[k, j] = theta[r + a]
+        return mu + Vr @ theta[:r], A @ W @ Vr.T
+
+    theta = np.r_[fit.centre, [fit.W[j, k] for j, k in idx]]
     # C_unit only sees the span of Vr, so the unit loads follow from Y without another n x p pass
     Y -= fit.centre
     U = Y @ fit.W.T
@@ -181,6 +205,7 @@ def fit_centered(
         magnitude,
         offset_stderr=stderr,
         U=U,
+        uncertainty=(theta, fit.cov, fn),
     )
 
 
@@ -364,8 +389,21 @@ def fit_paper(
             "the plane and cylinder are degenerate (A^-1 singular); "
             "excitation is too poor for the paper method"
         )
-    S_aug = np.linalg.solve(Ainv, np.sqrt(sq)[:, None] * Vq.T)
-    S_unit, offset = S_aug[:r], S_aug[r]
-    C_unit = np.linalg.pinv(S_unit.T)
+    S_hat = np.sqrt(sq)[:, None] * Vq.T
+
+    def fn(x, A=None, S_hat=S_hat, r=r, q=q):
+        Ainv = np.column_stack([x[: r * q].reshape(r, q).T, x[r * q :]])
+        S_aug = np.linalg.solve(Ainv, S_hat)
+        C_unit = np.linalg.pinv(S_aug[:r].T)
+        return S_aug[r], C_unit if A is None else A @ C_unit
+
+    offset, C_unit = fn(x)
     extra["condition_number_Ainv"] = cond_A
-    return _finish(Z, C_unit, offset, dof, "paper", s, r, nbad, extra, known_Z, known_M, magnitude)
+    # Gauss-Newton covariance of (B, a4); B's rotation gauge (B -> R B) leaves the residuals
+    # unchanged, hence the pseudo-inverse. The refinement saw len(Mfit) of n rows.
+    res = _residuals(x, Mfit, r)
+    J = _jacobian(x, Mfit, r)
+    dof_res = max(len(res) - (len(x) - r * (r - 1) // 2), 1)
+    cov = np.linalg.pinv(J.T @ J) * float(res @ res) / dof_res * len(Mfit) / len(Z)
+    return _finish(Z, C_unit, offset, dof, "paper", s, r, nbad, extra, known_Z, known_M, magnitude,
+                   uncertainty=(x, cov, fn))

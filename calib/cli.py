@@ -47,6 +47,15 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="drop rows containing NaN/inf instead of failing (count reported)",
     )
+    f.add_argument(
+        "--bootstrap",
+        metavar="B",
+        type=int_in_range(2, 100_000),
+        help="add percentile intervals of offset and C from B resampled refits",
+    )
+    f.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0,
+                   help="seed of the bootstrap resampling (default 0)")
+    f.add_argument("--quiet", action="store_true", help="no bootstrap progress bar")
     f.add_argument("--out", metavar="CAL.json", required=True)
 
     a = sub.add_parser("apply", help="convert raw readings to loads")
@@ -119,33 +128,33 @@ def _fit(args) -> str:
     if args.dof == 6:
         if known_Z is None:
             raise CalibrationError("--dof 6 needs --known with at least 6 known loads (see docs)")
-        cal = fit_ft6(
-            Z,
-            known_Z,
-            known_M,
-            bias=args.bias,
-            method=args.method,
-            drop_nonfinite=args.drop_nonfinite,
-        )
+
+        def fit(Z, drop=args.drop_nonfinite):
+            return fit_ft6(Z, known_Z, known_M, bias=args.bias, method=args.method,
+                           drop_nonfinite=drop)
     elif args.bias:
-        cal = fit_bias(
-            Z,
-            args.dof,
-            method=args.method,
-            known_Z=known_Z,
-            known_M=known_M,
-            magnitude=args.magnitude,
-            drop_nonfinite=args.drop_nonfinite,
-        )
+
+        def fit(Z, drop=args.drop_nonfinite):
+            return fit_bias(Z, args.dof, method=args.method, known_Z=known_Z, known_M=known_M,
+                            magnitude=args.magnitude, drop_nonfinite=drop)
     else:
-        cal = fit_sfm(
-            Z,
-            args.dof,
-            known_Z=known_Z,
-            known_M=known_M,
-            magnitude=args.magnitude,
-            drop_nonfinite=args.drop_nonfinite,
-        )
+
+        def fit(Z, drop=args.drop_nonfinite):
+            return fit_sfm(Z, args.dof, known_Z=known_Z, known_M=known_M,
+                           magnitude=args.magnitude, drop_nonfinite=drop)
+    cal = fit(Z)
+    if args.bootstrap:
+        from sfm_common.progress import progress as progress_bar
+
+        from ._validate import check_matrix
+        from .bootstrap import bootstrap_intervals
+
+        Zc, _ = check_matrix(Z, args.raw, args.drop_nonfinite)
+        with progress_bar(args.bootstrap, "bootstrap", unit="fit",
+                          enabled=False if args.quiet else None) as bar:
+            cal.diagnostics["bootstrap"] = bootstrap_intervals(
+                lambda z: fit(z, False), Zc, cal, args.bootstrap, seed=args.seed,
+                align=known_Z is None, progress=bar)
     save_calibration(args.out, cal, channels)
     d = cal.diagnostics
     dropped = d.get("n_dropped_nonfinite", 0)
@@ -155,6 +164,9 @@ def _fit(args) -> str:
         f"wrote {args.out}: {cal.method}, dof {cal.dof}, {cal.n_channels} channels, "
         f"{d.get('n_samples')} samples{note}; rank gap {d.get('rank_gap', float('nan')):.3g}, "
         f"coverage isotropy {cov.get('isotropy', float('nan')):.2f}"
+        + (f", offset stderr <= {d['offset_stderr_max_rel_span']:.2%} of span"
+           if "offset_stderr_max_rel_span" in d else "")
+        + (f", bootstrap {args.bootstrap}" if args.bootstrap else "")
     )
 
 

@@ -37,12 +37,15 @@ class EllipsoidFit:
     W : (r, r)     symmetric PD map from the ellipsoid to the unit sphere: u = W (y - c)
     centre_stderr : (r,) standard errors of c from the final Jacobian (noise estimated from
         residuals)
+    cov : (r + r(r+1)/2, r + r(r+1)/2) covariance of (c, upper triangle of W row by row), the
+        Gauss-Newton ``sigma^2 (J^T J)^-1`` (prior included when it is used)
     info : dict    start kind, iterations, convergence, residual rms, condition number
     """
 
     centre: np.ndarray
     W: np.ndarray
     centre_stderr: np.ndarray
+    cov: np.ndarray | None = None
     info: dict = field(default_factory=dict)
 
 
@@ -220,21 +223,85 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
     return c, W, pw, it, converged, JTJ, data_cost
 
 
+#: Folds of the cross-validation that decides whether the isotropy prior is used.
+CV_FOLDS = 5
+#: The cross-validation runs on an evenly strided subsample of at most this many points.
+CV_MAX_ROWS = 20_000
+#: The prior is kept only if its held-out cost is below this fraction of the cost without it.
+CV_MARGIN = 1.0
+#: The prior spread tried by ``isotropy_prior="auto"``.
+AUTO_TAU = 0.1
+
+
+def _refine(Yn, c, W, idx, npar, tau, max_iter, tol):
+    """LM on Yn (subsample first for large n, then full-data steps); see :func:`fit_ellipsoid`."""
+    n = len(Yn)
+    if n > SUBSAMPLE_ROWS:
+        # converge on an evenly strided subsample, then polish with full-data Gauss-Newton
+        # steps: one Newton step from a root-n consistent start is already efficient
+        sub = Yn[:: int(np.ceil(n / SUBSAMPLE_ROWS))]
+        c, W, pw, it, converged, _, sub_cost = _lm(sub, c, W, idx, npar, tau, max_iter, tol)
+        c, W, pw, it2, _, JTJ, data_cost = _lm(
+            Yn, c, W, idx, npar, tau, FULL_DATA_STEPS, 0.0,
+            sigma2=sub_cost / max(len(sub) - npar, 1),
+        )
+        return c, W, pw, it + it2, converged, JTJ, data_cost
+    return _lm(Yn, c, W, idx, npar, tau, max_iter, tol)
+
+
+def cross_validate_prior(Yn, c, W, tau, folds=CV_FOLDS, max_iter=200, tol=1e-12):
+    """Held-out Sampson cost with and without the isotropy prior (spread ``tau``).
+
+    ``folds`` strided folds (point i in fold ``i % folds``) of at most :data:`CV_MAX_ROWS`
+    evenly strided points; each fold is fitted from the start (c, W) on the other folds and
+    scored by the plain data cost (no prior) of its held-out points.
+
+    Returns {"prior": cost, "none": cost, "folds": folds, "rows": m}.
+    """
+    n, r = Yn.shape
+    idx = _sym_index(r)
+    npar = r + len(idx)
+    X = Yn[:: int(np.ceil(n / CV_MAX_ROWS))] if n > CV_MAX_ROWS else Yn
+    m = len(X)
+    fold = np.arange(m) % folds
+    out = {"folds": folds, "rows": m}
+    for key, t in (("prior", tau), ("none", None)):
+        total = 0.0
+        for k in range(folds):
+            train, test = X[fold != k], X[fold == k]
+            if len(train) <= npar or len(test) == 0:
+                total = float("nan")
+                break
+            ck, Wk, *_ = _lm(train, c, W, idx, npar, t, max_iter, tol)
+            total += _cost(test, ck, Wk)
+        out[key] = total
+    return out
+
+
 def fit_ellipsoid(
     Y: np.ndarray,
     refine: bool = True,
     max_iter: int = 200,
     tol: float = 1e-12,
-    isotropy_prior: float | None = 0.1,
+    isotropy_prior: float | str | None = "auto",
 ) -> EllipsoidFit:
     """Fit an ellipse (r=2) or ellipsoid (r=3) to points Y of shape (n, r).
 
     ``isotropy_prior`` is the prior spread tau of W around a multiple of the identity, relative to
     its mean diagonal: the refinement minimises ``sum d_i^2 + (sigma / tau)^2 |W - wbar I|^2 /
-    wbar^2``
-    with sigma the current residual rms (a maximum a posteriori fit). With good coverage the data
-    outweigh it by ~n; with partial coverage it keeps the ill-determined shape, and so the offset,
-    bounded; with noise-free data (sigma = 0) it vanishes. None disables it.
+    wbar^2`` with sigma the current residual rms (a maximum a posteriori fit). With good coverage
+    the data outweigh it by ~n; with partial coverage it keeps the ill-determined shape, and so
+    the offset, bounded, but only if the sensor really is near isotropic: on an anisotropic
+    sensor it pulls the shape, and the offset with it, the wrong way. None disables it; a number
+    always uses it.
+
+    ``"auto"`` (default) lets the data decide: the fit is cross-validated with the prior
+    (tau = :data:`AUTO_TAU`) and without it (:func:`cross_validate_prior`, 5 strided folds,
+    held-out Sampson cost) and the prior is kept only where it predicts held-out points better.
+    A prior that is wrong for the sensor biases the shape, which shows as a larger held-out
+    residual; where the data cannot pin down the shape (partial coverage of a near-isotropic
+    sensor), the unregularised fit over-fits the folds and the prior wins. The choice and both
+    costs are in ``info["prior_selection"]``.
 
     Returns an :class:`EllipsoidFit`; ``info["start"]`` is ``"algebraic"`` or
     ``"sphere (hyperboloid rejected)"``.
@@ -261,43 +328,42 @@ def fit_ellipsoid(
     W = _sqrt_sym(E)
     idx = _sym_index(r)
     npar = r + len(idx)
+    tau = isotropy_prior
+    if isinstance(tau, str):
+        if tau != "auto":
+            raise ValueError(f"isotropy_prior must be a number, None or 'auto', got {tau!r}")
+        tau = None
+        if refine:
+            cv = cross_validate_prior(Yn, c, W, AUTO_TAU, max_iter=max_iter, tol=tol)
+            use = bool(np.isfinite(cv["prior"]) and cv["prior"] < CV_MARGIN * cv["none"])
+            tau = AUTO_TAU if use else None
+            info["prior_selection"] = {
+                "criterion": f"{cv['folds']}-fold held-out Sampson cost",
+                "rows": cv["rows"],
+                "cost_with_prior": cv["prior"],
+                "cost_without_prior": cv["none"],
+                "prior_used": use,
+            }
     if refine:
-        if n > SUBSAMPLE_ROWS:
-            # converge on an evenly strided subsample, then polish with full-data Gauss-Newton
-            # steps: one Newton step from a root-n consistent start is already efficient
-            sub = Yn[::step]
-            c, W, pw, it, converged, _, sub_cost = _lm(
-                sub, c, W, idx, npar, isotropy_prior, max_iter, tol
-            )
-            c, W, pw, it2, _, JTJ, data_cost = _lm(
-                Yn,
-                c,
-                W,
-                idx,
-                npar,
-                isotropy_prior,
-                FULL_DATA_STEPS,
-                0.0,
-                sigma2=sub_cost / max(len(sub) - npar, 1),
-            )
-            it += it2
-        else:
-            c, W, pw, it, converged, JTJ, data_cost = _lm(
-                Yn, c, W, idx, npar, isotropy_prior, max_iter, tol
-            )
+        c, W, pw, it, converged, JTJ, data_cost = _refine(Yn, c, W, idx, npar, tau, max_iter, tol)
     else:
         it, converged, pw = 0, True, 0.0
         data_cost = _cost(Yn, c, W)
         JTJ, _, _ = _normal_equations(Yn, c, W, idx, pw)
     info["residual_rms"] = float(np.sqrt(data_cost / n)) * scale
+    info["isotropy_prior"] = tau
     info["prior_weight"] = pw
     sigma2 = data_cost / max(n - npar, 1)
+    # covariance of (c, upper triangle of W) in the caller's units: c = mu + scale c_n,
+    # W = W_n / scale
+    units = np.r_[np.full(r, scale), np.full(len(idx), 1.0 / scale)]
     try:
-        cov = np.linalg.inv(JTJ) * sigma2
-        stderr = np.sqrt(np.clip(np.diag(cov)[:r], 0, None)) * scale
+        cov = np.linalg.inv(JTJ) * sigma2 * np.outer(units, units)
         cond = float(np.linalg.cond(JTJ))
     except np.linalg.LinAlgError:
-        stderr = np.full(r, np.inf)
+        cov = np.full((npar, npar), np.inf)
         cond = float("inf")
+    stderr = np.sqrt(np.clip(np.diag(cov)[:r], 0, None))
     info.update({"iterations": it, "converged": bool(converged), "condition_number_JTJ": cond})
-    return EllipsoidFit(centre=mu + scale * c, W=W / scale, centre_stderr=stderr, info=info)
+    return EllipsoidFit(centre=mu + scale * c, W=W / scale, centre_stderr=stderr, cov=cov,
+                        info=info)

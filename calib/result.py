@@ -240,11 +240,85 @@ def _cell_centres(r: int) -> np.ndarray | None:
     return None
 
 
+#: The mean unit direction of a cap of half-angle theta, uniform in area, has norm
+#: ``(1 + cos theta) / 2``: above this value (a cap of COVERAGE_MIN_CAP_DEG) coverage is poor too.
+#: Unlike the largest angle it is an average, so a few noisy directions do not hide a cap.
+COVERAGE_MAX_MEAN_NORM = (1 + float(np.cos(np.radians(COVERAGE_MIN_CAP_DEG)))) / 2
+
+
 def excitation_is_poor(cov: dict) -> bool:
     """True when the coverage is too poor for a reliable offset (see module constants)."""
-    return (cov["isotropy"] < COVERAGE_MIN_ISOTROPY) or (
-        cov["cap_half_angle_deg"] < COVERAGE_MIN_CAP_DEG
+    return (
+        (cov["isotropy"] < COVERAGE_MIN_ISOTROPY)
+        or (cov["cap_half_angle_deg"] < COVERAGE_MIN_CAP_DEG)
+        or (cov.get("mean_direction_norm", 0.0) > COVERAGE_MAX_MEAN_NORM)
     )
+
+
+#: A CalibrationWarning is raised when an offset standard error exceeds this fraction of its
+#: channel's span (range of the data in that channel).
+OFFSET_STDERR_MAX_FRACTION = 0.05
+
+
+def channel_span(Z: np.ndarray) -> np.ndarray:
+    """Range (max - min) of every channel of Z (n, p), shape (p,)."""
+    return np.asarray(Z.max(axis=0) - Z.min(axis=0), dtype=float)
+
+
+def propagate(fn, x: np.ndarray, cov: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """Standard errors of ``offset, C = fn(x)`` for parameters x with covariance ``cov``.
+
+    First-order (delta method): central differences of fn along the eigenvectors of cov, each
+    a fraction of its standard deviation, so a locally linear fn gives the exact propagation.
+    Returns (offset_stderr (p,), C_stderr like C); infinite if cov is not finite.
+    """
+    off0, C0 = fn(x)
+    if not np.all(np.isfinite(cov)):
+        return np.full(p, np.inf), np.full(C0.shape, np.inf)
+    w, V = np.linalg.eigh((cov + cov.T) / 2)
+    w = np.clip(w, 0, None)
+    var = np.zeros(p + C0.size)
+    for k in range(len(w)):
+        sd = np.sqrt(w[k])
+        if sd == 0:
+            continue
+        h = 1e-3 * sd
+        a = fn(x + h * V[:, k])
+        b = fn(x - h * V[:, k])
+        g = np.r_[a[0] - b[0], (a[1] - b[1]).ravel()] / (2 * h) * sd
+        var += g**2
+    se = np.sqrt(var)
+    return se[:p], se[p:].reshape(C0.shape)
+
+
+def add_uncertainty(cal, offset_se: np.ndarray, C_se: np.ndarray, span: np.ndarray) -> None:
+    """Store standard errors in ``cal.diagnostics`` and warn when the offset is not identified.
+
+    Keys: ``offset_stderr`` (p,), ``C_stderr`` (dof, p), ``span`` (p,), ``offset_stderr_rel_span``
+    (p,) and its max ``offset_stderr_max_rel_span``; ``offset_identified`` is False (and a
+    CalibrationWarning raised) when any channel's offset standard error exceeds
+    :data:`OFFSET_STDERR_MAX_FRACTION` of that channel's span.
+    """
+    rel = offset_se / np.maximum(span, 1e-300)
+    worst = float(np.max(rel)) if len(rel) else 0.0
+    ok = bool(worst <= OFFSET_STDERR_MAX_FRACTION)
+    cal.diagnostics.update(
+        {
+            "offset_stderr": offset_se,
+            "C_stderr": C_se,
+            "span": span,
+            "offset_stderr_rel_span": rel,
+            "offset_stderr_max_rel_span": worst,
+            "offset_identified": ok,
+        }
+    )
+    if not ok:
+        ch = int(np.argmax(rel))
+        warn(
+            f"the offset is not identified: its standard error reaches {worst:.1%} of the data's "
+            f"span (channel {ch}), above {OFFSET_STDERR_MAX_FRACTION:.0%}; move the load "
+            "through more directions"
+        )
 
 
 def magnitude_stats(loads: np.ndarray) -> dict:
