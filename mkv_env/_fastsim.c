@@ -353,6 +353,69 @@ done:
     return result;
 }
 
+
+/* quantize(truth, inv_q, q, low, high, out) -> None
+ * out[i] = (float)min(max(rint(truth[i] * inv_q[i]) * q[i], low[i]), high[i]): the sensors'
+ * ADC step and clipping (mkv_env.sensors.SensorSuite.read), written into the float32 buffer out.
+ * Python's round() is round-half-even, as rint() in the default rounding mode; its int result
+ * times q equals rint's double times q because the integer is exact in a double (and, being an
+ * int, it has no negative zero: -0.3 rounds to 0, so the zero is made positive here too). */
+static PyObject *fs_quantize(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer b[5];
+    int got = 0;
+    PyObject *fast = NULL, *result = NULL;
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "quantize() takes 6 arguments");
+        return NULL;
+    }
+    fast = PySequence_Fast(args[0], "truth must be a sequence");
+    if (fast == NULL)
+        return NULL;
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(fast);
+    for (got = 0; got < 5; got++) {
+        int writable = got == 4;
+        if (PyObject_GetBuffer(args[got + 1], &b[got],
+                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT |
+                                   (writable ? PyBUF_WRITABLE : 0)) < 0)
+            goto done;
+        Py_ssize_t want = writable ? (Py_ssize_t)sizeof(float) : (Py_ssize_t)sizeof(double);
+        const char *fmt = writable ? "f" : "d";
+        if (b[got].itemsize != want || b[got].len != n * want || b[got].format == NULL ||
+            strcmp(b[got].format, fmt) != 0) {
+            got++;
+            PyErr_SetString(PyExc_ValueError, "quantize: buffers must be float64 (float32 out) "
+                                              "of the truth's length");
+            goto done;
+        }
+    }
+    const double *iq = b[0].buf, *q = b[1].buf, *lo = b[2].buf, *hi = b[3].buf;
+    float *out = b[4].buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double x = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(fast, i));
+        if (x == -1.0 && PyErr_Occurred())
+            goto done;
+        double y = x * iq[i];
+        if (!isfinite(y)) {
+            PyErr_SetString(PyExc_ValueError, "cannot quantize a non-finite sensor value");
+            goto done;
+        }
+        double r = rint(y);
+        if (r == 0.0)
+            r = 0.0; /* Python's round() returns the int 0: never a negative zero */
+        double v = r * q[i];
+        double m = (lo[i] > v) ? lo[i] : v;
+        out[i] = (float)((hi[i] < m) ? hi[i] : m);
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int j = 0; j < got; j++)
+        PyBuffer_Release(&b[j]);
+    Py_XDECREF(fast);
+    return result;
+}
+
 /* bind(get_velocity, get_angular_velocity, get_angle, set_force, set_torque, space_step, hypot)
  * The first six are Chipmunk function addresses (ints), the last math.hypot. */
 static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -393,6 +456,8 @@ static PyMethodDef methods[] = {
      "advance(K, body, space, drive, steer, dt, n, mu_scale, state): n substeps of one robot."},
     {"advance_many", (PyCFunction)(void (*)(void))fs_advance_many, METH_FASTCALL,
      "advance_many(K, bodies, spaces, drives, steers, dt, n, mu_scales, states): many robots."},
+    {"quantize", (PyCFunction)(void (*)(void))fs_quantize, METH_FASTCALL,
+     "quantize(truth, inv_q, q, low, high, out): sensor ADC step and clipping into out."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fastsim",

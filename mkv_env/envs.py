@@ -212,6 +212,11 @@ class MKVEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         drive, steer = self._decode(action)
         self.world.step(drive, steer, self.control_period_s, self.substeps)
+        return self._after_physics(drive)
+
+    def _after_physics(self, drive: int):
+        """The rest of :meth:`step` once the world has moved: sensors, bookkeeping, reward.
+        (:class:`mkv_env.vector.MKVVectorEnv` moves many worlds at once, then calls this.)"""
         obs = self.sensors.read(self.world)
         pose = self._pose()
         progress, stuck, collision, escaped = self.tracker.update(

@@ -7,6 +7,7 @@ pickling rebuild it, and tests inspect it without touching pymunk.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -117,10 +118,11 @@ def generate_layout(
     W, H = width_m, height_m
     lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
     circles = list(reserved or [])
-    kinds, probs, margin = CLUTTER_KINDS, CLUTTER_PROBS, CLUTTER_MARGIN_M
+    kinds, margin = CLUTTER_KINDS, CLUTTER_MARGIN_M
+    rng = _ScalarDraws(rng)
     for _ in range(n_clutter):
         for _attempt in range(CLUTTER_TRIES):
-            kind = kinds[rng.choice(len(kinds), p=probs)]
+            kind = kinds[rng.choice_clutter()]
             cx, cy = rng.uniform(margin, W - margin), rng.uniform(margin, H - margin)
             ang = rng.uniform(-math.pi, math.pi)
             if kind == "box":
@@ -162,6 +164,30 @@ def generate_layout(
         x0, y0 = rng.uniform(0, W - pw), rng.uniform(0, H - ph)
         lay.patches.append((x0, y0, x0 + pw, y0 + ph, float(patch_friction_scale)))
     return lay
+
+
+#: Cumulative clutter-kind probabilities exactly as ``Generator.choice(k, p=...)`` forms them.
+_CLUTTER_CDF = np.cumsum(np.asarray(CLUTTER_PROBS, dtype=np.float64))
+_CLUTTER_CDF = (_CLUTTER_CDF / _CLUTTER_CDF[-1]).tolist()
+
+
+class _ScalarDraws:
+    """``uniform(a, b)`` and the clutter-kind ``choice`` of a numpy Generator, one scalar at a time,
+    drawing the same doubles and returning the same values as ``Generator.uniform`` (``a + (b - a)
+    * random()``) and ``Generator.choice(k, p=CLUTTER_PROBS)`` (``searchsorted(cdf, random(),
+    'right')``) but without their per-call argument handling, which made up most of a reset.
+    ``tests/mkv_env/test_world.py`` checks both against numpy draw for draw."""
+
+    __slots__ = ("random",)
+
+    def __init__(self, rng: np.random.Generator):
+        self.random = rng.random
+
+    def uniform(self, low: float, high: float) -> float:
+        return low + (high - low) * self.random()
+
+    def choice_clutter(self) -> int:
+        return bisect.bisect_right(_CLUTTER_CDF, self.random())
 
 
 def _inside(bound, W, H) -> bool:

@@ -106,3 +106,39 @@ def test_sliding_branch_is_exercised_by_the_slippery_case(monkeypatch):
     finally:
         robot_mod.bind_kernel()
     assert len(calls) > 100
+
+
+def _python_quantize(truth, suite):
+    return np.array(
+        [min(max(round(x * iq) * q, lo), hi)
+         for x, iq, q, lo, hi in zip(truth, suite._inv_q_l, suite._q_l, suite._low_l,
+                                     suite._high_l)], dtype=np.float32)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(
+    st.floats(-100, 100, allow_nan=False),
+    st.integers(-200, 200).map(lambda k: k * 0.5),        # exact halves: ties to even
+    st.floats(-1e-3, 1e-3),                                 # rounds to (negative) zero
+), min_size=10, max_size=10))
+def test_compiled_quantize_matches_python_bit_for_bit(truth):
+    if robot_mod._fastsim is None:
+        pytest.skip("compiled kernel not built")
+    from mkv_env.params import channel_specs
+    from mkv_env.sensors import SensorSuite
+
+    suite = SensorSuite(channel_specs(None, 1.0))
+    out = np.zeros(10, dtype=np.float32)
+    robot_mod._fastsim.quantize(truth, suite._inv_q, suite._q, suite.low, suite.high, out)
+    assert out.tobytes() == _python_quantize(truth, suite).tobytes()
+
+
+def test_compiled_quantize_rejects_bad_input():
+    if robot_mod._fastsim is None:
+        pytest.skip("compiled kernel not built")
+    q = np.ones(3)
+    with pytest.raises(ValueError):
+        robot_mod._fastsim.quantize([1.0, float("nan"), 0.0], q, q, q - 5, q + 5,
+                                    np.zeros(3, np.float32))
+    with pytest.raises(ValueError):  # wrong dtype of out
+        robot_mod._fastsim.quantize([1.0, 2.0, 3.0], q, q, q, q, np.zeros(3))

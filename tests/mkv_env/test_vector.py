@@ -1,0 +1,190 @@
+"""The native vector env: Gymnasium 1.x vector semantics, and the same bits as single envs."""
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+import mkv_env  # noqa: F401
+import mkv_env.robot as robot_mod
+from mkv_env.vector import MKVVectorEnv
+
+IDS = ("MKV-v0", "MKVJam-v0", "MKV-v1", "MKVJam-v1")
+
+
+def _native(env_id, n, **kw):
+    return gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **kw)
+
+
+def _sync(env_id, n, mode=AutoresetMode.NEXT_STEP, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return SyncVectorEnv([lambda: gym.make(env_id, **kw) for _ in range(n)],
+                             autoreset_mode=mode)
+
+
+def _same_info(a, b):
+    assert set(a) == set(b)
+    for k in b:
+        va, vb = a[k], b[k]
+        if k == "pose":
+            vb = np.array([list(x) for x in vb])
+        if k == "final_info":
+            _same_info(va, vb)
+            continue
+        if k == "final_obs":
+            for x, y in zip(va, vb):
+                assert (x is None and y is None) or x.tobytes() == y.tobytes()
+            continue
+        assert np.array_equal(np.asarray(va), np.asarray(vb)), k
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_every_id_has_a_native_vector_env(env_id):
+    envs = gym.make_vec(env_id, num_envs=3)  # the vector entry point is the default
+    assert isinstance(envs.unwrapped, MKVVectorEnv)
+    obs, info = envs.reset(seed=0)
+    assert obs.shape == (3, 10) and obs.dtype == np.float32
+    assert envs.observation_space.contains(obs)
+    obs, rew, term, trunc, info = envs.step(envs.action_space.sample())
+    assert envs.observation_space.contains(obs)
+    assert rew.shape == (3,) and rew.dtype == np.float64
+    assert term.dtype == np.bool_ and trunc.dtype == np.bool_
+    assert info["pose"].shape == (3, 3) and info["_pose"].all()
+    envs.close()
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_same_bits_as_sync_vector_env_of_single_envs_with_autoreset(env_id):
+    n, limit = 3, 60  # a short limit: several truncations and resets in the run
+    a = _native(env_id, n, max_episode_steps=limit)
+    b = _sync(env_id, n, max_episode_steps=limit)
+    oa, ia = a.reset(seed=5)
+    ob, ib = b.reset(seed=5)
+    assert oa.tobytes() == ob.tobytes()
+    _same_info(ia, ib)
+    rng = np.random.default_rng(0)
+    ends = 0
+    for _ in range(200):
+        act = rng.integers(0, 3, size=(n, 2))
+        ra, rb = a.step(act), b.step(act)
+        for x, y in zip(ra[:4], rb[:4]):
+            assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+        _same_info(ra[4], rb[4])
+        ends += int((ra[2] | ra[3]).sum())
+    assert ends >= n * 2
+
+
+def test_same_step_autoreset_matches_gymnasium():
+    a = _native("MKVJam-v1", 3, max_episode_steps=40, autoreset_mode="SameStep")
+    b = _sync("MKVJam-v1", 3, AutoresetMode.SAME_STEP, max_episode_steps=40)
+    assert a.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    a.reset(seed=1), b.reset(seed=1)
+    rng = np.random.default_rng(1)
+    finals = 0
+    for _ in range(120):
+        act = rng.integers(0, 3, size=(3, 2))
+        ra, rb = a.step(act), b.step(act)
+        for x, y in zip(ra[:4], rb[:4]):
+            assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+        _same_info(ra[4], rb[4])
+        finals += int(ra[4].get("_final_obs", np.zeros(3, bool)).sum())
+    assert finals >= 3
+
+
+def test_env_i_equals_a_single_env_seeded_seed_plus_i():
+    envs = _native("MKV-v1", 4)
+    obs, _ = envs.reset(seed=100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        single = gym.make("MKV-v1")
+    o2, _ = single.reset(seed=102)
+    assert obs[2].tobytes() == o2.tobytes()
+    rng = np.random.default_rng(2)
+    for _ in range(100):
+        act = rng.integers(0, 3, size=(4, 2))
+        obs, rew, *_ = envs.step(act)
+        o2, r2, *_ = single.step(act[2])
+        assert obs[2].tobytes() == o2.tobytes() and rew[2] == r2
+
+
+def test_reset_mask_and_disabled_autoreset():
+    envs = _native("MKVJam-v0", 2, max_episode_steps=5, autoreset_mode="Disabled")
+    envs.reset(seed=0)
+    for _ in range(5):
+        *_, trunc, _ = envs.step(np.ones((2, 2), dtype=int))
+    assert trunc.all()
+    with pytest.raises(gym.error.ResetNeeded):
+        envs.step(np.ones((2, 2), dtype=int))
+    obs, info = envs.reset(options={"reset_mask": np.array([True, False])})
+    assert info["_pose"].tolist() == [True, False]
+    with pytest.raises(gym.error.ResetNeeded):  # env 1 still ended
+        envs.step(np.ones((2, 2), dtype=int))
+    envs.reset(options={"reset_mask": np.array([False, True])})
+    envs.step(np.ones((2, 2), dtype=int))
+
+
+@pytest.mark.parametrize("bad", [np.ones((3, 2)), np.full((2, 2), 3), np.full((2, 2), 0.5),
+                                 [[0, 1]], "x", np.full((2, 2), -1)])
+def test_bad_actions_and_arguments_are_one_line_errors(bad):
+    envs = _native("MKV-v0", 2)
+    envs.reset(seed=0)
+    with pytest.raises(ValueError, match="expected shape"):
+        envs.step(bad)
+
+
+def test_bad_construction_and_order():
+    with pytest.raises(ValueError, match="num_envs"):
+        MKVVectorEnv(0)
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        MKVVectorEnv(2, autoreset_mode="sometimes")
+    with pytest.raises(ValueError, match="n_clutter"):
+        _native("MKV-v0", 2, n_clutter=-1)
+    with pytest.raises(gym.error.ResetNeeded):
+        _native("MKV-v0", 2).step(np.ones((2, 2), dtype=int))
+    with pytest.raises(ValueError, match="seed"):
+        _native("MKV-v0", 2).reset(seed=[1, 2, 3])
+
+
+def test_returned_arrays_are_not_reused_and_reset_is_deterministic():
+    envs = _native("MKV-v0", 2)
+    o1, _ = envs.reset(seed=3)
+    o1_copy = o1.copy()
+    o2, *_ = envs.step(np.full((2, 2), 2))
+    assert o1.tobytes() == o1_copy.tobytes() and o1 is not o2
+    o3, _ = envs.reset(seed=3)
+    assert o3.tobytes() == o1_copy.tobytes()
+
+
+def test_pure_python_build_gives_the_same_bits(monkeypatch):
+    act = np.random.default_rng(4).integers(0, 3, size=(50, 3, 2))
+    a = _native("MKV-v0", 3)
+    a.reset(seed=9)
+    ref = [a.step(x)[0].tobytes() for x in act]
+    monkeypatch.setattr(robot_mod, "_fastsim", None)  # the vector env falls back per robot
+    b = _native("MKV-v0", 3)
+    b.reset(seed=9)
+    assert [b.step(x)[0].tobytes() for x in act] == ref
+
+
+def test_gymnasium_vector_wrappers_work_on_it():
+    from gymnasium.wrappers.vector import RecordEpisodeStatistics
+
+    envs = RecordEpisodeStatistics(_native("MKVJam-v1", 2, max_episode_steps=10))
+    envs.reset(seed=0)
+    seen = False
+    for _ in range(12):
+        *_, info = envs.step(np.full((2, 2), 1))
+        seen = seen or "episode" in info
+    assert seen
+
+
+def test_render_rgb_array():
+    envs = _native("MKV-v0", 2, render_mode="rgb_array")
+    envs.reset(seed=0)
+    frames = envs.render()
+    assert len(frames) == 2 and frames[0].ndim == 3
+    with pytest.raises(ValueError, match="render_mode"):
+        _native("MKV-v0", 2, render_mode="human")
