@@ -7,12 +7,14 @@ Main entry points (all return a :class:`Calibration`, ``m = C (z - offset)``):
 - :func:`fit_least_squares` - known loads, paper eqs. 2-3 (optionally with a bias column)
 - :func:`fit_sfm` - shape from motion without bias, eqs. 7-14
 - :func:`fit_bias` - shape from motion with bias, ``method="centered"`` or ``"paper"``
+- :func:`fit_joint` - magnitude rows and known pairs in one weighted fit (static-pose rigs)
 - :func:`fit_ft6` - 6-DOF force/torque from proof-mass rotation data plus >= 6 known loads
 - :mod:`calib.simulate` - the sensor simulator and the paper's section 8 set-up
 """
 
 from .bias import fit_bias, fit_centered, fit_paper
 from .ft6 import fit_ft6
+from .joint import fit_joint
 from .least_squares import fit_least_squares
 from .result import Calibration, CalibrationError, CalibrationWarning
 from .sfm import fit_sfm
@@ -27,6 +29,7 @@ __all__ = [
     "fit_centered",
     "fit_paper",
     "fit_ft6",
+    "fit_joint",
     "fit_least_squares",
     "fit_sfm",
 ]

@@ -33,10 +33,15 @@ def _parser() -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--method",
-        choices=("paper", "centered"),
+        choices=("paper", "centered", "joint"),
         default="centered",
-        help="bias route (default centered; paper needs p >= r+1 channels)",
+        help="bias route (default centered; paper needs p >= r+1 channels; joint fits the "
+        "magnitude rows and --known pairs together)",
     )
+    f.add_argument("--known-sigma", type=positive_float, metavar="S",
+                   help="joint: accuracy of each known load component (load units)")
+    f.add_argument("--magnitude-sigma", type=positive_float, metavar="S",
+                   help="joint: accuracy of the load magnitude of each row (load units)")
     f.add_argument(
         "--magnitude",
         type=positive_float,
@@ -132,6 +137,16 @@ def _fit(args) -> str:
         def fit(Z, drop=args.drop_nonfinite):
             return fit_ft6(Z, known_Z, known_M, bias=args.bias, method=args.method,
                            drop_nonfinite=drop)
+    elif args.method == "joint":
+        from .joint import fit_joint
+
+        if known_Z is None:
+            raise CalibrationError("--method joint needs --known with at least 2 known loads")
+
+        def fit(Z, drop=args.drop_nonfinite):
+            return fit_joint(Z, known_Z, known_M, args.dof, magnitude=args.magnitude,
+                             known_sigma=args.known_sigma,
+                             magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop)
     elif args.bias:
 
         def fit(Z, drop=args.drop_nonfinite):
