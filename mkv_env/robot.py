@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import pymunk
 
+from mkv_env.params import GRAVITY_MPS2, RobotParams
+
 try:  # pymunk's own cffi layer: the same calls its properties make, minus the wrappers
     from pymunk._chipmunk import ffi as _ffi
     from pymunk._chipmunk import lib as _cp
@@ -53,8 +55,6 @@ else:  # pragma: no cover
 #: ``"cffi"`` (the Python loop calling Chipmunk through cffi) or ``"api"`` (the Python loop on
 #: pymunk's public properties). All three give the same bits (tests/mkv_env/test_kernel.py).
 DEFAULT_KERNEL = "c" if _fastsim is not None else ("cffi" if _cp is not None else "api")
-
-from mkv_env.params import GRAVITY_MPS2, RobotParams
 
 # Collision types of the robot's shapes (obstacles use OBSTACLE).
 CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR, OBSTACLE = 1, 2, 3, 4, 10

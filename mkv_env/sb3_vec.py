@@ -36,6 +36,7 @@ class SB3VecEnv(VecEnv):
         if not isinstance(venv, MKVVectorEnv):
             raise ValueError(f"{env_id!r} is not an MK-V id with a native vector env")
         self.venv = venv
+        venv.vector_infos = False  # SB3 wants per-env dicts: take the envs' own
         super().__init__(n_envs, venv.single_observation_space, venv.single_action_space)
         self.metadata = {"render_modes": ["rgb_array"], "autoreset_mode": "SameStep"}
         self.render_mode = kwargs.get("render_mode")
@@ -50,7 +51,7 @@ class SB3VecEnv(VecEnv):
         options = opts[0] if opts else None
         obs, info = self.venv.reset(seed=seeds if any(s is not None for s in seeds) else None,
                                     options=options)
-        self.reset_infos = self._split(info)
+        self.reset_infos = [dict(d) for d in self.venv.env_infos]
         self._reset_seeds()
         self._reset_options()
         return obs
@@ -61,10 +62,10 @@ class SB3VecEnv(VecEnv):
     def step_wait(self):
         obs, rewards, terminated, truncated, info = self.venv.step(self._actions)
         dones = terminated | truncated
-        infos = self._split(info)
+        infos = [dict(d) for d in self.venv.env_infos]
         for i in np.flatnonzero(dones):
             self.reset_infos[i] = infos[i]
-            infos[i] = self._split_one(info["final_info"], i)
+            infos[i] = dict(self.venv.final_env_infos[i])
             infos[i]["terminal_observation"] = info["final_obs"][i]
         for i, d in enumerate(infos):
             d["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
@@ -90,19 +91,3 @@ class SB3VecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class, indices: VecEnvIndices = None) -> list[bool]:
         return [False for _ in self._get_indices(indices)]  # the envs are unwrapped
-
-    # ------------------------------------------------------------------ pieces
-    def _split(self, info: dict) -> list[dict]:
-        return [self._split_one(info, i) for i in range(self.num_envs)]
-
-    @staticmethod
-    def _split_one(info: dict, i: int) -> dict:
-        out = {}
-        for k, v in info.items():
-            if k.startswith("_") or k in ("final_obs", "final_info"):
-                continue
-            if info.get(f"_{k}", np.ones(i + 1, bool))[i]:
-                x = v[i]
-                out[k] = tuple(x.tolist()) if k == "pose" else (
-                    x.item() if isinstance(x, np.generic) else x)
-        return out

@@ -86,6 +86,12 @@ class MKVVectorEnv(VectorEnv):
         self._elapsed = np.zeros(n, dtype=np.int64)
         self._autoreset = np.zeros(n, dtype=bool)
         self._started = False
+        self._slot_cache: tuple | None = None
+        #: The per-env info dicts of the last reset/step (None where an env did not report), and
+        #: in SameStep mode the final infos of the envs that ended; SB3VecEnv reads these.
+        self.env_infos: list[dict | None] = [None] * self.num_envs
+        self.final_env_infos: list[dict | None] = [None] * self.num_envs
+        self.vector_infos = True  # False: skip building Gymnasium's vector info (SB3VecEnv)
         self._period, self._substeps = first.control_period_s, first.substeps
         self._dt = self._period / self._substeps
 
@@ -115,6 +121,7 @@ class MKVVectorEnv(VectorEnv):
             self._elapsed[i] = 0
             self._autoreset[i] = False
         self._started = True
+        self.env_infos = infos
         return self._obs.copy(), self._gather(infos)
 
     def step(self, actions):
@@ -136,7 +143,8 @@ class MKVVectorEnv(VectorEnv):
         limit = self.max_episode_steps
         elapsed = self._elapsed
         obs_rows, rew, term = [], [], []
-        for i, d, s in zip(active.tolist(), drive[active].tolist(), steer[active].tolist()):
+        for i, d, s in zip(active.tolist(), drive[active].tolist(), steer[active].tolist(),
+                           strict=True):
             env = self.envs[i]
             env._last_action = (d + OFF, OFF - s)
             o, r, te, _, infos[i] = env._after_physics(d)
@@ -151,6 +159,7 @@ class MKVVectorEnv(VectorEnv):
             if limit is not None:
                 truncated[active] = elapsed[active] >= limit
         extra: dict[str, Any] = {}
+        final: list[dict | None] = [None] * n
         if resetting is not None:
             for i in np.flatnonzero(resetting):
                 self._obs[i], infos[i] = self.envs[i].reset()
@@ -159,7 +168,6 @@ class MKVVectorEnv(VectorEnv):
             done = np.flatnonzero(terminated | truncated)
             if len(done):
                 final_obs = np.full(n, None, dtype=object)
-                final: list[dict | None] = [None] * n
                 for i in done:
                     final_obs[i], final[i] = self._obs[i].copy(), infos[i]
                     self._obs[i], infos[i] = self.envs[i].reset()
@@ -167,11 +175,13 @@ class MKVVectorEnv(VectorEnv):
                 mask = np.zeros(n, dtype=bool)
                 mask[done] = True
                 extra = {"final_obs": final_obs, "_final_obs": mask,
-                         "final_info": self._gather(final), "_final_info": mask.copy()}
+                         "final_info": self._gather(final) if self.vector_infos else {},
+                         "_final_info": mask.copy()}
         self._autoreset = terminated | truncated
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             self._autoreset[:] = False
-        info = self._gather(infos)
+        self.env_infos, self.final_env_infos = infos, final
+        info = self._gather(infos) if self.vector_infos else {}
         info.update(extra)
         return self._obs.copy(), rewards, terminated, truncated, info
 
@@ -207,21 +217,41 @@ class MKVVectorEnv(VectorEnv):
         """One control period of physics for the envs ``idx``, in one C call when possible."""
         if len(idx) == 0:
             return
-        worlds = [self.envs[i].world for i in idx]
+        slots = self._slots()
+        if len(idx) == self.num_envs:
+            robots, worlds, bodies, spaces, states = slots
+            drives, steers = drive.tolist(), steer.tolist()
+        else:
+            pick = idx.tolist()
+            robots, worlds, bodies, spaces, states = ([col[i] for i in pick] for col in slots)
+            drives, steers = drive[idx].tolist(), steer[idx].tolist()
         for w in worlds:
             if w.layout.patches:
                 w.robot.set_floor_friction_scale(w.floor_friction_scale())
-        robots = [w.robot for w in worlds]
         fast = _robot._fastsim
-        if fast is not None and all(r.can_use_c(w.space) for r, w in zip(robots, worlds)):
-            ptrs = [r.pointers(w.space) for r, w in zip(robots, worlds)]
-            fast.advance_many(robots[0].kernel_constants, [p[1] for p in ptrs],
-                              [p[2] for p in ptrs], drive[idx].tolist(), steer[idx].tolist(),
-                              self._dt, self._substeps, [r._mu_scale for r in robots],
-                              [r.state for r in robots])
-        else:  # pure-Python build: the same loop, one robot at a time
-            for r, w, d, s in zip(robots, worlds, drive[idx].tolist(), steer[idx].tolist()):
+        if fast is not None and bodies is not None and not any(
+                w.space._bodies_to_check for w in worlds):
+            fast.advance_many(robots[0].kernel_constants, bodies, spaces, drives, steers,
+                              self._dt, self._substeps, [r._mu_scale for r in robots], states)
+        else:  # pure-Python build (or kernel switched off): the same loop, one robot at a time
+            for r, w, d, s in zip(robots, worlds, drives, steers, strict=False):
                 r.advance(d, s, self._dt, self._substeps, w.space)
+
+    def _slots(self) -> tuple:
+        """(robots, worlds, body addresses, space addresses, wheel states) of every env, cached
+        until an env gets a new world (a reset). Addresses are None when the compiled loop cannot
+        serve every robot."""
+        worlds = [env.world for env in self.envs]
+        cache = self._slot_cache
+        if cache is None or any(a is not b for a, b in zip(worlds, cache[1], strict=False)):
+            robots = [w.robot for w in worlds]
+            bodies = spaces = None
+            if _robot._fastsim is not None and all(r.kernel == "c" for r in robots):
+                ptrs = [r.pointers(w.space) for r, w in zip(robots, worlds, strict=False)]
+                bodies, spaces = [p[1] for p in ptrs], [p[2] for p in ptrs]
+            cache = self._slot_cache = (robots, worlds, bodies, spaces,
+                                        [r.state for r in robots])
+        return cache
 
     def _gather(self, infos: list[dict | None]) -> dict[str, Any]:
         """Per-env info dicts -> Gymnasium's vector info (arrays plus ``_key`` masks)."""
@@ -246,7 +276,7 @@ class MKVVectorEnv(VectorEnv):
             if full and arr.dtype != object:
                 arr[:] = vals
             else:
-                for i, v in zip(present, vals):
+                for i, v in zip(present, vals, strict=False):
                     arr[i] = v
             out[k] = arr
             out[f"_{k}"] = mask.copy()

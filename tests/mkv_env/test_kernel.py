@@ -72,7 +72,8 @@ def test_kernels_give_identical_episodes(env_id, teacher, kwargs, monkeypatch):
 
 
 def _first_diff(a, b):
-    return next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
+    pairs = enumerate(zip(a, b, strict=False))
+    return next((i for i, (x, y) in pairs if x != y), min(len(a), len(b)))
 
 
 @settings(max_examples=15, deadline=None)
@@ -112,7 +113,7 @@ def _python_quantize(truth, suite):
     return np.array(
         [min(max(round(x * iq) * q, lo), hi)
          for x, iq, q, lo, hi in zip(truth, suite._inv_q_l, suite._q_l, suite._low_l,
-                                     suite._high_l)], dtype=np.float32)
+                                     suite._high_l, strict=False)], dtype=np.float32)
 
 
 @settings(max_examples=200, deadline=None)

@@ -37,7 +37,7 @@ def test_same_steps_as_dummy_vec_env(env_id):
         ob, rb, db, ib = b.step(act)
         assert oa.tobytes() == ob.tobytes() and np.array_equal(ra, rb)
         assert np.array_equal(da, db)
-        for x, y in zip(ia, ib):
+        for x, y in zip(ia, ib, strict=False):
             assert x.keys() == y.keys()
             for k in y:
                 assert np.array_equal(x[k], y[k]), k

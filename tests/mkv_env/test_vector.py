@@ -35,7 +35,7 @@ def _same_info(a, b):
             _same_info(va, vb)
             continue
         if k == "final_obs":
-            for x, y in zip(va, vb):
+            for x, y in zip(va, vb, strict=False):
                 assert (x is None and y is None) or x.tobytes() == y.tobytes()
             continue
         assert np.array_equal(np.asarray(va), np.asarray(vb)), k
@@ -70,7 +70,7 @@ def test_same_bits_as_sync_vector_env_of_single_envs_with_autoreset(env_id):
     for _ in range(200):
         act = rng.integers(0, 3, size=(n, 2))
         ra, rb = a.step(act), b.step(act)
-        for x, y in zip(ra[:4], rb[:4]):
+        for x, y in zip(ra[:4], rb[:4], strict=False):
             assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
         _same_info(ra[4], rb[4])
         ends += int((ra[2] | ra[3]).sum())
@@ -87,7 +87,7 @@ def test_same_step_autoreset_matches_gymnasium():
     for _ in range(120):
         act = rng.integers(0, 3, size=(3, 2))
         ra, rb = a.step(act), b.step(act)
-        for x, y in zip(ra[:4], rb[:4]):
+        for x, y in zip(ra[:4], rb[:4], strict=False):
             assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
         _same_info(ra[4], rb[4])
         finals += int(ra[4].get("_final_obs", np.zeros(3, bool)).sum())
