@@ -192,6 +192,28 @@ class MKVVectorEnv(VectorEnv):
             return None
         return tuple(env.render() for env in self.envs)
 
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """Call method ``name`` of every env (or read attribute ``name``), as SyncVectorEnv."""
+        out = []
+        for env in self.envs:
+            f = getattr(env, name)
+            out.append(f(*args, **kwargs) if callable(f) else f)
+        return tuple(out)
+
+    def get_attr(self, name: str) -> tuple[Any, ...]:
+        """Attribute ``name`` of every env."""
+        return tuple(getattr(env, name) for env in self.envs)
+
+    def set_attr(self, name: str, values: Any) -> None:
+        """Set attribute ``name`` of every env: one value for all, or a list/tuple of num_envs."""
+        if not isinstance(values, (list, tuple)):
+            values = [values] * self.num_envs
+        if len(values) != self.num_envs:
+            raise ValueError(f"set_attr needs one value or {self.num_envs} values, "
+                             f"got {len(values)}")
+        for env, v in zip(self.envs, values, strict=True):
+            setattr(env, name, v)
+
     def close_extras(self, **kwargs):
         for env in self.envs:
             env.close()
