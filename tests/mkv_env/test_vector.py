@@ -194,7 +194,8 @@ def test_call_get_attr_set_attr_as_sync_vector_env():
     envs = _native("MKV-v0", 2)
     envs.reset(seed=0)
     assert envs.get_attr("sensor_names")[1][0] == "drive_ticks"
-    assert envs.call("get_keys_to_action")[0] == envs.envs[0].get_keys_to_action()
+    assert envs.call("get_keys_to_action")[0].keys() == envs.envs[0].get_keys_to_action().keys()
+    assert envs.call("sensor_names")[0] == envs.envs[0].sensor_names  # attributes too
     envs.set_attr("stuck_penalty", [0.5, 0.7])
     assert envs.get_attr("stuck_penalty") == (0.5, 0.7)
     with pytest.raises(ValueError, match="set_attr"):
