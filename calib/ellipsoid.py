@@ -278,6 +278,50 @@ def cross_validate_prior(Yn, c, W, tau, folds=CV_FOLDS, max_iter=200, tol=1e-12)
     return out
 
 
+#: Prior-data conflict: the prior-free shape is this many prior spreads from isotropy ...
+CONFLICT_SPREADS = 3.0
+#: ... and known to better than this fraction of that distance.
+CONFLICT_PRECISION = 1.0 / 3.0
+
+
+def prior_conflict(W, JTJ, sigma2, tau) -> dict:
+    """Does the data's own (prior-free) shape contradict the isotropy prior?
+
+    The prior says each entry of ``W - wbar I`` (upper triangle, m entries) is about
+    ``tau * wbar``, so the relative anisotropy ``d = |W - wbar I| / wbar`` of a sensor the prior
+    fits is about ``tau sqrt(m)``. If the prior-free fit puts d beyond
+    :data:`CONFLICT_SPREADS` times that, and its standard error (delta method on the
+    Gauss-Newton covariance ``sigma^2 (J^T J)^-1``) is below :data:`CONFLICT_PRECISION` of d, the
+    data determine an anisotropic shape the prior cannot describe: a prior-data conflict (Evans
+    and Moshonov 2006), and the prior can only bias the fit. (This is the case cross-validation
+    gets wrong on nearly flat, fully covered ellipsoids: the prior-free fold fits stop in poor
+    local minima and the prior seems to predict better.)
+
+    Returns {"anisotropy": d, "anisotropy_stderr": se, "conflict": bool}.
+    """
+    r = W.shape[0]
+    idx = _sym_index(r)
+    m = len(idx)
+    wbar = np.trace(W) / r
+    e, J = _prior(W, idx, 1.0)
+    norm = float(np.linalg.norm(e))
+    d = norm / wbar
+    # gradient of d over the parameters (c, upper triangle of W); c does not enter
+    grad = np.zeros(r + m)
+    if norm > 0:
+        grad += J.T @ e / (norm * wbar)
+    for a, (j, k) in enumerate(idx):
+        if j == k:
+            grad[r + a] -= norm / wbar**2 / r
+    try:
+        var = float(grad @ np.linalg.solve(JTJ, grad)) * sigma2
+    except np.linalg.LinAlgError:
+        var = float("inf")
+    se = float(np.sqrt(max(var, 0.0)))
+    conflict = bool(d > CONFLICT_SPREADS * tau * np.sqrt(m) and se < CONFLICT_PRECISION * d)
+    return {"anisotropy": d, "anisotropy_stderr": se, "conflict": conflict}
+
+
 def fit_ellipsoid(
     Y: np.ndarray,
     refine: bool = True,
@@ -334,17 +378,27 @@ def fit_ellipsoid(
             raise ValueError(f"isotropy_prior must be a number, None or 'auto', got {tau!r}")
         tau = None
         if refine:
-            cv = cross_validate_prior(Yn, c, W, AUTO_TAU, max_iter=max_iter, tol=tol)
-            use = bool(np.isfinite(cv["prior"]) and cv["prior"] < CV_MARGIN * cv["none"])
+            free = _refine(Yn, c, W, idx, npar, None, max_iter, tol)
+            conflict = prior_conflict(free[1], free[5], free[6] / max(n - npar, 1), AUTO_TAU)
+            if conflict["conflict"]:
+                use = False
+                info["prior_selection"] = {
+                    "criterion": "prior-data conflict", "prior_used": False, **conflict}
+            else:
+                cv = cross_validate_prior(Yn, c, W, AUTO_TAU, max_iter=max_iter, tol=tol)
+                use = bool(np.isfinite(cv["prior"]) and cv["prior"] < CV_MARGIN * cv["none"])
+                info["prior_selection"] = {
+                    "criterion": f"{cv['folds']}-fold held-out Sampson cost",
+                    "rows": cv["rows"],
+                    "cost_with_prior": cv["prior"],
+                    "cost_without_prior": cv["none"],
+                    "prior_used": use,
+                    **conflict,
+                }
             tau = AUTO_TAU if use else None
-            info["prior_selection"] = {
-                "criterion": f"{cv['folds']}-fold held-out Sampson cost",
-                "rows": cv["rows"],
-                "cost_with_prior": cv["prior"],
-                "cost_without_prior": cv["none"],
-                "prior_used": use,
-            }
-    if refine:
+    if refine and isotropy_prior == "auto" and tau is None:
+        c, W, pw, it, converged, JTJ, data_cost = free  # the prior-free fit is the answer
+    elif refine:
         c, W, pw, it, converged, JTJ, data_cost = _refine(Yn, c, W, idx, npar, tau, max_iter, tol)
     else:
         it, converged, pw = 0, True, 0.0
