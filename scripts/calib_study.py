@@ -17,8 +17,8 @@ Cases (3-DOF, seeded; sensor k uses seed k):
 Routes: least squares with every load known (``bias=True``), centered (auto prior = the
 default; always prior tau 0.1; no prior), paper, joint. Every shape-from-motion route gets 4 known
 pairs (motion cases: the first 4 samples with their true loads) for its frame. The joint route
-is told the accuracy of its known pairs: single readings in the motion cases (``known_sigma`` =
-the fitted magnitude sigma), pose means in the rig (the default rule).
+is told the accuracy of its known pairs: single readings in the motion cases
+(``known_samples=1``), pose means of 100 readings on the rig (``known_samples=100``).
 
 Metrics: offset error = mean over channels of |offset error| / span, span = the channel's range
 in the data (max - min), in %; least squares identifies only C z0, so it has none. Load error =
@@ -89,10 +89,9 @@ def fit_route(route, Z, M, Zk, Mk, single=False):
     if route == "paper":
         return fit_bias(Z, 3, method="paper", known_Z=Zk, known_M=Mk)
     if route == "joint":
-        cal = fit_joint(Z, Zk, Mk)
-        if single:  # the known pairs are single readings: say so (known sigma = one reading's)
-            cal = fit_joint(Z, Zk, Mk, known_sigma=cal.diagnostics["joint"]["magnitude_sigma"])
-        return cal
+        # the user states how many readings each known reading averages: 1 in the motion
+        # cases (single readings), 100 on the rig (pose means)
+        return fit_joint(Z, Zk, Mk, known_samples=1 if single else 100)
     prior = {"centered (auto prior, default)": "auto", "centered, prior always": 0.1,
              "centered, no prior": None}[route]
     return fit_bias(Z, 3, known_Z=Zk, known_M=Mk, isotropy_prior=prior)
