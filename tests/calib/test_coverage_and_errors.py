@@ -19,8 +19,10 @@ def test_60_degree_cap_bounded_and_warned(method, trial, bound):
     errs = []
     for seed in range(30):
         d = paper_trial(trial, rng=seed, cap_half_angle_deg=60)
-        with pytest.warns(CalibrationWarning, match="poor excitation"):
-            cal = fit_bias(d.Z, 3, method=method)
+        with warnings.catch_warnings():  # the other warnings of a 60 degree cap are expected
+            warnings.simplefilter("ignore", CalibrationWarning)
+            with pytest.warns(CalibrationWarning, match="poor excitation"):
+                cal = fit_bias(d.Z, 3, method=method)
         assert np.all(np.isfinite(cal.C)) and np.all(np.isfinite(cal.offset))
         assert cal.diagnostics["excitation_poor"]
         assert cal.diagnostics["coverage"]["cap_half_angle_deg"] < 70
