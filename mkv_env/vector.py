@@ -73,7 +73,8 @@ class MKVVectorEnv(VectorEnv):
         self.envs: list[MKVEnv] = [env_cls(**kwargs) for _ in range(self.num_envs)]
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
         self.autoreset_mode = mode
-        self.metadata = {**self.metadata, "autoreset_mode": mode}
+        self.metadata = {**self.metadata, "render_fps": env_cls.metadata.get("render_fps", 10),
+                         "autoreset_mode": mode}
         self.render_mode = kwargs.get("render_mode")
         first = self.envs[0]
         self.single_observation_space = first.observation_space
