@@ -24,6 +24,7 @@ For Stable-Baselines3, wrap it with :class:`mkv_env.sb3_vec.SB3VecEnv`.
 
 from __future__ import annotations
 
+import operator
 from typing import Any
 
 import gymnasium as gym
@@ -266,7 +267,7 @@ class MKVVectorEnv(VectorEnv):
         serve every robot."""
         worlds = [env.world for env in self.envs]
         cache = self._slot_cache
-        if cache is None or any(a is not b for a, b in zip(worlds, cache[1], strict=False)):
+        if cache is None or not all(map(operator.is_, worlds, cache[1])):
             robots = [w.robot for w in worlds]
             bodies = spaces = None
             if _robot._fastsim is not None and all(r.kernel == "c" for r in robots):
@@ -283,12 +284,17 @@ class MKVVectorEnv(VectorEnv):
         out: dict[str, Any] = {}
         if not present:
             return out
-        keys = infos[present[0]].keys()
+        keys = list(infos[present[0]])
         full = len(present) == n
         mask = np.zeros(n, dtype=bool)
         mask[present] = True
-        for k in keys:
-            vals = [infos[i][k] for i in present]
+        # one pass over the dicts: every env of a class reports the same keys in the same order
+        rows = [infos[i] for i in present]
+        if all(list(d) == keys for d in rows):
+            columns = list(zip(*(d.values() for d in rows), strict=True))
+        else:
+            columns = [[d[k] for d in rows] for k in keys]
+        for k, vals in zip(keys, columns, strict=True):
             v0 = vals[0]
             if isinstance(v0, tuple):
                 arr = np.zeros((n, len(v0)), dtype=np.float64)
@@ -299,7 +305,7 @@ class MKVVectorEnv(VectorEnv):
             if full and arr.dtype != object:
                 arr[:] = vals
             else:
-                for i, v in zip(present, vals, strict=False):
+                for i, v in zip(present, vals, strict=True):
                     arr[i] = v
             out[k] = arr
             out[f"_{k}"] = mask.copy()
