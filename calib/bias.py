@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ._validate import check_dof, check_matrix, check_rank, check_samples, force_rank
-from .ellipsoid import fit_ellipsoid
+from .ellipsoid import fit_ellipsoid, fit_normalised, subsample_steps
 from .result import (
     Calibration,
     CalibrationError,
@@ -34,7 +34,16 @@ from .result import (
     propagate,
     warn,
 )
-from .sfm import CHUNK_ROWS, finish_frame, fit_unit_quadric, principal, rank_gap
+from .sfm import (
+    coverage_step,
+    finish_frame,
+    fit_unit_quadric,
+    magnitude_pass,
+    principal,
+    rank_gap,
+    unit_quadric_and_plane,
+)
+from .stream import ChunkSource, MappedSource, Scan, as_source, check_scan_samples, scan
 
 METHODS = ("centered", "paper")
 #: The paper route's refinement uses at most this many (evenly strided) rows.
@@ -55,7 +64,9 @@ def fit_bias(
 
     Parameters
     ----------
-    Z : array of shape (n, p)
+    Z : array of shape (n, p); or a ``dask.array.Array`` or :class:`calib.stream.ChunkSource`,
+        streamed block by block and never held whole in memory (:mod:`calib.stream`; the same
+        result as the in-memory fit up to rounding)
     dof : 2 or 3 (6-DOF: :func:`calib.ft6.fit_ft6`)
     method : "centered" (default) or "paper"
     known_Z, known_M : optional known pairs (k, p), (k, dof) fixing rotation and scale
@@ -87,6 +98,26 @@ def _prepare(Z, dof, drop_nonfinite, extra_rank):
     return dof, r, Z, nbad
 
 
+def _prepare_source(Z, dof, drop_nonfinite, extra_rank) -> tuple[int, int, Scan]:
+    """:func:`_prepare` for any input (array, dask array, chunk source) in one pass: returns
+    (dof, r, scan) with the checked source and its column statistics."""
+    dof = check_dof(dof)
+    if dof == 6:
+        raise CalibrationError("6-DOF calibration needs known loads: use calib.ft6.fit_ft6")
+    r = force_rank(dof)
+    data = scan(as_source(Z), "Z", drop_nonfinite)
+    p = data.p
+    if p < r + extra_rank:
+        if extra_rank:
+            raise CalibrationError(
+                f"method 'paper' needs p >= r+1 = {r + 1} channels for dof={dof}, got p={p}; "
+                "use --method centered"
+            )
+        raise CalibrationError(f"need at least {r} channels for dof={dof}, got p={p}")
+    check_scan_samples(data, r + r * (r + 1) // 2 + 1)
+    return dof, r, data
+
+
 def _finish(
     Z,
     C_unit,
@@ -103,13 +134,28 @@ def _finish(
     offset_stderr=None,
     U=None,
     uncertainty=None,
+    loads=None,
 ):
-    if U is None:
-        U = (Z - offset) @ C_unit.T
-    mags = np.linalg.norm(U, axis=1)
-    cov = coverage_diagnostics(U)
+    """Diagnostics, frame and uncertainty of a fit. Z is the data (an array, with U its unit
+    loads or None) or a :class:`calib.stream.Scan` (then one more pass over its source, with
+    ``loads(block)`` the unit loads of a block, ``(block - offset) @ C_unit.T`` by default)."""
+    if isinstance(Z, Scan):
+        n = Z.n
+        if loads is None:
+            def loads(b, offset=offset, C_unit=C_unit):
+                return (b - offset) @ C_unit.T
+        mstats = magnitude_pass(Z.source, loads)
+        cov = coverage_diagnostics(loads(Z.source.strided(coverage_step(n))))
+    else:
+        n = len(Z)
+        if U is None:
+            U = (Z - offset) @ C_unit.T
+        mags = np.linalg.norm(U, axis=1)
+        cov = coverage_diagnostics(U)
+        mstats = {"residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
+                  "magnitude_mean": float(mags.mean())}
     diag = {
-        "n_samples": len(Z),
+        "n_samples": n,
         "n_dropped_nonfinite": nbad,
         "singular_values": s,
         # the paper route factors the raw data (offset included): its rank is r + 1
@@ -117,8 +163,8 @@ def _finish(
         "rank_gap": rank_gap(s, r + (method == "paper")),
         "coverage": cov,
         "condition_number_C": float(np.linalg.cond(C_unit)),
-        "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
-        "magnitude_mean": float(mags.mean()),
+        "residual_magnitude_rms": mstats["residual_magnitude_rms"],
+        "magnitude_mean": mstats["magnitude_mean"],
     }
     diag.update(extra)
     poor = excitation_is_poor(cov)
@@ -137,7 +183,7 @@ def _finish(
         off_se, C_se = propagate(lambda t: fn(t, A), x, cov, len(offset))
         if offset_stderr is not None:  # extra variance the parameter covariance leaves out
             off_se = np.sqrt(off_se**2 + offset_stderr**2)
-        add_uncertainty(cal, off_se, C_se, channel_span(Z))
+        add_uncertainty(cal, off_se, C_se, Z.span if isinstance(Z, Scan) else channel_span(Z))
     return cal
 
 
@@ -163,18 +209,25 @@ def fit_centered(
     Returns a Calibration with ``method="centered"``; extra diagnostics: ``ellipsoid`` (fit info),
     ``offset_stderr`` (p,) from the refinement's Jacobian.
     """
-    dof, r, Z, nbad = _prepare(Z, dof, drop_nonfinite, 0)
-    mu = Z.mean(axis=0)
-    s, V = principal(Z, center=mu)
+    dof, r, data = _prepare_source(Z, dof, drop_nonfinite, 0)
+    src, n = data.source, data.n
+    mu = data.mean
+    # the strided subsamples (algebraic start, refinement, prior choice, coverage) are gathered
+    # during the Gram pass
+    src.want(*subsample_steps(n, refine), coverage_step(n))
+    s, V = principal(src, center=mu)
     check_rank(s, r, "the centred data")
     Vr = V[:, :r]
-    Y = _project(Z, mu, Vr)
-    fit = fit_ellipsoid(Y, refine=refine, isotropy_prior=isotropy_prior)
+    muV = mu @ Vr
+    # Y = (Z - mu) @ Vr per block, never n x p (nor n x r) in memory; its mean is zero and its
+    # mean square sum(s_r^2) / n, so the ellipsoid fit normalises it without another pass
+    scale = float(np.sqrt(np.sum(s[:r] ** 2) / max(n, 1))) or 1.0
+    Yn = MappedSource(src, lambda b: (b @ Vr - muV) / scale, p=r)
+    fit = fit_normalised(Yn, np.zeros(r), scale, refine=refine, isotropy_prior=isotropy_prior)
     offset = mu + Vr @ fit.centre
     C_unit = fit.W @ Vr.T
     # the mean's own error in the p - r directions the ellipsoid does not see (s^2 / n is the
     # variance there, / n again for the mean)
-    n = len(Z)
     perp = (V[:, r:] ** 2) @ (s[r:] ** 2 / max(n * (n - 1), 1))
     stderr = np.sqrt(perp)
     idx = [(j, k) for j in range(r) for k in range(j, r)]
@@ -186,44 +239,35 @@ def fit_centered(
         return mu + Vr @ theta[:r], A @ W @ Vr.T
 
     theta = np.r_[fit.centre, [fit.W[j, k] for j, k in idx]]
-    # C_unit only sees the span of Vr, so the unit loads follow from Y without another n x p pass
-    Y -= fit.centre
-    U = Y @ fit.W.T
-    del Y
+
+    # C_unit only sees the span of Vr: the unit loads from the projection
+    def loads(b, Vr=Vr, muV=muV, c=fit.centre, W=fit.W):
+        return ((b @ Vr - muV) - c) @ W.T
+
     return _finish(
-        Z,
+        data,
         C_unit,
         offset,
         dof,
         "centered",
         s,
         r,
-        nbad,
+        data.nbad,
         {"ellipsoid": fit.info},
         known_Z,
         known_M,
         magnitude,
         offset_stderr=stderr,
-        U=U,
         uncertainty=(theta, fit.cov, fn),
+        loads=loads,
     )
-
-
-def _project(Z: np.ndarray, mu: np.ndarray, Vr: np.ndarray) -> np.ndarray:
-    """``(Z - mu) @ Vr`` of shape (n, r), computed in row chunks (no n x p temporary)."""
-    n = len(Z)
-    Y = np.empty((n, Vr.shape[1]))
-    for i in range(0, n, CHUNK_ROWS):
-        Y[i : i + CHUNK_ROWS] = Z[i : i + CHUNK_ROWS] @ Vr
-    Y -= mu @ Vr
-    return Y
 
 
 # ------------------------------------------------------------------------------------ paper
 
 
 def cylinder_start(
-    Mhat: np.ndarray, a4: np.ndarray, resolve: bool = True
+    Mhat, a4: np.ndarray, resolve: bool = True, Q0: np.ndarray | None = None
 ) -> tuple[np.ndarray, dict]:
     """Paper's start for B (r, r+1): linear quadric, freedom resolved, smallest singular value
     zeroed.
@@ -233,10 +277,12 @@ def cylinder_start(
 
     Returns (B, info) with ``info["lambda"]`` the resolved ``Q + lam a4 a4^T`` parameter and
     ``info["ok"]`` False if the quadric could not be made a cylinder (then the caller falls back).
+    ``Q0``: the linear quadric of Mhat if already computed (Mhat may then be a chunk source).
     """
-    q = Mhat.shape[1]
+    q = len(a4)
     r = q - 1
-    Q0 = fit_unit_quadric(Mhat)
+    if Q0 is None:
+        Q0 = fit_unit_quadric(Mhat)
     info = {"ok": False, "resolved": bool(resolve)}
     try:
         t = float(a4 @ np.linalg.solve(Q0, a4)) if resolve else np.inf
@@ -261,11 +307,11 @@ def cylinder_start(
 
 def _plane_start(Mhat, a4):
     """Fallback start: ellipsoid fit in plane coordinates, B = W (P^T - c a4^T)."""
-    q = Mhat.shape[1]
+    q = len(a4)
     # orthonormal basis P (q, r) of a4's orthogonal complement
     Qf, _ = np.linalg.qr(np.column_stack([a4, np.eye(q)]))
     P = Qf[:, 1:q]
-    Y = Mhat @ P
+    Y = MappedSource(Mhat, lambda m: m @ P, p=q - 1) if isinstance(Mhat, ChunkSource) else Mhat @ P
     fit = fit_ellipsoid(Y, refine=False)
     return fit.W @ (P.T - np.outer(fit.centre, a4))
 
@@ -333,16 +379,20 @@ def fit_paper(
     refine : "lsq" (scipy least_squares, default), "gd" (plain gradient descent), or None
     start : "resolved" (quadric freedom fixed by the determinant lemma, default) or "naive"
     """
-    dof, r, Z, nbad = _prepare(Z, dof, drop_nonfinite, 1)
+    dof, r, data = _prepare_source(Z, dof, drop_nonfinite, 1)
+    src, n = data.source, data.n
     q = r + 1
-    s, V = principal(Z)
+    fit_step = int(np.ceil(n / PAPER_REFINE_MAX_ROWS))
+    src.want(fit_step, coverage_step(n))  # gathered during the Gram pass
+    s, V = principal(src)
     check_rank(s, q, "Z (with offset)")
     Vq, sq = V[:, :q], s[:q]
-    Mhat = (Z @ Vq) / np.sqrt(sq)
-    a4, *_ = np.linalg.lstsq(Mhat, np.ones(len(Z)), rcond=None)
+    Mhat = MappedSource(src, lambda b: (b @ Vq) / np.sqrt(sq), p=q)
     if start not in ("resolved", "naive"):
         raise CalibrationError(f"start must be 'resolved' or 'naive', got {start!r}")
-    B, start = cylinder_start(Mhat, a4, resolve=(start == "resolved"))
+    # one pass: the plane m^T a4 = 1 and the linear quadric, both least squares over all rows
+    Q0, a4 = unit_quadric_and_plane(Mhat)
+    B, start = cylinder_start(Mhat, a4, resolve=(start == "resolved"), Q0=Q0)
     if not start["ok"]:
         warn(
             "the quadric start is not a cylinder (poor excitation?); starting from a plane-"
@@ -351,7 +401,7 @@ def fit_paper(
         B = _plane_start(Mhat, a4)
     x0 = np.concatenate([B.ravel(), a4])
     # the dense (2n x 16) Jacobian is too big for millions of rows: refine on a strided subsample
-    Mfit = Mhat[:: int(np.ceil(len(Mhat) / PAPER_REFINE_MAX_ROWS))]
+    Mfit = Mhat.strided(fit_step)
     cost0 = float(np.mean(_residuals(x0, Mfit, r) ** 2))
     extra = {"paper_start": start, "start_cost": cost0, "refine_rows": len(Mfit)}
     if refine == "lsq":
@@ -404,6 +454,6 @@ def fit_paper(
     res = _residuals(x, Mfit, r)
     J = _jacobian(x, Mfit, r)
     dof_res = max(len(res) - (len(x) - r * (r - 1) // 2), 1)
-    cov = np.linalg.pinv(J.T @ J) * float(res @ res) / dof_res * len(Mfit) / len(Z)
-    return _finish(Z, C_unit, offset, dof, "paper", s, r, nbad, extra, known_Z, known_M, magnitude,
-                   uncertainty=(x, cov, fn))
+    cov = np.linalg.pinv(J.T @ J) * float(res @ res) / dof_res * len(Mfit) / n
+    return _finish(data, C_unit, offset, dof, "paper", s, r, data.nbad, extra, known_Z, known_M,
+                   magnitude, uncertainty=(x, cov, fn))

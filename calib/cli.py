@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0,
                    help="seed of the bootstrap resampling (default 0)")
     f.add_argument("--quiet", action="store_true", help="no bootstrap progress bar")
+    f.add_argument("--chunk-rows", metavar="N", type=int_in_range(1, 2**31 - 1),
+                   help="stream RAW.csv N rows at a time (never all in memory) through the "
+                   "statistics of the fit: for logs larger than memory")
     f.add_argument("--out", metavar="CAL.json", required=True)
 
     a = sub.add_parser("apply", help="convert raw readings to loads")
@@ -125,7 +128,17 @@ def _fit(args) -> str:
     from .sfm import fit_sfm
 
     _check_outputs([args.raw, args.known], args.out)
-    channels, Z = read_csv(args.raw)
+    if args.chunk_rows:
+        for bad, what in ((args.method == "joint", "--method joint"), (args.dof == 6, "--dof 6"),
+                          (args.bootstrap, "--bootstrap")):
+            if bad:
+                raise CalibrationError(f"--chunk-rows is not supported with {what}")
+        from .io import CSVSource
+
+        Z = CSVSource(args.raw, args.chunk_rows)  # each pass of the fit reads the file again
+        channels = Z.header
+    else:
+        channels, Z = read_csv(args.raw)
     known_Z = known_M = None
     if args.known:
         kh, kd = read_csv(args.known)

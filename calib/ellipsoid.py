@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .result import warn
+from .stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per block of a pass
+from .stream import QR, ChunkSource, blocks_of, rows_of, strided_of
 
-CHUNK_ROWS = 1 << 17
 #: Above this many points the refinement converges on a strided subsample of this size first.
 SUBSAMPLE_ROWS = 50_000
 #: Full-data Gauss-Newton (LM) steps after the subsample has converged.
@@ -53,16 +54,19 @@ def _sym_index(r):
     return [(j, k) for j in range(r) for k in range(j, r)]
 
 
-def _algebraic(Y: np.ndarray):
+def _ncols(Y) -> int:
+    return Y.p if isinstance(Y, ChunkSource) else Y.shape[1]
+
+
+def _algebraic(Y):
     """General quadric fit on (already normalised) Y; returns (centre, E) or None if not an
     ellipsoid."""
-    n, r = Y.shape
+    r = _ncols(Y)
     idx = _sym_index(r)
     nq = len(idx)
     npar = nq + r + 1
     G = np.zeros((npar, npar))
-    for i in range(0, n, CHUNK_ROWS):
-        y = Y[i : i + CHUNK_ROWS]
+    for y in blocks_of(Y):
         D = np.empty((len(y), npar))
         for c, (j, k) in enumerate(idx):
             D[:, c] = y[:, j] * y[:, k] * (1.0 if j == k else 2.0)
@@ -88,11 +92,17 @@ def _algebraic(Y: np.ndarray):
     return (c, A / k), float(w[1] / max(w[0], 1e-300))
 
 
-def _sphere(Y: np.ndarray):
+def _sphere(Y):
     """Linear sphere fit |y|^2 + b^T y + d = 0; returns (centre, E = I / R^2)."""
-    r = Y.shape[1]
-    X = np.column_stack([Y, np.ones(len(Y))])
-    t, *_ = np.linalg.lstsq(X, -np.sum(Y**2, axis=1), rcond=None)
+    r = _ncols(Y)
+    if isinstance(Y, ChunkSource):  # one pass, streaming QR
+        qr = QR()
+        for y in blocks_of(Y):
+            qr.add(np.column_stack([y, np.ones(len(y)), -np.sum(y**2, axis=1)]))
+        t = qr.lstsq(r + 1)[:, 0]
+    else:
+        X = np.column_stack([Y, np.ones(len(Y))])
+        t, *_ = np.linalg.lstsq(X, -np.sum(Y**2, axis=1), rcond=None)
     c = -0.5 * t[:r]
     R2 = max(c @ c - t[r], 1e-12)
     return c, np.eye(r) / R2
@@ -121,7 +131,7 @@ def _prior(W, idx, weight):
 def _normal_equations(Y, c, W, idx, prior_weight=0.0):
     """J^T J and J^T e of the Sampson residuals plus the prior, and the data cost e^T e, at
     (c, W)."""
-    r = Y.shape[1]
+    r = _ncols(Y)
     npar = r + len(idx)
     JTJ = np.zeros((npar, npar))
     JTe = np.zeros(npar)
@@ -130,8 +140,8 @@ def _normal_equations(Y, c, W, idx, prior_weight=0.0):
         pr, PJ = _prior(W, idx, prior_weight)
         JTJ += PJ.T @ PJ
         JTe += PJ.T @ pr
-    for i in range(0, len(Y), CHUNK_ROWS):
-        dlt = Y[i : i + CHUNK_ROWS] - c
+    for y in blocks_of(Y):
+        dlt = y - c
         v = dlt @ W  # W symmetric
         rho = np.sqrt(np.einsum("ij,ij->i", v, v))
         g = v @ W
@@ -158,8 +168,8 @@ def _cost(Y, c, W, idx=None, prior_weight=0.0):
     if prior_weight > 0:
         pr, _ = _prior(W, idx, prior_weight)
         ee += float(pr @ pr)
-    for i in range(0, len(Y), CHUNK_ROWS):
-        v = (Y[i : i + CHUNK_ROWS] - c) @ W
+    for y in blocks_of(Y):
+        v = (y - c) @ W
         rho = np.sqrt(np.einsum("ij,ij->i", v, v))
         g = v @ W
         gn = np.sqrt(np.einsum("ij,ij->i", g, g))
@@ -174,7 +184,7 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
     Returns (c, W, prior_weight, iterations, converged, JTJ, data_cost); JTJ is the last normal
     matrix evaluated (at the final or the previous iterate) and data_cost the final data cost.
     """
-    n, r = Yn.shape
+    n, r = rows_of(Yn), _ncols(Yn)
     lam = 1e-3
     pw = 0.0
     converged = False
@@ -235,11 +245,11 @@ AUTO_TAU = 0.1
 
 def _refine(Yn, c, W, idx, npar, tau, max_iter, tol):
     """LM on Yn (subsample first for large n, then full-data steps); see :func:`fit_ellipsoid`."""
-    n = len(Yn)
+    n = rows_of(Yn)
     if n > SUBSAMPLE_ROWS:
         # converge on an evenly strided subsample, then polish with full-data Gauss-Newton
         # steps: one Newton step from a root-n consistent start is already efficient
-        sub = Yn[:: int(np.ceil(n / SUBSAMPLE_ROWS))]
+        sub = strided_of(Yn, int(np.ceil(n / SUBSAMPLE_ROWS)))
         c, W, pw, it, converged, _, sub_cost = _lm(sub, c, W, idx, npar, tau, max_iter, tol)
         c, W, pw, it2, _, JTJ, data_cost = _lm(
             Yn, c, W, idx, npar, tau, FULL_DATA_STEPS, 0.0,
@@ -258,10 +268,10 @@ def cross_validate_prior(Yn, c, W, tau, folds=CV_FOLDS, max_iter=200, tol=1e-12)
 
     Returns {"prior": cost, "none": cost, "folds": folds, "rows": m}.
     """
-    n, r = Yn.shape
+    n, r = rows_of(Yn), _ncols(Yn)
     idx = _sym_index(r)
     npar = r + len(idx)
-    X = Yn[:: int(np.ceil(n / CV_MAX_ROWS))] if n > CV_MAX_ROWS else Yn
+    X = strided_of(Yn, int(np.ceil(n / CV_MAX_ROWS)) if n > CV_MAX_ROWS else 1)
     m = len(X)
     fold = np.arange(m) % folds
     out = {"folds": folds, "rows": m}
@@ -349,15 +359,61 @@ def fit_ellipsoid(
 
     Returns an :class:`EllipsoidFit`; ``info["start"]`` is ``"algebraic"`` or
     ``"sphere (hyperboloid rejected)"``.
+
+    Y may be a :class:`calib.stream.ChunkSource` (rows computed per block, never all in memory).
     """
-    Y = np.asarray(Y, float)
-    n, r = Y.shape
-    mu = Y.mean(axis=0)
-    scale = float(np.sqrt(np.mean(np.sum((Y - mu) ** 2, axis=1)))) or 1.0
-    Yn = (Y - mu) / scale
+    if isinstance(Y, ChunkSource):  # two passes: mean, then mean squared distance from it
+        n, r = Y.count(), Y.p
+        mu = sum(y.sum(axis=0) for y in blocks_of(Y)) / max(n, 1)
+        ss = sum(float(np.sum((y - mu) ** 2)) for y in blocks_of(Y))
+        scale = float(np.sqrt(ss / max(n, 1))) or 1.0
+        Yn = normalised(Y, mu, scale)
+    else:
+        Y = np.asarray(Y, float)
+        n, r = Y.shape
+        mu = Y.mean(axis=0)
+        scale = float(np.sqrt(np.mean(np.sum((Y - mu) ** 2, axis=1)))) or 1.0
+        Yn = (Y - mu) / scale
+    return fit_normalised(Yn, mu, scale, refine, max_iter, tol, isotropy_prior)
+
+
+def normalised(Y: ChunkSource, mu, scale) -> ChunkSource:
+    """``(Y - mu) / scale`` computed per block."""
+    from .stream import MappedSource
+
+    return MappedSource(Y, lambda y: (y - mu) / scale, p=Y.p)
+
+
+def subsample_steps(n: int, refine: bool = True) -> list[int]:
+    """Strides of the subsamples :func:`fit_normalised` takes of n rows (the algebraic start and
+    the refinement; the cross-validation of the prior), so a streamed fit can gather them in an
+    earlier pass."""
+    steps = [int(np.ceil(n / SUBSAMPLE_ROWS)) if refine and n > SUBSAMPLE_ROWS else 1]
+    if refine:
+        steps.append(int(np.ceil(n / CV_MAX_ROWS)) if n > CV_MAX_ROWS else 1)
+    return steps
+
+
+def fit_normalised(
+    Yn,
+    mu: np.ndarray,
+    scale: float,
+    refine: bool = True,
+    max_iter: int = 200,
+    tol: float = 1e-12,
+    isotropy_prior: float | str | None = "auto",
+) -> EllipsoidFit:
+    """:func:`fit_ellipsoid` on ``Yn = (Y - mu) / scale`` (an array or a
+    :class:`calib.stream.ChunkSource`, streamed: full passes only for the full-data steps);
+    the result is in Y's units."""
+    n, r = rows_of(Yn), _ncols(Yn)
+    if isinstance(Yn, ChunkSource) and n <= SUBSAMPLE_ROWS:
+        Yn = Yn.to_array()  # small: the in-memory code as it is
+    if isinstance(Yn, ChunkSource):
+        Yn.want(*subsample_steps(n, refine))
     # the algebraic fit is only a start: for large n an evenly strided subsample is enough
     step = int(np.ceil(n / SUBSAMPLE_ROWS)) if refine and n > SUBSAMPLE_ROWS else 1
-    start, gap = _algebraic(Yn[::step])
+    start, gap = _algebraic(strided_of(Yn, step) if step > 1 else Yn)
     info = {"algebraic_eigen_gap": min(gap, 1e300)}
     if start is None:
         warn(

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import os
 import warnings
@@ -15,6 +16,7 @@ from sfm_common.cli import one_line
 from sfm_common.files import atomic_write_text
 
 from .result import Calibration, CalibrationError
+from .stream import ChunkSource
 
 LOAD_COLUMNS = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
 
@@ -37,17 +39,7 @@ def read_csv(path: str) -> tuple[list[str], np.ndarray]:
     try:
         # utf-8-sig: a byte-order mark (CSV saved by Excel) is not part of the first name
         with open(path, newline="", encoding="utf-8-sig") as f:
-            header_line = ""
-            skipped = 0  # physical lines up to and including the header
-            for header_line in f:
-                skipped += 1
-                if header_line.strip(" \t\r\n,"):
-                    break
-            else:
-                raise CalibrationError(f"{path} is empty")
-            header = [h.strip() for h in next(csv.reader([header_line]))]
-            if len(set(header)) != len(header):
-                raise CalibrationError(f"{path}: duplicate column names in header")
+            header, skipped = _read_header(f, path)
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
@@ -67,6 +59,115 @@ def read_csv(path: str) -> tuple[list[str], np.ndarray]:
     except csv.Error as e:  # e.g. a field over csv.field_size_limit()
         raise CalibrationError(f"{path}: not a readable CSV file ({one_line(e)})") from None
     return header, data
+
+
+def _read_header(f, path: str) -> tuple[list[str], int]:
+    """The header names of an open CSV and the physical lines up to and including it."""
+    header_line = ""
+    skipped = 0  # physical lines up to and including the header
+    for header_line in f:
+        skipped += 1
+        if header_line.strip(" \t\r\n,"):
+            break
+    else:
+        raise CalibrationError(f"{path} is empty")
+    header = [h.strip() for h in next(csv.reader([header_line]))]
+    if len(set(header)) != len(header):
+        raise CalibrationError(f"{path}: duplicate column names in header")
+    return header, skipped
+
+
+class CSVSource(ChunkSource):
+    """A CSV file read ``chunk_rows`` lines at a time, a :class:`calib.stream.ChunkSource`: each
+    pass reads the file again and holds one chunk in memory, so a log larger than memory can be
+    fitted (``calib fit --chunk-rows``). The header is read (and checked) at once; a bad row is
+    the same one-line error as :func:`read_csv`'s, found when a pass reaches it."""
+
+    def __init__(self, path: str, chunk_rows: int = 1 << 17) -> None:
+        super().__init__()
+        if int(chunk_rows) < 1:
+            raise CalibrationError(f"chunk_rows must be positive, got {chunk_rows}")
+        if os.path.exists(path) and not os.path.isfile(path):
+            raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
+        self.path = path
+        self.chunk_rows = int(chunk_rows)
+        with self._open() as f:
+            self.header, self.skipped = self._guard(lambda: _read_header(f, path))
+        self.p = len(self.header)
+
+    def _open(self):
+        try:
+            return open(self.path, newline="", encoding="utf-8-sig")
+        except OSError as e:
+            raise CalibrationError(f"cannot read {self.path}: {e.strerror}") from None
+
+    def _guard(self, fn):
+        try:
+            return fn()
+        except OSError as e:
+            raise CalibrationError(f"cannot read {self.path}: {e.strerror}") from None
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{self.path} is not a text CSV file") from None
+        except csv.Error as e:
+            raise CalibrationError(f"{self.path}: not a readable CSV file ({one_line(e)})") \
+                from None
+
+    def _blocks(self):
+        k, path = self.p, self.path
+        with self._open() as f:
+            try:
+                for _ in range(self.skipped):
+                    next(f)
+                line = self.skipped + 1  # file line number of the chunk's first line
+                start = 0
+                while True:
+                    lines = list(itertools.islice(f, self.chunk_rows))
+                    if not lines:
+                        return
+                    try:
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore", UserWarning)
+                            data = np.loadtxt(lines, delimiter=",", dtype=float, ndmin=2,
+                                              comments=None)
+                    except ValueError:
+                        data = None
+                    if data is not None and data.size == 0:
+                        data = data.reshape(0, k)
+                    extra = 0
+                    if data is None or data.shape[1] != k:
+                        data, extra = _parse_lines(lines, f, k, path, line)
+                    line += len(lines) + extra
+                    yield start, data
+                    start += len(data)
+            except OSError as e:
+                raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
+            except UnicodeDecodeError:
+                raise CalibrationError(f"{path} is not a text CSV file") from None
+
+
+def _parse_lines(lines, f, k: int, path: str, line0: int) -> tuple[np.ndarray, int]:
+    """The careful reader on one chunk of ``lines`` (starting at file line ``line0``); a quoted
+    field that runs past the chunk takes further lines from ``f``. Returns (rows, number of
+    extra lines taken)."""
+    values = array("d")
+    reader = csv.reader(itertools.chain(lines, f))
+    line = line0
+    try:
+        while reader.line_num < len(lines):
+            r = next(reader, None)
+            if r is None:
+                break
+            if any(c.strip() for c in r):
+                if len(r) != k:
+                    raise CalibrationError(f"{path} line {line}: {len(r)} fields, header has {k}")
+                try:
+                    values.extend([float(c) for c in r])
+                except ValueError:
+                    raise CalibrationError(f"{path} line {line}: non-numeric value") from None
+            line = line0 + reader.line_num
+    except csv.Error as e:
+        raise CalibrationError(f"{path} line {line}: {one_line(e)}") from None
+    return np.frombuffer(values, dtype=float).reshape(-1, k), max(reader.line_num - len(lines), 0)
 
 
 def _read_rows_slowly(path: str, k: int, skipped: int) -> np.ndarray:

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_dof, check_matrix, check_samples
+from ._validate import check_dof
 from .result import Calibration, CalibrationError
+from .stream import is_dask
 
 
 def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) -> Calibration:
@@ -21,6 +22,9 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
     ----------
     Z : array of shape (n, p), raw readings
     M : array of shape (n, dof), the known applied loads, dof in {2, 3, 6}
+    Z and M may also be ``dask.array.Array`` objects or :class:`calib.stream.ChunkSource`
+    objects of equal length: the normal equations are sums, streamed block by block (a
+    streaming QR, the same solution as the in-memory ``lstsq`` up to rounding).
     bias : also fit a constant offset
 
     Returns
@@ -28,46 +32,91 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
     Calibration with ``method="least_squares"``; diagnostics: ``singular_values`` of the design,
     ``condition_number``, ``residual_rms`` (load units), ``n_samples``.
     """
-    Z = np.asarray(Z, float)
-    M = np.atleast_2d(np.asarray(M, float))
-    if M.shape[0] != Z.shape[0]:
-        raise CalibrationError(f"Z has {Z.shape[0]} rows but the known loads have {M.shape[0]}")
-    both, nbad = check_matrix(np.hstack([Z, M]), "known data", drop_nonfinite)
-    Z, M = both[:, : Z.shape[1]], both[:, Z.shape[1] :]
-    dof = check_dof(M.shape[1])
-    n, p = Z.shape
+    from .stream import QR, StackedSource, as_source, blocks_of, check_scan_samples, is_streamed
+    from .stream import scan as scan_source
+
+    if is_streamed(Z) or is_streamed(M):
+        if is_dask(Z) and is_dask(M):
+            import dask.array as da
+
+            if Z.shape[0] == M.shape[0]:
+                both = as_source(da.hstack([Z, M]))
+            else:
+                both = None
+        else:
+            both = StackedSource(as_source(Z), as_source(M))
+        zs, ms = as_source(Z), as_source(M)
+        p, dof = zs.p, ms.p
+        if both is None or (zs.n is not None and ms.n is not None and zs.n != ms.n):
+            raise CalibrationError(f"Z has {zs.n} rows but the known loads have {ms.n}")
+    else:
+        Z = np.asarray(Z, float)
+        M = np.atleast_2d(np.asarray(M, float))
+        if M.shape[0] != Z.shape[0]:
+            raise CalibrationError(f"Z has {Z.shape[0]} rows but the known loads have "
+                                   f"{M.shape[0]}")
+        both = as_source(np.hstack([Z, M]), "known data")
+        p, dof = Z.shape[1], M.shape[1]
+    data = scan_source(both, "known data", drop_nonfinite)
+    nbad = data.nbad
+    dof = check_dof(dof)
+    n = data.n
     need = dof + (1 if bias else 0)
     if n < need:
         raise CalibrationError(
             f"least squares needs at least {need} known loads for dof={dof}, got {n}"
         )
-    check_samples(Z, need, "known data", rows_per_channel=False)
-    X = np.hstack([Z, np.ones((n, 1))]) if bias else Z
-    s = np.linalg.svd(X, compute_uv=False)
+    zpart = StatsView(data, p)
+    check_scan_samples(zpart, need, "known data", rows_per_channel=False)
+    # one pass: streaming QR of the design [Z (1)] with the loads as right-hand sides (bias:
+    # centred, which keeps C in the row space of the data), and of the loads alone
+    zm, mm = data.mean[:p], data.mean[p:]
+    design, loads = QR(), QR()
+    for block in blocks_of(data.source):
+        Zb, Mb = block[:, :p], block[:, p:]
+        if bias:
+            design.add(np.hstack([Zb - zm, Mb - mm]))
+            loads.add(Mb)
+        else:
+            design.add(block)
+            loads.add(Mb)
+    sm = loads.singular_values()
     # the loads must span dof dimensions, else C is not determined in the missing directions
-    sm = np.linalg.svd(M, compute_uv=False)
     if sm[-1] <= 1e-9 * sm[0]:
         raise CalibrationError(
             f"rank-deficient excitation: the known loads span {int((sm > 1e-9 * sm[0]).sum())} of "
             f"{dof} load dimensions"
         )
+    C = design.lstsq(p).T
     if bias:
-        # centring keeps C in the row space of the data (the min-norm [C, d] would not)
-        zm, mm = Z.mean(axis=0), M.mean(axis=0)
-        Ct, *_ = np.linalg.lstsq(Z - zm, M - mm, rcond=None)
-        C = Ct.T
+        # singular values of [Z 1]: the centred design's R plus the mean row, sqrt(n) [zm 1]
+        top = QR()
+        top.add(np.hstack([design.R[:, :p], np.zeros((len(design.R), 1))]))
+        top.add(np.sqrt(n) * np.r_[zm, 1.0][None, :])
+        top.n = n
+        s = top.singular_values()
         d = mm - C @ zm
         offset = -np.linalg.pinv(C) @ d
     else:
-        Ct, *_ = np.linalg.lstsq(Z, M, rcond=None)
-        C = Ct.T
+        s = design.singular_values(p)
         offset = np.zeros(p)
-    res = M - (Z - offset) @ C.T
+    sq = 0.0
+    for block in blocks_of(data.source):
+        res = block[:, p:] - (block[:, :p] - offset) @ C.T
+        sq += float(np.sum(res**2))
     diag = {
         "n_samples": n,
         "n_dropped_nonfinite": nbad,
         "singular_values": s,
         "condition_number": float(s[0] / s[-1]) if s[-1] > 0 else float("inf"),
-        "residual_rms": float(np.sqrt(np.mean(res**2))),
+        "residual_rms": float(np.sqrt(sq / max(n * dof, 1))),
     }
     return Calibration(C=C, offset=offset, dof=dof, method="least_squares", diagnostics=diag)
+
+
+class StatsView:
+    """The first ``p`` columns of a scan's statistics (the readings without the loads)."""
+
+    def __init__(self, data, p):
+        self.n, self.p = data.n, p
+        self.min, self.max = data.min[:p], data.max[:p]

@@ -18,39 +18,55 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_dof, check_matrix, check_rank, check_samples, force_rank
+from ._validate import check_dof, check_matrix, check_rank, force_rank
 from .result import (
+    COVERAGE_MAX_ROWS,
     Calibration,
     CalibrationError,
     coverage_diagnostics,
     excitation_is_poor,
     warn,
 )
+from .stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per block of a pass
+from .stream import (
+    QR,
+    ChunkSource,
+    MappedSource,
+    as_source,
+    blocks_of,
+    check_scan_samples,
+    scan,
+)
 
 #: Above this many rows the right singular vectors come from the Gram matrix (no n x p U).
 GRAM_THRESHOLD_ROWS = 20_000
-#: Rows per chunk when accumulating Gram matrices (bounds the temporary memory).
-CHUNK_ROWS = 1 << 17
 
 
-def gram(Z: np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
-    """``(Z - center)^T (Z - center)`` of shape (p, p), accumulated in chunks of rows."""
-    n, p = Z.shape
+def gram(Z, center: np.ndarray | None = None) -> np.ndarray:
+    """``(Z - center)^T (Z - center)`` of shape (p, p), accumulated in chunks of rows (Z an
+    array or a :class:`calib.stream.ChunkSource`)."""
+    p = Z.p if isinstance(Z, ChunkSource) else Z.shape[1]
     G = np.zeros((p, p))
-    for i in range(0, n, CHUNK_ROWS):
-        block = Z[i : i + CHUNK_ROWS]
+    for block in blocks_of(Z):
         if center is not None:
             block = block - center
         G += block.T @ block
     return G
 
 
-def principal(Z: np.ndarray, center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def principal(Z, center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Singular values (p,) descending and right singular vectors V (p, p) of ``Z - center``.
 
+    Z is an array or a :class:`calib.stream.ChunkSource` (above :data:`GRAM_THRESHOLD_ROWS`
+    rows one pass over its blocks; below, it is small and read whole).
     Signs are deterministic: the largest-magnitude entry of every column of V is positive.
     """
-    n, p = Z.shape
+    if isinstance(Z, ChunkSource):
+        n, p = Z.count(), Z.p
+        if n <= GRAM_THRESHOLD_ROWS:
+            Z = Z.to_array()
+    else:
+        n, p = Z.shape
     if n > GRAM_THRESHOLD_ROWS:
         w, V = np.linalg.eigh(gram(Z, center))
         w, V = w[::-1], V[:, ::-1]
@@ -104,12 +120,33 @@ def sym_from_vec(q: np.ndarray, r: int) -> np.ndarray:
     return Q
 
 
-def fit_unit_quadric(X: np.ndarray) -> np.ndarray:
-    """Least-squares symmetric Q (r, r) with ``x_i^T Q x_i = 1`` for the rows of X (n, r)."""
-    r = X.shape[1]
-    D = quadric_design(X)
-    q, *_ = np.linalg.lstsq(D, np.ones(len(X)), rcond=None)
-    return sym_from_vec(q, r)
+def fit_unit_quadric(X) -> np.ndarray:
+    """Least-squares symmetric Q (r, r) with ``x_i^T Q x_i = 1`` for the rows of X (n, r).
+
+    X is an array or a :class:`calib.stream.ChunkSource` (then one pass: a streaming QR of the
+    design, the same minimum-norm solution as ``lstsq`` on the whole design up to rounding).
+    """
+    if not isinstance(X, ChunkSource):
+        r = X.shape[1]
+        D = quadric_design(X)
+        q, *_ = np.linalg.lstsq(D, np.ones(len(X)), rcond=None)
+        return sym_from_vec(q, r)
+    return unit_quadric_and_plane(X, plane=False)[0]
+
+
+def unit_quadric_and_plane(X: ChunkSource, plane: bool = True):
+    """One pass over X (n, q): the unit quadric of :func:`fit_unit_quadric` and (``plane``)
+    the least-squares ``a`` with ``X a = 1``. Returns (Q, a or None)."""
+    r = X.p
+    nq = r * (r + 1) // 2
+    quad, lin = QR(), QR()
+    for block in blocks_of(X):
+        ones = np.ones((len(block), 1))
+        quad.add(np.hstack([quadric_design(block), ones]))
+        if plane:
+            lin.add(np.hstack([block, ones]))
+    Q = sym_from_vec(quad.lstsq(nq)[:, 0], r)
+    return Q, (lin.lstsq(r)[:, 0] if plane else None)
 
 
 def sqrt_psd(Q: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -133,7 +170,9 @@ def fit_sfm(
 
     Parameters
     ----------
-    Z : array of shape (n, p), raw readings of a constant-magnitude load over orientations
+    Z : array of shape (n, p), raw readings of a constant-magnitude load over orientations; or a
+        ``dask.array.Array`` or :class:`calib.stream.ChunkSource`, streamed block by block (never
+        held whole in memory: :mod:`calib.stream`)
     dof : 2 or 3 (for 6 use :func:`calib.ft6.fit_ft6`)
     known_Z, known_M : optional arrays (k, p) and (k, dof): known pairs that fix rotation and scale
     magnitude : optional load magnitude used as scale when no known pairs are given
@@ -147,32 +186,32 @@ def fit_sfm(
     if dof == 6:
         raise CalibrationError("6-DOF shape from motion needs known loads: use calib.ft6.fit_ft6")
     r = force_rank(dof)
-    Z, nbad = check_matrix(Z, "Z", drop_nonfinite)
-    check_samples(Z, r * (r + 1) // 2 + 1)
-    if Z.shape[1] < r:
-        raise CalibrationError(f"need at least {r} channels for dof={dof}, got {Z.shape[1]}")
-    s, V = principal(Z)
+    data = scan(as_source(Z), "Z", drop_nonfinite)
+    check_scan_samples(data, r * (r + 1) // 2 + 1)
+    if data.p < r:
+        raise CalibrationError(f"need at least {r} channels for dof={dof}, got {data.p}")
+    n, src = data.n, data.source
+    src.want(coverage_step(n))
+    s, V = principal(src)
     check_rank(s, r, "Z")
     Vr, sr = V[:, :r], s[:r]
-    Mhat = (Z @ Vr) / np.sqrt(sr)
-    Q = fit_unit_quadric(Mhat)
+    Q = fit_unit_quadric(MappedSource(src, lambda b: (b @ Vr) / np.sqrt(sr), p=r))
     L, definite = sqrt_psd(Q)
     if not definite:
         warn("unit-norm quadric is not positive definite; excitation too poor or rank wrong")
     C_unit = (L.T / np.sqrt(sr)) @ Vr.T
-    U = Z @ C_unit.T
-    mags = np.linalg.norm(U, axis=1)
-    cov = coverage_diagnostics(U)
+    mags = magnitude_pass(src, lambda b: b @ C_unit.T)
+    cov = coverage_diagnostics(src.strided(coverage_step(n)) @ C_unit.T)
     diag = {
-        "n_samples": len(Z),
-        "n_dropped_nonfinite": nbad,
+        "n_samples": n,
+        "n_dropped_nonfinite": data.nbad,
         "singular_values": s,
         "rank": r,
         "rank_gap": rank_gap(s, r),
         "coverage": cov,
         "condition_number_C": float(np.linalg.cond(C_unit)),
         "condition_number_Q": float(np.linalg.cond(Q)),
-        "residual_magnitude_rms": float(np.sqrt(np.mean((mags - 1) ** 2))),
+        "residual_magnitude_rms": mags["residual_magnitude_rms"],
     }
     if excitation_is_poor(cov):
         warn(
@@ -180,9 +219,29 @@ def fit_sfm(
             " deg): the shape is unreliable"
         )
     cal = Calibration(
-        C=C_unit, offset=np.zeros(Z.shape[1]), dof=dof, method="sfm", diagnostics=diag
+        C=C_unit, offset=np.zeros(data.p), dof=dof, method="sfm", diagnostics=diag
     )
     return finish_frame(cal, known_Z, known_M, magnitude)
+
+
+def coverage_step(n: int) -> int:
+    """Stride of the rows the coverage statistics use (at most COVERAGE_MAX_ROWS of n)."""
+    return int(np.ceil(n / COVERAGE_MAX_ROWS)) if n > COVERAGE_MAX_ROWS else 1
+
+
+def magnitude_pass(src: ChunkSource, loads) -> dict:
+    """One pass: rms of ``|u| - 1`` and mean of ``|u|`` for the unit loads ``u = loads(block)``
+    of every row."""
+    n = 0
+    sq = tot = 0.0
+    for block in blocks_of(src):
+        U = loads(block)
+        mags = np.sqrt(np.einsum("ij,ij->i", U, U))
+        n += len(mags)
+        sq += float(np.sum((mags - 1) ** 2))
+        tot += float(np.sum(mags))
+    n = max(n, 1)
+    return {"residual_magnitude_rms": float(np.sqrt(sq / n)), "magnitude_mean": tot / n}
 
 
 def finish_frame(cal: Calibration, known_Z, known_M, magnitude) -> Calibration:
