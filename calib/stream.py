@@ -144,7 +144,8 @@ class ArraySource(ChunkSource):
         pass
 
     def strided(self, step: int) -> np.ndarray:
-        return self.Z[:: int(step)]
+        # contiguous like the rows a streamed pass gathers (same rounding in later products)
+        return np.ascontiguousarray(self.Z[:: int(step)])
 
 
 class MappedSource(ChunkSource):
@@ -210,7 +211,7 @@ class DaskSource(ChunkSource):
     def _blocks(self):
         start = 0
         for i in range(self.arr.numblocks[0]):
-            block = np.asarray(self.arr.blocks[i].compute(), dtype=float)
+            block = np.ascontiguousarray(self.arr.blocks[i].compute(), dtype=float)
             if block.ndim != 2:
                 block = block.reshape(len(block), -1)
             yield start, block
