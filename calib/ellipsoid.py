@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -178,6 +179,41 @@ def _cost(Y, c, W, idx=None, prior_weight=0.0):
     return ee
 
 
+def _trial_steps(JTJ, JTe, lam, c, W, idx, r, tries: int = 20):
+    """The LM trial steps for damping lam, 10 lam, 100 lam, ... (``tries`` of them), lazily:
+    (lambda, delta, c_new, W_new) for each that is solvable and keeps W positive definite."""
+    for _ in range(tries):
+        try:
+            delta = -np.linalg.solve(JTJ + lam * np.diag(np.diag(JTJ) + 1e-12), JTe)
+        except np.linalg.LinAlgError:
+            lam *= 10
+            continue
+        c_new = c + delta[:r]
+        W_new = W.copy()
+        for col, (j, k) in enumerate(idx):
+            W_new[j, k] += delta[r + col]
+            if j != k:
+                W_new[k, j] += delta[r + col]
+        if np.linalg.eigvalsh(W_new)[0] > 0:
+            yield lam, delta, c_new, W_new
+        lam *= 10
+
+
+def _costs(Y, params) -> list[float]:
+    """:func:`_cost` (data part) of several (c, W) in one pass over Y; each sum is taken as
+    :func:`_cost` takes it, so the values are the same."""
+    ee = [0.0] * len(params)
+    for y in blocks_of(Y):
+        for a, (c, W) in enumerate(params):
+            v = (y - c) @ W
+            rho = np.sqrt(np.einsum("ij,ij->i", v, v))
+            g = v @ W
+            gn = np.sqrt(np.einsum("ij,ij->i", g, g))
+            e = rho / np.maximum(gn, 1e-300) * (rho - 1.0)
+            ee[a] += float(e @ e)
+    return ee
+
+
 def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
     """Levenberg-Marquardt iterations.
 
@@ -202,31 +238,27 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
         cost = data_cost + float(pr @ pr)
         step_ok = False
         rel = 0.0
-        for _ in range(20):
-            try:
-                delta = -np.linalg.solve(JTJ + lam * np.diag(np.diag(JTJ) + 1e-12), JTe)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            c_new = c + delta[:r]
-            W_new = W.copy()
-            for col, (j, k) in enumerate(idx):
-                W_new[j, k] += delta[r + col]
-                if j != k:
-                    W_new[k, j] += delta[r + col]
-            if np.linalg.eigvalsh(W_new)[0] <= 0:
-                lam *= 10
-                continue
-            new_data = _cost(Yn, c_new, W_new)
+        delta = None
+        # the trial steps (lambda x 10 after every failure) in order; on streamed data the
+        # first is scored in one pass and, if it fails, all the others in one more pass: the
+        # same step is taken as when they are scored one by one
+        trials = _trial_steps(JTJ, JTe, lam, c, W, idx, r)
+        if isinstance(Yn, ChunkSource):
+            first = list(itertools.islice(trials, 1))
+            batches = [first, list(trials)] if first else []
+            scored = itertools.chain.from_iterable(
+                zip(b, _costs(Yn, [(t[2], t[3]) for t in b]), strict=True) for b in batches if b)
+        else:
+            scored = ((t, _cost(Yn, t[2], t[3])) for t in trials)
+        for (lam_t, delta_t, c_new, W_new), new_data in scored:
             prn, _ = _prior(W_new, idx, pw) if pw > 0 else (np.zeros(0), None)
             new_cost = new_data + float(prn @ prn)
             if new_cost <= cost:
                 step_ok = True
                 rel = (cost - new_cost) / max(cost, 1e-300)
-                c, W, data_cost = c_new, W_new, new_data
-                lam = max(lam / 10, 1e-12)
+                c, W, data_cost, delta = c_new, W_new, new_data, delta_t
+                lam = max(lam_t / 10, 1e-12)
                 break
-            lam *= 10
         if not step_ok or rel < tol or np.max(np.abs(delta)) < 1e-13:
             converged = True
             break

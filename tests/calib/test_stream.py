@@ -53,13 +53,25 @@ def fits(fn, Z, path, **kw):
                 fn(da.from_array(Z, chunks=(10_007, 5)), **kw))
 
 
+def rotated_onto(C, ref):
+    P, _, Qt = np.linalg.svd(ref @ C.T)
+    return P @ Qt @ C
+
+
 @pytest.mark.parametrize("method", ["centered", "paper"])
 def test_bias_routes_stream_equal_in_memory(data, csv_path, method):
     ref, csv, dsk = fits(lambda z, **kw: fit_bias(z, 3, **kw), data.Z, csv_path, method=method)
+    # The streamed passes sum the same canonical blocks in the same order, so the results are
+    # usually identical to the bit. The paper route's unit frame is a gauge (B -> R B leaves its
+    # residuals unchanged) that its refinement fixes by rounding: data changed by one ulp turn
+    # its C by ~1% (offset 3e-11, C up to that rotation 1e-9), so if the BLAS rounds a block
+    # differently (alignment) only C up to rotation is comparable.
+    tol = 1e-9 if method == "centered" else 1e-8
     for cal in (csv, dsk):
-        assert close(ref.C, cal.C) and close(ref.offset, cal.offset)
+        C = cal.C if method == "centered" else rotated_onto(cal.C, ref.C)
+        assert close(ref.C, C, tol) and close(ref.offset, cal.offset)
         for key in ("n_samples", "coverage", "rank_gap", "residual_magnitude_rms"):
-            assert cal.diagnostics[key] == pytest.approx(ref.diagnostics[key], rel=1e-9)
+            assert cal.diagnostics[key] == pytest.approx(ref.diagnostics[key], rel=1e-7)
         assert close(ref.diagnostics["offset_stderr"], cal.diagnostics["offset_stderr"], 1e-6)
     assert ref.diagnostics["n_samples"] == N
     # and it is a calibration: the offset is recovered
