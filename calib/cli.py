@@ -42,6 +42,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="joint: accuracy of each known load component (load units)")
     f.add_argument("--magnitude-sigma", type=positive_float, metavar="S",
                    help="joint: accuracy of the load magnitude of each row (load units)")
+    f.add_argument("--known-samples", type=int_in_range(1, 10**9), metavar="N",
+                   help="joint: each known reading averages N readings (1: single readings; "
+                   "a rig's samples per pose); instead of --known-sigma")
     f.add_argument(
         "--magnitude",
         type=positive_float,
@@ -159,7 +162,8 @@ def _fit(args) -> str:
         def fit(Z, drop=args.drop_nonfinite):
             return fit_joint(Z, known_Z, known_M, args.dof, magnitude=args.magnitude,
                              known_sigma=args.known_sigma,
-                             magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop)
+                             magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop,
+                             known_samples=args.known_samples)
     elif args.bias:
 
         def fit(Z, drop=args.drop_nonfinite):

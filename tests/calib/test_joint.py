@@ -132,3 +132,21 @@ def test_known_samples_sets_the_known_accuracy():
         fit_joint(Z, Zk, Mk, known_samples=10, known_sigma=0.1)
     with pytest.raises(CalibrationError, match="known_samples must be a positive"):
         fit_joint(Z, Zk, Mk, known_samples=0)
+
+
+def test_cli_known_samples(tmp_path, capsys):
+    Z, _, Zk, Mk, _, _, _, _ = rig(7)
+    ch = [f"c{j}" for j in range(8)]
+    _csv(tmp_path / "raw.csv", ch, Z)
+    _csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Zk, Mk]))
+    out = tmp_path / "cal.json"
+    args = ["fit", str(tmp_path / "raw.csv"), "--dof", "3", "--bias", "--method", "joint",
+            "--known", str(tmp_path / "known.csv"), "--out", str(out)]
+    assert main(args + ["--known-samples", "100"]) == 0
+    assert json.loads(out.read_text())["diagnostics"]["joint"]["known_samples"] == 100
+    capsys.readouterr()
+    assert main(args + ["--known-samples", "100", "--known-sigma", "0.01"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not both" in err
+    assert main(args + ["--known-samples", "0"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
