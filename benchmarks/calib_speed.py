@@ -6,12 +6,13 @@ peak extra memory (tracemalloc, which sees numpy's allocations) relative to the 
 
 Targets (issue 3): < 1 s; peak extra memory <= 3x the input array.
 
-    .venv/bin/python benchmarks/calib_speed.py [--n 1000000] [--repeat 3]
+    .venv/bin/python benchmarks/calib_speed.py [--n 1000000] [--repeat 5]
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 import tracemalloc
 import warnings
@@ -28,13 +29,17 @@ def make_data(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(d.Z), d.offset
 
 
-def best_time(fn, repeat):
-    times = []
+def median_times(fns, repeat):
+    """Median wall time of each function over ``repeat`` alternating rounds, and the last
+    outputs (alternating, so background load hits every one alike)."""
+    times = [[] for _ in fns]
+    outs = [None] * len(fns)
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
+        for k, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            outs[k] = fn()
+            times[k].append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times], outs
 
 
 def peak_extra_bytes(fn):
@@ -50,7 +55,7 @@ def peak_extra_bytes(fn):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=1_000_000)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--method", choices=("centered", "paper"), default="centered")
     args = ap.parse_args(argv)
 
@@ -64,14 +69,13 @@ def main(argv=None):
         return np.linalg.svd(Z, full_matrices=False)
 
     sfm()  # warm-up (imports, BLAS threads)
-    t_sfm, cal = best_time(sfm, args.repeat)
-    t_svd, _ = best_time(svd, args.repeat)
+    (t_sfm, t_svd), (cal, _) = median_times([sfm, svd], args.repeat)
     mem_sfm = peak_extra_bytes(sfm)
     mem_svd = peak_extra_bytes(svd)
     err = float(np.mean(np.abs(cal.offset - z0)))
     print(f"data: {Z.shape[0]:,} x {Z.shape[1]} float64 ({Z.nbytes / 1e6:.0f} MB), Trial 3 noise")
     print(
-        f"calib fit_bias({args.method}): {t_sfm:.3f} s (best of {args.repeat}); "
+        f"calib fit_bias({args.method}): {t_sfm:.3f} s (median of {args.repeat}); "
         f"target < 1 s: {'met' if t_sfm < 1 else 'MISSED'}"
     )
     print(f"numpy thin SVD:           {t_svd:.3f} s; ratio calib / numpy SVD = {t_sfm / t_svd:.2f}")

@@ -324,6 +324,9 @@ def cross_validate_prior(Yn, c, W, tau, folds=CV_FOLDS, max_iter=200, tol=1e-12)
 CONFLICT_SPREADS = 3.0
 #: ... and known to better than this fraction of that distance.
 CONFLICT_PRECISION = 1.0 / 3.0
+#: The prior-free shape's anisotropy is known to better than this fraction of the prior spread:
+#: the prior cannot add information, no cross-validation needed.
+DATA_DOMINATED = 0.1
 
 
 def prior_conflict(W, JTJ, sigma2, tau) -> dict:
@@ -339,7 +342,11 @@ def prior_conflict(W, JTJ, sigma2, tau) -> dict:
     gets wrong on nearly flat, fully covered ellipsoids: the prior-free fold fits stop in poor
     local minima and the prior seems to predict better.)
 
-    Returns {"anisotropy": d, "anisotropy_stderr": se, "conflict": bool}.
+    Also ``data_dominated``: the data pin the shape down to well within the prior's spread
+    (``se < DATA_DOMINATED * tau``), so the prior would carry about ``(se / tau)^2`` < 1 % of the
+    information: it cannot help, and the fit skips the cross-validation (full-sphere logs).
+
+    Returns {"anisotropy": d, "anisotropy_stderr": se, "conflict": bool, "data_dominated": bool}.
     """
     r = W.shape[0]
     idx = _sym_index(r)
@@ -361,7 +368,8 @@ def prior_conflict(W, JTJ, sigma2, tau) -> dict:
         var = float("inf")
     se = float(np.sqrt(max(var, 0.0)))
     conflict = bool(d > CONFLICT_SPREADS * tau * np.sqrt(m) and se < CONFLICT_PRECISION * d)
-    return {"anisotropy": d, "anisotropy_stderr": se, "conflict": conflict}
+    return {"anisotropy": float(d), "anisotropy_stderr": se, "conflict": conflict,
+            "data_dominated": bool(se < DATA_DOMINATED * tau)}
 
 
 def fit_ellipsoid(
@@ -468,10 +476,10 @@ def fit_normalised(
         if refine:
             free = _refine(Yn, c, W, idx, npar, None, max_iter, tol)
             conflict = prior_conflict(free[1], free[5], free[6] / max(n - npar, 1), AUTO_TAU)
-            if conflict["conflict"]:
+            if conflict["conflict"] or conflict["data_dominated"]:
                 use = False
-                info["prior_selection"] = {
-                    "criterion": "prior-data conflict", "prior_used": False, **conflict}
+                why = "prior-data conflict" if conflict["conflict"] else "data dominate the prior"
+                info["prior_selection"] = {"criterion": why, "prior_used": False, **conflict}
             else:
                 cv = cross_validate_prior(Yn, c, W, AUTO_TAU, max_iter=max_iter, tol=tol)
                 use = bool(np.isfinite(cv["prior"]) and cv["prior"] < CV_MARGIN * cv["none"])

@@ -111,6 +111,10 @@ def test_prior_choice_is_recorded_and_explicit_values_still_work():
     sel = near.diagnostics["ellipsoid"]["prior_selection"]  # no conflict: cross-validated
     assert sel["criterion"].startswith("5-fold")
     assert {"cost_with_prior", "cost_without_prior", "prior_used", "anisotropy"} <= set(sel)
+    full, _ = quiet(fit_bias, paper_trial(3, rng=0, n=20_000).Z, 3)
+    sel = full.diagnostics["ellipsoid"]["prior_selection"]  # full sphere, many rows
+    assert sel["criterion"] == "data dominate the prior" and not sel["prior_used"]
+    assert sel["anisotropy_stderr"] < 0.1 * 0.1
     fixed, _ = quiet(fit_centered, d.Z, 3, isotropy_prior=0.1)
     assert "prior_selection" not in fixed.diagnostics["ellipsoid"]
     assert fixed.diagnostics["ellipsoid"]["isotropy_prior"] == 0.1
