@@ -132,8 +132,7 @@ def _fit(args) -> str:
 
     _check_outputs([args.raw, args.known], args.out)
     if args.chunk_rows:
-        for bad, what in ((args.method == "joint", "--method joint"), (args.dof == 6, "--dof 6"),
-                          (args.bootstrap, "--bootstrap")):
+        for bad, what in ((args.dof == 6, "--dof 6"), (args.bootstrap, "--bootstrap")):
             if bad:
                 raise CalibrationError(f"--chunk-rows is not supported with {what}")
         from .io import CSVSource

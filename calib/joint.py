@@ -34,8 +34,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ._validate import check_matrix
-from .bias import _finish, _prepare, fit_centered
-from .result import CalibrationError, add_uncertainty, channel_span, propagate
+from .bias import _finish, _prepare_source, fit_centered
+from .result import CalibrationError, add_uncertainty, propagate
 from .sfm import principal
 
 #: At most this many (evenly strided) motion rows enter the nonlinear least squares.
@@ -57,7 +57,9 @@ def fit_joint(
 
     Parameters
     ----------
-    Z : (n, p) readings of a constant-magnitude load over orientations (static poses welcome)
+    Z : (n, p) readings of a constant-magnitude load over orientations (static poses welcome);
+        an array, a dask array or a :class:`calib.stream.ChunkSource` (streamed: the fit uses at
+        most :data:`JOINT_MAX_ROWS` strided rows, the other passes are sums)
     known_Z, known_M : (k, p), (k, dof) known pairs; k >= 2 (>= 3 to avoid a mirror image)
     magnitude : the load magnitude of the motion rows; None fits it
     known_sigma, magnitude_sigma : accuracies in load units (see the module docstring)
@@ -71,13 +73,14 @@ def fit_joint(
     """
     if known_Z is None or known_M is None:
         raise CalibrationError("method 'joint' needs known loads (--known)")
-    dof, r, Z, nbad = _prepare(Z, dof, drop_nonfinite, 0)
+    dof, r, data = _prepare_source(Z, dof, drop_nonfinite, 0)
+    src, n = data.source, data.n
     Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
     Mk = np.atleast_2d(np.asarray(known_M, float))
     if len(Zk) != len(Mk):
         raise CalibrationError(f"{len(Zk)} known readings but {len(Mk)} known loads")
-    if Zk.shape[1] != Z.shape[1]:
-        raise CalibrationError(f"known readings have {Zk.shape[1]} channels, data {Z.shape[1]}")
+    if Zk.shape[1] != data.p:
+        raise CalibrationError(f"known readings have {Zk.shape[1]} channels, data {data.p}")
     if len(Zk) < 2:
         raise CalibrationError(f"method 'joint' needs at least 2 known loads, got {len(Zk)}")
     Mk = Mk[:, :r]
@@ -87,12 +90,13 @@ def fit_joint(
             raise CalibrationError(f"{name} must be a positive number, got {v!r}")
     if known_sigma is not None and known_samples is not None:
         raise CalibrationError("give known_sigma or known_samples, not both")
-    start = fit_centered(Z, dof, known_Z=Zk, known_M=Mk, magnitude=magnitude)
-    mu = Z.mean(axis=0)
-    s, V = principal(Z, center=mu)
+    start = fit_centered(src, dof, known_Z=Zk, known_M=Mk, magnitude=magnitude)
+    mu = data.mean
+    step = int(np.ceil(n / JOINT_MAX_ROWS))
+    src.want(step)  # gathered during the Gram pass
+    s, V = principal(src, center=mu)
     Vr = V[:, :r]
-    step = int(np.ceil(len(Z) / JOINT_MAX_ROWS))
-    Y = (Z[::step] - mu) @ Vr
+    Y = (src.strided(step) - mu) @ Vr
     Yk = (Zk - mu) @ Vr
     K0 = start.C @ Vr
     c0 = Vr.T @ (start.offset - mu)
@@ -112,7 +116,7 @@ def fit_joint(
     sigma_y = float(np.sqrt(np.mean(((rho0 - g0) / grad0) ** 2))) or 1e-12
     if known_sigma is None:
         # each known reading averages known_samples readings: count-space residual, sigma/sqrt(N)
-        n_avg = known_samples if known_samples is not None else max(len(Z) / len(Zk), 1.0)
+        n_avg = known_samples if known_samples is not None else max(n / len(Zk), 1.0)
         known_scale = np.sqrt(n_avg) / sigma_y
     else:
         n_avg = None
@@ -158,7 +162,6 @@ def fit_joint(
     offset = mu + Vr @ c
     nm = len(Y)
     res = sol.fun
-    U = (Z - offset) @ C.T
     extra = {
         "joint": {
             "known_sigma": known_sigma if n_avg is None else magnitude_sigma / np.sqrt(n_avg),
@@ -176,14 +179,15 @@ def fit_joint(
             "start": "centered + alignment",
         }
     }
-    cal = _finish(Z, C / g, offset, dof, "joint", s, r, nbad, extra, None, None, None,
-                  U=U / g)
+    C_unit = C / g
+    cal = _finish(data, C_unit, offset, dof, "joint", s, r, data.nbad, extra, None, None, None,
+                  loads=lambda b: (b - offset) @ C_unit.T)
     cal.C = C
     # Gauss-Newton covariance, scaled by the reduced chi-square (misstated sigmas are absorbed);
     # the motion rows used are len(Y) of n
     J = jac(sol.x)
     chi2 = float(res @ res) / max(len(res) - len(sol.x), 1)
-    Jm, Jk = J[:nm] * np.sqrt(len(Z) / nm), J[nm:]
+    Jm, Jk = J[:nm] * np.sqrt(n / nm), J[nm:]
     try:
         cov = np.linalg.inv(Jm.T @ Jm + Jk.T @ Jk) * chi2
     except np.linalg.LinAlgError:
@@ -194,5 +198,5 @@ def fit_joint(
         return mu + Vr @ c, K @ Vr.T
 
     off_se, C_se = propagate(fn, sol.x, cov, len(offset))
-    add_uncertainty(cal, off_se, C_se, channel_span(Z))
+    add_uncertainty(cal, off_se, C_se, data.span)
     return cal

@@ -220,12 +220,28 @@ def test_cli_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, bias):
     assert outs[1]["channels"] == CH and outs[1]["diagnostics"]["n_samples"] == N
 
 
+def test_joint_stream_equal_in_memory(data, csv_path):
+    # 4 known pairs: noise-free readings of known loads (the trial's own shape and offsets)
+    from calib import fit_joint
+    from calib.simulate import PAPER_FORCE_MAGNITUDE, paper_shape_matrix, sample_directions
+
+    Mk = PAPER_FORCE_MAGNITUDE * sample_directions(4, 3, np.random.default_rng(1))
+    Zk = Mk @ paper_shape_matrix() + data.offset
+    ref, csv, dsk = fits(lambda z, **kw: fit_joint(z, Zk, Mk, **kw), data.Z, csv_path,
+                         known_samples=1)
+    for cal in (csv, dsk):
+        assert close(ref.C, cal.C) and close(ref.offset, cal.offset)
+        assert cal.diagnostics["n_samples"] == N
+        assert close(ref.diagnostics["offset_stderr"], cal.diagnostics["offset_stderr"], 1e-6)
+    assert np.max(np.abs(ref.offset - data.offset)) < 0.05 * np.max(np.abs(data.offset))
+
+
 def test_cli_chunk_rows_errors(tmp_path, capsys, csv_path):
     out = tmp_path / "cal.json"
-    code, _, err = run(["fit", csv_path, "--dof", 3, "--bias", "--method", "joint", "--known",
-                        csv_path, "--chunk-rows", 1000, "--out", out], capsys)
+    code, _, err = run(["fit", csv_path, "--dof", 3, "--bias", "--bootstrap", 10,
+                        "--chunk-rows", 1000, "--out", out], capsys)
     assert code == 2 and not out.exists()
-    assert err == "calib: error: --chunk-rows is not supported with --method joint\n"
+    assert err == "calib: error: --chunk-rows is not supported with --bootstrap\n"
     lines = ["g1,g2,g3"] + [f"{i},{i % 7},{i % 5}" for i in range(300)]
     lines[250] = "1,x,3"
     (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
@@ -235,3 +251,21 @@ def test_cli_chunk_rows_errors(tmp_path, capsys, csv_path):
     assert err == f"calib: error: {tmp_path / 'bad.csv'} line 251: non-numeric value\n"
     code, _, err = run(["fit", csv_path, "--dof", 3, "--chunk-rows", 0, "--out", out], capsys)
     assert code == 2 and err.count("\n") == 1 and not out.exists()
+
+
+def test_cli_joint_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, data):
+    from calib.simulate import PAPER_FORCE_MAGNITUDE, paper_shape_matrix, sample_directions
+
+    Mk = PAPER_FORCE_MAGNITUDE * sample_directions(4, 3, np.random.default_rng(2))
+    write_csv(tmp_path / "known.csv", CH + ["Fx", "Fy", "Fz"],
+              np.hstack([Mk @ paper_shape_matrix() + data.offset, Mk]))
+    outs = []
+    for extra in ([], ["--chunk-rows", 9_999]):
+        out = tmp_path / f"cal{len(extra)}.json"
+        code, _, err = run(["fit", csv_path, "--dof", 3, "--bias", "--method", "joint",
+                            "--known", tmp_path / "known.csv", "--known-samples", 1, *extra,
+                            "--out", out], capsys)
+        assert code == 0, err
+        outs.append(json.loads(out.read_text()))
+    assert close(outs[0]["C"], outs[1]["C"]) and close(outs[0]["offset"], outs[1]["offset"])
+    assert outs[1]["method"] == "joint"
