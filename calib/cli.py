@@ -132,9 +132,8 @@ def _fit(args) -> str:
 
     _check_outputs([args.raw, args.known], args.out)
     if args.chunk_rows:
-        for bad, what in ((args.dof == 6, "--dof 6"), (args.bootstrap, "--bootstrap")):
-            if bad:
-                raise CalibrationError(f"--chunk-rows is not supported with {what}")
+        if args.bootstrap:
+            raise CalibrationError("--chunk-rows is not supported with --bootstrap")
         from .io import CSVSource
 
         Z = CSVSource(args.raw, args.chunk_rows)  # each pass of the fit reads the file again

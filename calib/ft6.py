@@ -30,6 +30,7 @@ from .bias import fit_bias
 from .result import Calibration, CalibrationError
 from .sfm import fit_sfm
 from .simulate import skew
+from .stream import as_source, scan
 
 
 def _vee(K):
@@ -57,7 +58,8 @@ def fit_ft6(
 
     Parameters
     ----------
-    Z : array (n, p), p >= 6: a proof mass moved over orientations (constant lever arm)
+    Z : array (n, p), p >= 6: a proof mass moved over orientations (constant lever arm); a dask
+        array or a :class:`calib.stream.ChunkSource` is streamed
     known_Z : array (k, p), readings under known loads (same offset as Z)
     known_M : array (k, 6), the known loads [Fx, Fy, Fz, Tx, Ty, Tz]; must span 6 dimensions
     bias : estimate the offset from Z (shape from motion with bias) or assume none
@@ -69,8 +71,8 @@ def fit_ft6(
     Calibration (dof 6, ``method="ft6-sfm"``); diagnostics add ``force_stage`` (the 3-DOF stage's
     diagnostics), ``lever_arm``, ``scale`` and ``known_residual_rms``.
     """
-    Z, nbad = check_matrix(Z, "Z", drop_nonfinite)
-    p = Z.shape[1]
+    data = scan(as_source(Z), "Z", drop_nonfinite)  # streamed: the 3-DOF stage makes the passes
+    p, nbad = data.p, data.nbad
     if p < 6:
         raise CalibrationError(f"a 6-DOF sensor needs p >= 6 channels, got p={p}")
     Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
@@ -87,7 +89,7 @@ def fit_ft6(
             f"rank-deficient excitation: the known loads span {int((sm > 1e-9 * sm[0]).sum())} of 6"
             " load dimensions; add loads with different torque/force ratios"
         )
-    stage = fit_bias(Z, 3, method=method) if bias else fit_sfm(Z, 3)
+    stage = fit_bias(data.source, 3, method=method) if bias else fit_sfm(data.source, 3)
     C_u, z0 = stage.C, stage.offset
     # orthonormal complement N of the force subspace W = rowspace(C_u)
     Qf, _ = np.linalg.qr(np.column_stack([C_u.T, np.eye(p)]))
@@ -134,7 +136,7 @@ def fit_ft6(
     arm = known_arm if known_arm is not None else sol.x[4:7]
     diag = {
         "force_stage": stage.diagnostics,
-        "n_samples": len(Z),
+        "n_samples": data.n,
         "n_dropped_nonfinite": nbad,
         "n_known": len(Mk),
         "lever_arm": arm,

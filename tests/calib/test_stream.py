@@ -269,3 +269,30 @@ def test_cli_joint_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, data)
         outs.append(json.loads(out.read_text()))
     assert close(outs[0]["C"], outs[1]["C"]) and close(outs[0]["offset"], outs[1]["offset"])
     assert outs[1]["method"] == "joint"
+
+
+def test_ft6_stream_equal_in_memory(tmp_path):
+    from calib.ft6 import fit_ft6, random_known_loads
+    from calib.simulate import random_shape, simulate
+
+    rng = np.random.default_rng(7)
+    S = random_shape(6, 8, rng)
+    z0 = rng.normal(size=8) * 2
+    d = simulate(S, 30_011, rng, magnitude=10.0, offset=z0, lever_arm=rng.normal(size=3) * 0.1,
+                 noise=0.01)
+    Mk = random_known_loads(6, rng, 10.0, 1.0)
+    path = tmp_path / "ft6.csv"
+    write_csv(path, CH, d.Z)
+    ref, csv, dsk = fits(lambda z, **kw: fit_ft6(z, Mk @ S + z0, Mk, **kw), d.Z, path)
+    for cal in (csv, dsk):
+        assert close(ref.C, cal.C) and close(ref.offset, cal.offset)
+        assert cal.diagnostics["n_samples"] == 30_011
+    known = tmp_path / "known.csv"
+    write_csv(known, CH + ["Fx", "Fy", "Fz", "Tx", "Ty", "Tz"], np.hstack([Mk @ S + z0, Mk]))
+    outs = []
+    for extra in ([], ["--chunk-rows", 4_321]):
+        out = tmp_path / f"cal{len(extra)}.json"
+        assert main([str(a) for a in ["fit", path, "--dof", 6, "--bias", "--known", known,
+                                      *extra, "--out", out]]) == 0
+        outs.append(json.loads(out.read_text()))
+    assert close(outs[0]["C"], outs[1]["C"]) and close(outs[0]["offset"], outs[1]["offset"])
