@@ -14,7 +14,7 @@ Main entry points (all return a :class:`Calibration`, ``m = C (z - offset)``):
 
 from .bias import fit_bias, fit_centered, fit_paper
 from .ft6 import fit_ft6
-from .joint import fit_joint
+from .joint import choose_known_poses, fit_joint
 from .least_squares import fit_least_squares
 from .result import Calibration, CalibrationError, CalibrationWarning
 from .sfm import fit_sfm
@@ -29,6 +29,7 @@ __all__ = [
     "fit_centered",
     "fit_paper",
     "fit_ft6",
+    "choose_known_poses",
     "fit_joint",
     "fit_least_squares",
     "fit_sfm",

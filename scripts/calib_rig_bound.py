@@ -15,7 +15,10 @@ rig (median and 5-95 % range over rigs). Then a Monte-Carlo check on a few rigs:
 logs each, the joint fit (accuracies stated: ``known_samples=100``) and least squares with every
 load known, each against its own bound (an efficient estimator reaches it), and their ratio.
 
-    python scripts/calib_rig_bound.py [--rigs 200] [--mc-rigs 12] [--draws 30]
+    python scripts/calib_rig_bound.py [--rigs 200] [--mc-rigs 12] [--draws 30] [--design spread]
+
+``--design spread`` puts the known loads on the most spread poses
+(:func:`calib.joint.choose_known_poses`) instead of the first (random) ones.
 
 Writes nothing; docs/calib.md quotes its output.
 """
@@ -31,19 +34,27 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.joint import fit_joint  # noqa: E402
+from calib.joint import choose_known_poses, fit_joint  # noqa: E402
 from calib.least_squares import fit_least_squares  # noqa: E402
 from calib.simulate import random_shape, sample_directions  # noqa: E402
 
 POSES, SAMPLES, NOISE, LOAD = 12, 100, 0.05, 3.03
 
 
-def rig(seed):
-    """The study's rig for ``seed``: shape S (3, 8), offsets, loads F (12, 3), test loads."""
+#: Which poses get the known loads: "first" (random poses) or "spread" (choose_known_poses).
+DESIGN = "first"
+
+
+def rig(seed, known: int = 4):
+    """The study's rig for ``seed``: shape S (3, 8), offsets, loads F (12, 3) with the poses that
+    get known loads first, and the generator."""
     rng = np.random.default_rng(seed)
     S = random_shape(3, 8, rng, condition=rng.uniform(1, 10)) * 10
     z0 = rng.normal(size=8) * 20
     F = LOAD * sample_directions(POSES, 3, rng)
+    if DESIGN == "spread":
+        first = choose_known_poses(F, known)
+        F = F[np.r_[first, np.setdiff1d(np.arange(POSES), first)]]
     return S, z0, F, rng
 
 
@@ -68,7 +79,7 @@ def _load_error_ms(A, cov, test):
 def bounds(seed: int, known: int, magnitude_known: bool) -> tuple[float, float]:
     """RMS load error [N] (vector length, over 300 test loads) under (the joint model's
     Cramer-Rao bound, the all-known bound) for rig ``seed``."""
-    S, _, F, _ = rig(seed)
+    S, _, F, _ = rig(seed, known)
     A = S.T
     p = A.shape[0]
     s2 = NOISE**2 / SAMPLES  # variance of a pose mean
@@ -108,7 +119,7 @@ def bound_ratio(seed: int, known: int, magnitude_known: bool) -> float:
 def monte_carlo(seed: int, known: int, draws: int) -> tuple[float, float]:
     """RMS load error vector length [N] over ``draws`` noisy logs of one rig: (joint fit with
     ``known_samples`` stated, least squares with every load known)."""
-    S, z0, F, _ = rig(seed)
+    S, z0, F, _ = rig(seed, known)
     test = LOAD * sample_directions(300, 3, np.random.default_rng(10_000 + seed))
     Zt = test @ S + z0
     ej, el = [], []
@@ -130,7 +141,12 @@ def main(argv=None) -> None:
     ap.add_argument("--rigs", type=int, default=200)
     ap.add_argument("--mc-rigs", type=int, default=12, help="rigs of the Monte-Carlo check")
     ap.add_argument("--draws", type=int, default=30, help="noisy logs per Monte-Carlo rig")
+    ap.add_argument("--design", choices=("first", "spread"), default="first",
+                    help="known loads on the first (random) poses or on the most spread ones")
     a = ap.parse_args(argv)
+    global DESIGN
+    DESIGN = a.design
+    print(f"known poses: {a.design}")
     print("Cramer-Rao bound on the load error, relative to the bound with all 12 loads known "
           f"({a.rigs} rigs): median [5 %, 95 %]")
     for k in (2, 3, 4, 6):

@@ -12,7 +12,8 @@ Cases (3-DOF, seeded; sensor k uses seed k):
   N(0, 1), 176 samples, Gaussian noise 0.01, full sphere and 90 degree cap;
 - static-pose rig: 12 poses of a 3.03 N proof mass, 100 samples each, shape as above x 10
   counts/N, Gaussian noise 0.05, offsets N(0, 20^2); 4 poses have known loads (reading = the
-  pose's mean).
+  pose's mean); "spread": the 4 known poses are the most spread of the 12
+  (``calib.joint.choose_known_poses``), a rig-design choice.
 
 Routes: least squares with every load known (``bias=True``), centered (auto prior = the
 default; always prior tau 0.1; no prior), paper, joint. Every shape-from-motion route gets 4 known
@@ -40,13 +41,14 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from calib.bias import fit_bias  # noqa: E402
-from calib.joint import fit_joint  # noqa: E402
+from calib.joint import choose_known_poses, fit_joint  # noqa: E402
 from calib.least_squares import fit_least_squares  # noqa: E402
 from calib.result import CalibrationError, CalibrationWarning  # noqa: E402
 from calib.simulate import random_shape, sample_directions, simulate  # noqa: E402
 
 CASES = ["full sphere", "90 deg cap", "60 deg cap", "anisotropic (ratio 5-10), 60 deg",
-         "p = r = 3, full sphere", "p = r = 3, 90 deg cap", "static-pose rig, 4 known"]
+         "p = r = 3, full sphere", "p = r = 3, 90 deg cap", "static-pose rig, 4 known",
+         "static-pose rig, 4 known spread"]
 ROUTES = ["least squares, all known", "centered (auto prior, default)", "centered, prior always",
           "centered, no prior", "paper", "joint"]
 
@@ -69,7 +71,9 @@ def make_case(case: str, seed: int):
         Z = np.repeat(F @ S + z0, 100, axis=0)
         Z = Z + rng.normal(size=Z.shape) * 0.05
         M = np.repeat(F, 100, axis=0)
-        Zk, Mk = Z.reshape(12, 100, 8)[:4].mean(axis=1), F[:4]
+        # 4 known poses: the first 4 (random), or the 4 most spread (choose_known_poses)
+        known = choose_known_poses(F, 4) if case.endswith("spread") else np.arange(4)
+        Zk, Mk = Z.reshape(12, 100, 8)[known].mean(axis=1), F[known]
     else:
         lo = 5 if case.startswith("aniso") else 1
         S = random_shape(3, 8, rng, condition=rng.uniform(lo, 10))
