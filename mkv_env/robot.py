@@ -175,9 +175,10 @@ class Robot:
 
         ``drive_cmd``/``steer_cmd`` are -1, 0 or +1 (steer +1 = left). Each substep: steering
         motor, drive motor (implicit), wheel-floor impulses, then ``space.step(dt)`` for
-        positions and contacts. State lives in locals for the loop; pymunk is touched through
-        its cffi layer (``pymunk._chipmunk.lib``) when available: the public properties cost
-        several times more and this loop is the simulator's whole budget.
+        positions and contacts. With ``self.kernel == "c"`` the compiled copy of this loop runs
+        (``mkv_env/_fastsim.c``, the same operations in the same order, so the same bits);
+        otherwise the Python loop below, with state in locals and pymunk touched through its
+        cffi layer (``pymunk._chipmunk.lib``, ``"cffi"``) or its public properties (``"api"``).
         """
         if self.kernel == "c" and _fastsim is not None and not space._bodies_to_check:
             _, body_ptr, space_ptr = self.pointers(space)
