@@ -63,7 +63,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--seed", type=int_in_range(0, 2**32 - 1), default=0,
                    help="seed of the bootstrap resampling (default 0)")
-    f.add_argument("--quiet", action="store_true", help="no bootstrap progress bar")
+    f.add_argument("--quiet", action="store_true",
+                   help="no progress bars (bootstrap, --chunk-rows passes)")
     f.add_argument("--chunk-rows", metavar="N", type=int_in_range(1, 2**31 - 1),
                    help="stream RAW.csv N rows at a time (never all in memory) through the "
                    "statistics of the fit: for logs larger than memory")
@@ -136,7 +137,8 @@ def _fit(args) -> str:
             raise CalibrationError("--chunk-rows is not supported with --bootstrap")
         from .io import CSVSource
 
-        Z = CSVSource(args.raw, args.chunk_rows)  # each pass of the fit reads the file again
+        # each pass of the fit reads the file again (a bar per pass on a terminal)
+        Z = CSVSource(args.raw, args.chunk_rows, progress=not args.quiet)
         channels = Z.header
     else:
         channels, Z = read_csv(args.raw)

@@ -83,8 +83,10 @@ class CSVSource(ChunkSource):
     fitted (``calib fit --chunk-rows``). The header is read (and checked) at once; a bad row is
     the same one-line error as :func:`read_csv`'s, found when a pass reaches it."""
 
-    def __init__(self, path: str, chunk_rows: int = 1 << 17) -> None:
+    def __init__(self, path: str, chunk_rows: int = 1 << 17, progress: bool = False) -> None:
         super().__init__()
+        self.progress = bool(progress)  # a bar per pass (bytes read), drawn on a terminal only
+        self._passes = 0
         if int(chunk_rows) < 1:
             raise CalibrationError(f"chunk_rows must be positive, got {chunk_rows}")
         if os.path.exists(path) and not os.path.isfile(path):
@@ -113,36 +115,48 @@ class CSVSource(ChunkSource):
                 from None
 
     def _blocks(self):
+        from sfm_common.progress import NullBar
+        from sfm_common.progress import progress as progress_bar
+
+        self._passes += 1
+        if self.progress:
+            bar = progress_bar(os.path.getsize(self.path), f"pass {self._passes}", unit="B")
+        else:
+            bar = NullBar()
+        with bar, self._open() as f:
+            yield from self._read_blocks(f, bar)
+
+    def _read_blocks(self, f, bar):
         k, path = self.p, self.path
-        with self._open() as f:
-            try:
-                for _ in range(self.skipped):
-                    next(f)
-                line = self.skipped + 1  # file line number of the chunk's first line
-                start = 0
-                while True:
-                    lines = list(itertools.islice(f, self.chunk_rows))
-                    if not lines:
-                        return
-                    try:
-                        with warnings.catch_warnings():
-                            warnings.simplefilter("ignore", UserWarning)
-                            data = np.loadtxt(lines, delimiter=",", dtype=float, ndmin=2,
-                                              comments=None)
-                    except ValueError:
-                        data = None
-                    if data is not None and data.size == 0:
-                        data = data.reshape(0, k)
-                    extra = 0
-                    if data is None or data.shape[1] != k:
-                        data, extra = _parse_lines(lines, f, k, path, line)
-                    line += len(lines) + extra
-                    yield start, data
-                    start += len(data)
-            except OSError as e:
-                raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
-            except UnicodeDecodeError:
-                raise CalibrationError(f"{path} is not a text CSV file") from None
+        try:
+            for _ in range(self.skipped):
+                next(f)
+            line = self.skipped + 1  # file line number of the chunk's first line
+            start = 0
+            while True:
+                lines = list(itertools.islice(f, self.chunk_rows))
+                if not lines:
+                    return
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", UserWarning)
+                        data = np.loadtxt(lines, delimiter=",", dtype=float, ndmin=2,
+                                          comments=None)
+                except ValueError:
+                    data = None
+                if data is not None and data.size == 0:
+                    data = data.reshape(0, k)
+                extra = 0
+                if data is None or data.shape[1] != k:
+                    data, extra = _parse_lines(lines, f, k, path, line)
+                line += len(lines) + extra
+                bar.update(sum(len(x) for x in lines))
+                yield start, data
+                start += len(data)
+        except OSError as e:
+            raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{path} is not a text CSV file") from None
 
 
 def _parse_lines(lines, f, k: int, path: str, line0: int) -> tuple[np.ndarray, int]:

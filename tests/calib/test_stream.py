@@ -296,3 +296,23 @@ def test_ft6_stream_equal_in_memory(tmp_path):
                                       *extra, "--out", out]]) == 0
         outs.append(json.loads(out.read_text()))
     assert close(outs[0]["C"], outs[1]["C"]) and close(outs[0]["offset"], outs[1]["offset"])
+
+
+def test_csv_passes_show_a_progress_bar_on_a_terminal(tmp_path, data, monkeypatch):
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    path = tmp_path / "p.csv"
+    write_csv(path, CH, data.Z[:30_000])
+    err = Terminal()
+    monkeypatch.setattr(sys, "stderr", err)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)
+        shown = fit_bias(CSVSource(str(path), 5_000, progress=True), 3)
+        plain = fit_bias(CSVSource(str(path), 5_000), 3)
+    assert "pass 1" in err.getvalue() and "pass 2" in err.getvalue()
+    assert np.array_equal(shown.C, plain.C) and np.array_equal(shown.offset, plain.offset)
