@@ -261,6 +261,11 @@ class MKVEnv(gym.Env):
 
     # ------------------------------------------------------------------ pieces
     def _decode(self, action) -> tuple[int, int]:
+        if type(action) is np.ndarray and action.shape == (2,) and action.dtype.kind in "iu":
+            a0, a1 = action.tolist()  # the common case (SB3, vector envs, samplers): fast path
+            if 0 <= a0 < ACTION_NVEC[0] and 0 <= a1 < ACTION_NVEC[1]:
+                self._last_action = (a0, a1)
+                return a0 - OFF, OFF - a1
         try:
             a0, a1 = action
             a0, a1 = int(a0), int(a1)
