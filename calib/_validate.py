@@ -46,11 +46,11 @@ def check_matrix(Z, name: str = "Z", drop_nonfinite: bool = False) -> tuple[np.n
     return Z, nbad
 
 
-def check_samples(Z: np.ndarray, n_params: int, name: str = "Z",
-                  rows_per_channel: bool = True) -> None:
+def check_samples(n: int, p: int, lo: np.ndarray, hi: np.ndarray, n_params: int,
+                  name: str = "Z", rows_per_channel: bool = True) -> None:
     """Too few samples (fewer than ``n_params``, or with ``rows_per_channel`` fewer than
-    channels), or constant channels."""
-    n, p = Z.shape
+    channels), or constant channels; from the row count and per-channel minima ``lo`` and
+    maxima ``hi`` (a streamed scan gives these without the rows)."""
     if rows_per_channel and n < p:
         raise CalibrationError(
             f"{name} has {n} samples for {p} channels: a calibration needs at least as many "
@@ -59,7 +59,6 @@ def check_samples(Z: np.ndarray, n_params: int, name: str = "Z",
         raise CalibrationError(
             f"{name} has {n} samples, at least {n_params} are needed for this fit"
         )
-    hi, lo = Z.max(axis=0), Z.min(axis=0)
     spread = hi - lo
     scale = np.maximum(np.maximum(np.abs(hi), np.abs(lo)), 1e-300)
     const = np.flatnonzero(spread <= 1e-12 * scale)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from ._validate import check_dof, check_matrix, check_rank, check_samples, force_rank
+from ._validate import check_dof, check_rank, force_rank
 from .ellipsoid import fit_ellipsoid, fit_normalised, subsample_steps
 from .result import (
     Calibration,
@@ -77,25 +77,6 @@ def fit_bias(
     if method == "paper":
         return fit_paper(Z, dof, known_Z, known_M, magnitude, drop_nonfinite, **kwargs)
     raise CalibrationError(f"method must be one of {METHODS}, got {method!r}")
-
-
-def _prepare(Z, dof, drop_nonfinite, extra_rank):
-    dof = check_dof(dof)
-    if dof == 6:
-        raise CalibrationError("6-DOF calibration needs known loads: use calib.ft6.fit_ft6")
-    r = force_rank(dof)
-    Z, nbad = check_matrix(Z, "Z", drop_nonfinite)
-    p = Z.shape[1]
-    if p < r + extra_rank:
-        if extra_rank:
-            raise CalibrationError(
-                f"method 'paper' needs p >= r+1 = {r + 1} channels for dof={dof}, got p={p}; "
-                "use --method centered"
-            )
-        raise CalibrationError(f"need at least {r} channels for dof={dof}, got p={p}")
-    n_params = r + r * (r + 1) // 2 + 1
-    check_samples(Z, n_params)
-    return dof, r, Z, nbad
 
 
 def _prepare_source(Z, dof, drop_nonfinite, extra_rank) -> tuple[int, int, Scan]:

@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
+from ._validate import check_samples
 from .result import CalibrationError
 
 #: Rows per block of an in-memory array (bounds the temporaries of every pass).
@@ -343,24 +344,7 @@ def scan(source: ChunkSource, name: str = "Z", drop_nonfinite: bool = False) -> 
 def check_scan_samples(sc: Scan, n_params: int, name: str = "Z",
                        rows_per_channel: bool = True) -> None:
     """:func:`calib._validate.check_samples` on the statistics of a scan."""
-    n, p = sc.n, sc.p
-    if rows_per_channel and n < p:
-        raise CalibrationError(
-            f"{name} has {n} samples for {p} channels: a calibration needs at least as many "
-            "samples as channels")
-    if n < n_params:
-        raise CalibrationError(
-            f"{name} has {n} samples, at least {n_params} are needed for this fit"
-        )
-    hi, lo = sc.max, sc.min
-    spread = hi - lo
-    scale = np.maximum(np.maximum(np.abs(hi), np.abs(lo)), 1e-300)
-    const = np.flatnonzero(spread <= 1e-12 * scale)
-    if len(const):
-        raise CalibrationError(
-            f"{name} channel(s) {const.tolist()} are constant; a dead or disconnected sense "
-            "element cannot be calibrated"
-        )
+    check_samples(sc.n, sc.p, sc.min, sc.max, n_params, name, rows_per_channel)
 
 
 def blocks_of(Y, chunk_rows: int = CHUNK_ROWS):

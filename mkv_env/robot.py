@@ -138,15 +138,6 @@ class Robot:
                 p.mass_kg, self.body.moment))
             assert len(self.kernel_constants) == _fastsim.N_CONSTANTS
 
-    @property
-    def fast(self) -> bool:
-        """False when the slow, public-API loop is forced (kept for cross-checks)."""
-        return self.kernel != "api"
-
-    @fast.setter
-    def fast(self, value: bool) -> None:
-        self.kernel = DEFAULT_KERNEL if value else "api"
-
     def pointers(self, space) -> tuple:
         """(space, address of the cpBody, address of ``space``'s cpSpace), cached, for the
         compiled loop. Never pickled: a copy has new Chipmunk objects."""

@@ -37,6 +37,7 @@ from mkv_env.actions import ACTION_NVEC, OFF
 from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
 
 _MODES = {m.value: m for m in AutoresetMode}
+_NVEC = np.array(ACTION_NVEC)
 
 
 class MKVVectorEnv(VectorEnv):
@@ -224,18 +225,13 @@ class MKVVectorEnv(VectorEnv):
     def _commands(self, actions) -> tuple[np.ndarray, np.ndarray]:
         """Validated actions (n, 2) -> drive and steer motor commands (-1/0/+1 each)."""
         a = np.asarray(actions)
-        ok = a.shape == (self.num_envs, 2)
-        if ok:
-            ai = a.astype(np.int64, copy=False) if a.dtype.kind in "iub" else None
-            if ai is None and a.dtype.kind == "f":
-                ai = a.astype(np.int64)
-                ok = bool(np.array_equal(ai, a))
-            ok = ok and ai is not None and bool(
-                ((ai >= 0) & (ai < np.array(ACTION_NVEC))).all())
-        if not ok:
-            raise ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
-                             "of [drive, steer] with each in {0, 1, 2}")
-        return ai[:, 0] - OFF, OFF - ai[:, 1]
+        if a.shape == (self.num_envs, 2) and a.dtype.kind in "iubf":
+            with np.errstate(invalid="ignore"):
+                ai = a.astype(np.int64)  # floats must be whole numbers
+            if (ai == a).all() and (ai >= 0).all() and (ai < _NVEC).all():
+                return ai[:, 0] - OFF, OFF - ai[:, 1]
+        raise ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
+                         "of [drive, steer] with each in {0, 1, 2}")
 
     def _move(self, idx: np.ndarray, drive: np.ndarray, steer: np.ndarray) -> None:
         """One control period of physics for the envs ``idx``, in one C call when possible."""

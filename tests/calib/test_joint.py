@@ -87,15 +87,20 @@ def _csv(path, header, rows):
                     + "\n".join(",".join(repr(float(x)) for x in r) for r in rows) + "\n")
 
 
-def test_cli_method_joint(tmp_path, capsys):
-    Z, _, Zk, Mk, Zt, Ft, _, _ = rig(5)
+def _rig_csvs(tmp_path, seed):
+    """RAW.csv and KNOWN.csv of rig ``seed``; returns (raw, known, Zt, Ft)."""
+    Z, _, Zk, Mk, Zt, Ft, _, _ = rig(seed)
     ch = [f"c{j}" for j in range(8)]
     _csv(tmp_path / "raw.csv", ch, Z)
     _csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Zk, Mk]))
+    return str(tmp_path / "raw.csv"), str(tmp_path / "known.csv"), Zt, Ft
+
+
+def test_cli_method_joint(tmp_path, capsys):
+    raw, known, Zt, Ft = _rig_csvs(tmp_path, 5)
     out = tmp_path / "cal.json"
-    assert main(["fit", str(tmp_path / "raw.csv"), "--dof", "3", "--bias", "--method", "joint",
-                 "--known", str(tmp_path / "known.csv"), "--known-sigma", "0.001",
-                 "--out", str(out)]) == 0
+    assert main(["fit", raw, "--dof", "3", "--bias", "--method", "joint", "--known", known,
+                 "--known-sigma", "0.001", "--out", str(out)]) == 0
     d = json.loads(out.read_text())
     assert d["method"] == "joint" and d["diagnostics"]["joint"]["known_sigma"] == 0.001
     C, off = np.array(d["C"]), np.array(d["offset"])
@@ -135,13 +140,10 @@ def test_known_samples_sets_the_known_accuracy():
 
 
 def test_cli_known_samples(tmp_path, capsys):
-    Z, _, Zk, Mk, _, _, _, _ = rig(7)
-    ch = [f"c{j}" for j in range(8)]
-    _csv(tmp_path / "raw.csv", ch, Z)
-    _csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Zk, Mk]))
+    raw, known, _, _ = _rig_csvs(tmp_path, 7)
     out = tmp_path / "cal.json"
-    args = ["fit", str(tmp_path / "raw.csv"), "--dof", "3", "--bias", "--method", "joint",
-            "--known", str(tmp_path / "known.csv"), "--out", str(out)]
+    args = ["fit", raw, "--dof", "3", "--bias", "--method", "joint", "--known", known,
+            "--out", str(out)]
     assert main(args + ["--known-samples", "100"]) == 0
     assert json.loads(out.read_text())["diagnostics"]["joint"]["known_samples"] == 100
     capsys.readouterr()
