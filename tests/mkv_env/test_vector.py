@@ -5,7 +5,9 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.vector import AutoresetMode, SyncVectorEnv
+from gymnasium.vector import AutoresetMode, SyncVectorEnv, VectorEnv
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import mkv_env  # noqa: F401
 import mkv_env.robot as robot_mod
@@ -127,7 +129,8 @@ def test_reset_mask_and_disabled_autoreset():
 
 
 @pytest.mark.parametrize("bad", [np.ones((3, 2)), np.full((2, 2), 3), np.full((2, 2), 0.5),
-                                 [[0, 1]], "x", np.full((2, 2), -1)])
+                                 [[0, 1]], "x", np.full((2, 2), -1), np.full((2, 2), np.nan),
+                                 np.full((2, 2), 1 + 1e-12), np.ones((2, 2), dtype=complex)])
 def test_bad_actions_and_arguments_are_one_line_errors(bad):
     envs = _native("MKV-v0", 2)
     envs.reset(seed=0)
@@ -200,3 +203,96 @@ def test_call_get_attr_set_attr_as_sync_vector_env():
     assert envs.get_attr("stuck_penalty") == (0.5, 0.7)
     with pytest.raises(ValueError, match="set_attr"):
         envs.set_attr("stuck_penalty", [1.0])
+
+
+def test_actions_in_any_numeric_form_give_the_same_step():
+    """Whole-number floats, bools, unsigned and nested lists are the same actions as int64."""
+    a = np.array([[2, 0], [1, 1]])
+    forms = [a, a.astype(float), a.astype(np.uint8), a.tolist(), (a > 0).astype(int),
+             (a > 0)]
+    want = [_run_once(a if i < 4 else (a > 0).astype(int)) for i in range(len(forms))]
+    got = [_run_once(f) for f in forms]
+    for w, g in zip(want, got, strict=True):
+        np.testing.assert_array_equal(w, g)
+
+
+def _run_once(action):
+    envs = _native("MKV-v0", 2)
+    envs.reset(seed=4)
+    obs = [envs.step(action)[0] for _ in range(5)]
+    envs.close()
+    return np.array(obs)
+
+
+_INFO_VALUES = {
+    bool: st.booleans(),
+    int: st.integers(-10**6, 10**6),
+    float: st.floats(allow_nan=False, width=64),
+    tuple: st.tuples(*[st.floats(-1e6, 1e6)] * 3),
+    list: st.lists(st.tuples(st.integers()), max_size=3),  # ragged: an object array
+    str: st.text(max_size=3),
+}
+
+
+@st.composite
+def _env_infos(draw):
+    """A vector env's per-env info dicts: one type per key, some envs silent (None), some keys
+    missing in some envs (or every env reporting the same keys)."""
+    n = draw(st.integers(1, 6))
+    types = draw(st.dictionaries(st.sampled_from("abcdefg"), st.sampled_from(list(_INFO_VALUES)),
+                                 min_size=1, max_size=5))
+    same = draw(st.booleans())
+    infos = []
+    for _ in range(n):
+        if not same and draw(st.booleans()):
+            infos.append(None)
+            continue
+        keys = list(types) if same else draw(st.lists(st.sampled_from(list(types)),
+                                                      unique=True, min_size=1))
+        infos.append({k: draw(_INFO_VALUES[types[k]]) for k in keys})
+    return infos
+
+
+@settings(max_examples=150, deadline=None)
+@given(_env_infos())
+def test_vector_infos_match_gymnasiums_own_batching(infos):
+    """_gather gives what Gymnasium's VectorEnv._add_info builds from the same per-env dicts,
+    except that tuples become float rows (info['pose'] is an (n, 3) array)."""
+    n = len(infos)
+    venv = MKVVectorEnv.__new__(MKVVectorEnv)
+    venv.num_envs = n
+    got = venv._gather(infos)
+    want: dict = {}
+    for i, d in enumerate(infos):
+        if d is not None:
+            want = VectorEnv._add_info(venv, want, d, i)
+    assert set(got) == set(want)
+    for k, w in want.items():
+        g = got[k]
+        if w.dtype == object and any(isinstance(v, tuple) for v in w):
+            first = next(v for v in w if isinstance(v, tuple))
+            assert g.dtype == np.float64 and g.shape == (n, len(first))
+            for i, v in enumerate(w):
+                np.testing.assert_array_equal(g[i], v if v is not None else np.zeros(len(first)))
+        else:
+            assert g.dtype == w.dtype and g.shape == w.shape
+            assert list(g) == list(w)
+
+
+def test_vector_infos_off_gives_empty_infos_and_the_same_steps():
+    on = gym.make_vec("MKV-v0", num_envs=3, vectorization_mode="vector_entry_point")
+    off = gym.make_vec("MKV-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                       vector_infos=False)
+    o_on, i_on = on.reset(seed=2)
+    o_off, i_off = off.reset(seed=2)
+    assert i_off == {} and "pose" in i_on
+    acts = np.random.default_rng(0).integers(0, 3, size=(20, 3, 2))
+    for a in acts:
+        r_on, r_off = on.step(a), off.step(a)
+        for x, y in zip(r_on[:4], r_off[:4], strict=True):
+            np.testing.assert_array_equal(x, y)
+        assert r_off[4] == {}
+        assert [d["pose"] for d in off.unwrapped.env_infos] == list(map(tuple, r_on[4]["pose"]))
+    with pytest.raises(ValueError, match="vector_infos"):
+        gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                     vector_infos="no")
