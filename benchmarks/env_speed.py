@@ -4,7 +4,9 @@ Single envs through ``gymnasium.make`` (same wrapper stack), random actions from
 resets included; vector envs through ``gymnasium.make_vec`` with N robots (native
 ``vector_entry_point``, and Gymnasium's ``sync`` of single envs as its peer). Every figure is the
 median of ``--rounds`` alternating rounds (so background load hits all alike). Prints every ratio,
-then where one MKV-v0 step's time goes.
+then where one MKV-v0 step's time goes, where a native vector env robot-step's time goes, what
+Chipmunk alone costs with one space per robot and with all arenas in one space, and the ceiling
+these put on the vector env's ratio to the single env.
 
     python benchmarks/env_speed.py [--steps 50000] [--rounds 5] [--num-envs 16]
 """
@@ -18,9 +20,11 @@ import warnings
 
 import gymnasium as gym
 import numpy as np
+import pymunk
 
 import mkv_env  # noqa: F401  (registers the ids)
 import mkv_env.robot as robot_mod
+from mkv_env import world as world_mod
 
 warnings.filterwarnings("ignore", category=DeprecationWarning)  # MKV-v0 "out of date" notice
 
@@ -47,14 +51,32 @@ def single_steps_per_second(env_id: str, steps: int, seed: int = 0) -> float:
 def vector_steps_per_second(env_id: str, steps: int, num_envs: int, mode: str) -> float:
     envs = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=mode)
     envs.reset(seed=0)
-    calls = max(steps // num_envs, 1)
-    actions = np.random.default_rng(0).integers(0, 3, size=(calls, num_envs, 2))
+    seconds, robot_steps = _run_vector(envs, steps)
+    return robot_steps / seconds
+
+
+def _run_vector(envs, steps: int) -> tuple[float, int]:
+    """Step ``envs`` with random actions for about ``steps`` robot-steps, then close it:
+    (seconds, robot-steps)."""
+    n = envs.num_envs
+    calls = max(steps // n, 1)
+    actions = np.random.default_rng(0).integers(0, 3, size=(calls, n, 2))
     t0 = time.perf_counter()
     for a in actions:
         envs.step(a)
-    dt = time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
     envs.close()
-    return calls * num_envs / dt
+    return seconds, calls * n
+
+
+def _timed(parts: dict[str, float], key: str, f):
+    """``f`` wrapped to add its wall time to ``parts[key]``."""
+    def g(*a, **k):
+        t = time.perf_counter()
+        r = f(*a, **k)
+        parts[key] += time.perf_counter() - t
+        return r
+    return g
 
 
 def where_the_time_goes(steps: int) -> list[tuple[str, float]]:
@@ -66,16 +88,8 @@ def where_the_time_goes(steps: int) -> list[tuple[str, float]]:
     parts = {"physics (Robot.advance)": 0.0, "sensors": 0.0, "reset (amortised)": 0.0}
     adv, read, reset = robot_mod.Robot.advance, u.sensors.read, u.reset
 
-    def timed(key, f):
-        def g(*a, **k):
-            t = time.perf_counter()
-            r = f(*a, **k)
-            parts[key] += time.perf_counter() - t
-            return r
-        return g
-
-    robot_mod.Robot.advance = timed("physics (Robot.advance)", adv)
-    u.sensors.read = timed("sensors", read)
+    robot_mod.Robot.advance = _timed(parts, "physics (Robot.advance)", adv)
+    u.sensors.read = _timed(parts, "sensors", read)
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     acts = rng.integers(0, 3, size=(steps, 2))
@@ -97,6 +111,94 @@ def where_the_time_goes(steps: int) -> list[tuple[str, float]]:
     out.append(("bookkeeping, reward, info (rest of step)", rest))
     out.append(("unwrapped step, total", total / steps * 1e6))
     return out
+
+
+def vector_split(num_envs: int, steps: int) -> dict[str, float]:
+    """Microseconds per robot-step of the native vector env in its parts (random actions, resets
+    included): physics (``_move``: one compiled call for all robots), resets, and the rest
+    (per-robot sensing, scoring and infos in Python, plus the vector bookkeeping)."""
+    envs = gym.make_vec("MKV-v0", num_envs=num_envs, vectorization_mode="vector_entry_point")
+    v = envs.unwrapped
+    envs.reset(seed=0)
+    parts = {"physics": 0.0, "reset": 0.0}
+    v._move = _timed(parts, "physics", v._move)
+    for e in v.envs:
+        e.reset = _timed(parts, "reset", e.reset)
+    total, robot_steps = _run_vector(envs, steps)
+    out = {k: t / robot_steps * 1e6 for k, t in parts.items()}
+    out["total"] = total / robot_steps * 1e6
+    out["rest"] = out["total"] - out["physics"] - out["reset"]
+    return out
+
+
+def _add_arena(space: pymunk.Space, layout, dx: float) -> None:
+    """A layout's static shapes, shifted ``dx`` metres along x, into ``space``."""
+    sb, shapes = space.static_body, []
+    for ax, ay, bx, by in layout.walls:
+        shapes.append(pymunk.Segment(sb, (ax + dx, ay), (bx + dx, by), world_mod.WALL_RADIUS_M))
+    for cx, cy, w, h, ang in layout.boxes:
+        t = pymunk.Transform.translation(cx + dx, cy).rotated(ang)
+        shapes.append(pymunk.Poly(sb, [(-w / 2, -h / 2), (w / 2, -h / 2), (w / 2, h / 2),
+                                       (-w / 2, h / 2)], transform=t))
+    for cx, cy, r in layout.cylinders:
+        shapes.append(pymunk.Circle(sb, r, (cx + dx, cy)))
+    for sh in shapes:
+        sh.collision_type = world_mod.OBSTACLE
+        sh.friction = world_mod.OBSTACLE_FRICTION
+    space.add(*shapes)
+
+
+def chipmunk_shared_vs_separate(num_envs: int, steps: int) -> tuple[float, float]:
+    """Chipmunk's own ``space.step`` cost, microseconds per robot-step (4 substeps), for N robots
+    each in its own space (as the envs are built) and for one space holding the N arenas side
+    by side (the issue's alternative). Both get the same arenas (MKV-v0 resets, seeds 0..N-1),
+    the same collision callbacks, and the same motion: every 50 steps each robot body is given a
+    random velocity (0.3 m/s scale, the robot's speed), so it drives into clutter and jams."""
+    substeps, dt = 4, 0.1 / 4
+    separate, shared, bodies_sep, bodies_shared = [], pymunk.Space(), [], []
+    counts = [0] * 5
+
+    def count(arbiter, space, data):
+        data[0] += 1
+
+    def setup(space):
+        space.iterations, space.damping = 10, world_mod.SPACE_DAMPING
+        for ctype in (1, 2, 3, 4):
+            space.on_collision(ctype, world_mod.OBSTACLE, begin=count, separate=count,
+                               data=counts)
+
+    setup(shared)
+    env = gym.make("MKV-v0").unwrapped
+    for i in range(num_envs):
+        env.reset(seed=i)
+        w = env.world
+        x, y, th = w.robot.pose()
+        sp = pymunk.Space()
+        setup(sp)
+        _add_arena(sp, w.layout, 0.0)
+        bodies_sep.append(robot_mod.Robot(sp, w.robot_params, (x, y), th).body)
+        separate.append(sp)
+        dx = 10.0 * i  # arenas are 4 m wide: 10 m apart never touch
+        _add_arena(shared, w.layout, dx)
+        bodies_shared.append(robot_mod.Robot(shared, w.robot_params, (x + dx, y), th).body)
+
+    def run(spaces, bodies) -> float:
+        rng = np.random.default_rng(1)
+        elapsed = 0.0
+        for k in range(steps):
+            if k % 50 == 0:
+                vel = rng.normal(0.0, 0.3, size=(num_envs, 2)).tolist()
+                spin = rng.normal(0.0, 1.0, size=num_envs).tolist()
+                for b, v, w in zip(bodies, vel, spin, strict=True):
+                    b.velocity, b.angular_velocity = v, w
+            t = time.perf_counter()
+            for sp in spaces:
+                for _ in range(substeps):
+                    sp.step(dt)
+            elapsed += time.perf_counter() - t
+        return elapsed / (steps * num_envs) * 1e6
+
+    return run(separate, bodies_sep), run([shared], bodies_shared)
 
 
 def main(argv=None) -> None:
@@ -138,7 +240,32 @@ def main(argv=None) -> None:
     print("\nwhere an MKV-v0 step's time goes (us per step, unwrapped, timed around the calls):")
     for name, us in where_the_time_goes(min(args.steps, 30_000)):
         print(f"  {name:<44}{us:6.2f}")
-
+    splits = [vector_split(n, args.steps) for _ in range(args.rounds)]
+    vs = {k: statistics.median(s[k] for s in splits) for k in splits[0]}
+    chip = [chipmunk_shared_vs_separate(n, 1500) for _ in range(args.rounds)]
+    sep = statistics.median(c[0] for c in chip)
+    shared = statistics.median(c[1] for c in chip)
+    t_single = 1e6 / single
+    print(f"\nnative vector x{n}, us per robot-step (medians, timed around the calls):")
+    print(f"  physics (all robots in one compiled call)   {vs['physics']:6.2f}")
+    print(f"  resets (amortised)                          {vs['reset']:6.2f}")
+    print(f"  per-robot sensing, scoring, infos; vector   {vs['rest']:6.2f}")
+    print(f"  total                                       {vs['total']:6.2f}"
+          f"   (MKV-v0 single env: {t_single:.2f} per step)")
+    print(f"\nChipmunk's space.step alone, us per robot-step ({n} robots, same arenas and motion):")
+    print(f"  one space per robot (as built)              {sep:6.2f}")
+    print(f"  one space holding all {n} arenas             {shared:6.2f}"
+          f"   ({sep / shared:.2f}x faster)")
+    floor = vs["physics"] + vs["reset"]
+    print(f"\nceiling of native vector x{n} / MKV-v0 single (target 4) if all per-robot sensing, "
+          "scoring,\ninfos and vector bookkeeping cost nothing (resets kept, as the single env "
+          "pays them too):")
+    print(f"  physics as now:                      {t_single:.2f} / {floor:.2f} = "
+          f"{t_single / floor:.2f}")
+    # generous: as if all of physics were Chipmunk's and all of it got the shared-space speed-up
+    shared_floor = vs["physics"] * shared / sep + vs["reset"]
+    print(f"  physics {sep / shared:.2f}x faster (one shared space): {t_single:.2f} / "
+          f"{shared_floor:.2f} = {t_single / shared_floor:.2f}")
 
 if __name__ == "__main__":
     main()
