@@ -21,6 +21,10 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 KEYS = {"env", "policy", "episodes", "seed", "metrics", "metrics_ci"}
 JAM = ["eval", "--env", "MKVJam-v0", "--quiet"]
 
+# The child handles SIGINT as in a terminal even when this test run was started as a background
+# job, where POSIX shells ignore SIGINT and children inherit that (the CLI would then never see it).
+TERMINAL_SIGINT = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
+
 
 def run(capsys, *argv):
     code = main(list(argv))
@@ -143,14 +147,15 @@ def test_no_partial_json_when_a_worker_fails(capsys, tmp_path, monkeypatch):
 def test_sigint_stops_the_workers_and_writes_nothing(tmp_path):
     psutil = pytest.importorskip("psutil")
     out = tmp_path / "e.json"
-    cmd = [sys.executable, "-c", "import sys; from sfm_learn.cli import main; sys.exit(main())",
+    cmd = [sys.executable, "-c", f"{TERMINAL_SIGINT}; from sfm_learn.cli import main; "
+           "sys.exit(main())",
            *JAM, "--policy", "teacher", "--episodes", "20000", "--workers", "2",
            "--json", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, SDL_VIDEODRIVER="dummy"),
                             start_new_session=True)
     parent = psutil.Process(proc.pid)
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + 90  # generous: a loaded CI machine starts workers slowly
     workers = []
     while time.monotonic() < deadline and proc.poll() is None:
         workers = [c for c in parent.children(recursive=True) if c.cpu_times().user > 0.2]

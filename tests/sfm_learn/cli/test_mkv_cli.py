@@ -14,6 +14,10 @@ from sfm_learn.cli import COMMANDS, main
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
+# The child handles SIGINT as in a terminal even when this test run was started as a background
+# job, where POSIX shells ignore SIGINT and children inherit that (the CLI would then never see it).
+TERMINAL_SIGINT = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
+
 
 def run(capsys, *argv):
     code = main(list(argv))
@@ -145,7 +149,7 @@ def test_extension_points_exist():
 
 def test_sigint_leaves_no_partial_file(tmp_path):
     out = tmp_path / "big.npz"
-    cmd = [sys.executable, "-c", "import sys; from sfm_learn.cli import main; "
+    cmd = [sys.executable, "-c", f"{TERMINAL_SIGINT}; from sfm_learn.cli import main; "
            "print('ready', flush=True); sys.exit(main())",
            "record", "--env", "MKV-v0", "--policy", "teacher", "--episodes", "2000",
            "--seed", "0", "--out", str(out), "--quiet"]
