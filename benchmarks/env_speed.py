@@ -131,55 +131,34 @@ def vector_split(num_envs: int, steps: int) -> dict[str, float]:
     return out
 
 
-def _add_arena(space: pymunk.Space, layout, dx: float) -> None:
-    """A layout's static shapes, shifted ``dx`` metres along x, into ``space``."""
-    sb, shapes = space.static_body, []
-    for ax, ay, bx, by in layout.walls:
-        shapes.append(pymunk.Segment(sb, (ax + dx, ay), (bx + dx, by), world_mod.WALL_RADIUS_M))
-    for cx, cy, w, h, ang in layout.boxes:
-        t = pymunk.Transform.translation(cx + dx, cy).rotated(ang)
-        shapes.append(pymunk.Poly(sb, [(-w / 2, -h / 2), (w / 2, -h / 2), (w / 2, h / 2),
-                                       (-w / 2, h / 2)], transform=t))
-    for cx, cy, r in layout.cylinders:
-        shapes.append(pymunk.Circle(sb, r, (cx + dx, cy)))
-    for sh in shapes:
-        sh.collision_type = world_mod.OBSTACLE
-        sh.friction = world_mod.OBSTACLE_FRICTION
-    space.add(*shapes)
-
-
 def chipmunk_shared_vs_separate(num_envs: int, steps: int) -> tuple[float, float]:
     """Chipmunk's own ``space.step`` cost, microseconds per robot-step (4 substeps), for N robots
     each in its own space (as the envs are built) and for one space holding the N arenas side
     by side (the issue's alternative). Both get the same arenas (MKV-v0 resets, seeds 0..N-1),
-    the same collision callbacks, and the same motion: every 50 steps each robot body is given a
-    random velocity (0.3 m/s scale, the robot's speed), so it drives into clutter and jams."""
+    the env's own obstacle shapes and contact callbacks, and the same motion: every 50 steps each
+    robot body is given a random velocity (0.3 m/s scale, the robot's speed), so it drives into
+    clutter and jams."""
     substeps, dt = 4, 0.1 / 4
-    separate, shared, bodies_sep, bodies_shared = [], pymunk.Space(), [], []
-    counts = [0] * 5
+    separate, bodies_sep, bodies_shared = [], [], []
 
-    def count(arbiter, space, data):
-        data[0] += 1
-
-    def setup(space):
+    def new_space():  # as mkv_env.world.World builds it
+        space = pymunk.Space()
         space.iterations, space.damping = 10, world_mod.SPACE_DAMPING
-        for ctype in (1, 2, 3, 4):
-            space.on_collision(ctype, world_mod.OBSTACLE, begin=count, separate=count,
-                               data=counts)
+        world_mod.count_contacts(space)
+        return space
 
-    setup(shared)
+    shared = new_space()
     env = gym.make("MKV-v0").unwrapped
     for i in range(num_envs):
         env.reset(seed=i)
         w = env.world
         x, y, th = w.robot.pose()
-        sp = pymunk.Space()
-        setup(sp)
-        _add_arena(sp, w.layout, 0.0)
+        sp = new_space()
+        world_mod.add_obstacles(sp, w.layout)
         bodies_sep.append(robot_mod.Robot(sp, w.robot_params, (x, y), th).body)
         separate.append(sp)
         dx = 10.0 * i  # arenas are 4 m wide: 10 m apart never touch
-        _add_arena(shared, w.layout, dx)
+        world_mod.add_obstacles(shared, w.layout, dx)
         bodies_shared.append(robot_mod.Robot(shared, w.robot_params, (x + dx, y), th).body)
 
     def run(spaces, bodies) -> float:

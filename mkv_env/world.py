@@ -208,6 +208,35 @@ def _on_separate(arbiter, space, counts):
     counts[t] -= 1
 
 
+def add_obstacles(space: pymunk.Space, layout: Layout, dx: float = 0.0) -> None:
+    """The layout's walls, boxes and cylinders as static shapes of ``space``, shifted ``dx``
+    metres along x (benchmarks put several arenas side by side in one space)."""
+    sb = space.static_body
+    shapes = []
+    for ax, ay, bx, by in layout.walls:
+        shapes.append(pymunk.Segment(sb, (ax + dx, ay), (bx + dx, by), WALL_RADIUS_M))
+    for cx, cy, w, h, ang in layout.boxes:
+        t = pymunk.Transform.translation(cx + dx, cy).rotated(ang)
+        verts = [(-w / 2, -h / 2), (w / 2, -h / 2), (w / 2, h / 2), (-w / 2, h / 2)]
+        shapes.append(pymunk.Poly(sb, verts, transform=t))
+    for cx, cy, r in layout.cylinders:
+        shapes.append(pymunk.Circle(sb, r, (cx + dx, cy)))
+    for s in shapes:
+        s.collision_type = OBSTACLE
+        s.friction = OBSTACLE_FRICTION
+        s.elasticity = OBSTACLE_ELASTICITY
+    space.add(*shapes)
+
+
+def count_contacts(space: pymunk.Space, counts: list[int] | None = None) -> list[int]:
+    """Count robot-obstacle contacts of ``space`` in ``counts`` (made if None; indexed by the
+    robot part's collision type, ``counts[0]`` the contact events), which is returned."""
+    counts = [0] * 5 if counts is None else counts
+    for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
+        space.on_collision(ctype, OBSTACLE, begin=_on_begin, separate=_on_separate, data=counts)
+    return counts
+
+
 class World:
     """A built layout plus the robot, stepping physics at a fixed substep.
 
@@ -222,25 +251,8 @@ class World:
         self.space = space = pymunk.Space()
         space.iterations = iterations
         space.damping = SPACE_DAMPING
-        sb = space.static_body
-        shapes = []
-        for ax, ay, bx, by in layout.walls:
-            shapes.append(pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M))
-        for cx, cy, w, h, ang in layout.boxes:
-            t = pymunk.Transform.translation(cx, cy).rotated(ang)
-            verts = [(-w / 2, -h / 2), (w / 2, -h / 2), (w / 2, h / 2), (-w / 2, h / 2)]
-            shapes.append(pymunk.Poly(sb, verts, transform=t))
-        for cx, cy, r in layout.cylinders:
-            shapes.append(pymunk.Circle(sb, r, (cx, cy)))
-        for s in shapes:
-            s.collision_type = OBSTACLE
-            s.friction = OBSTACLE_FRICTION
-            s.elasticity = OBSTACLE_ELASTICITY
-        space.add(*shapes)
-        self.contacts = [0] * 5
-        for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
-            space.on_collision(ctype, OBSTACLE, begin=_on_begin, separate=_on_separate,
-                               data=self.contacts)
+        add_obstacles(space, layout)
+        self.contacts = count_contacts(space)
         self.robot = Robot(space, robot_params, pose[:2], pose[2])
 
     # ------------------------------------------------------------------ stepping
