@@ -14,6 +14,8 @@
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
+#include <float.h>
+#include <string.h>
 
 typedef struct { double x, y; } cpVect;
 typedef cpVect (*get_vect_fn)(const void *);
@@ -27,7 +29,7 @@ static get_double_fn cp_get_w = NULL, cp_get_a = NULL;
 static set_vect_fn cp_set_f = NULL;
 static set_double_fn cp_set_t = NULL;
 static step_fn cp_step = NULL;
-static PyObject *py_hypot = NULL;
+static PyObject *py_hypot_obj = NULL;
 
 /* Layout of the constants vector K (see Robot._kernel_constants). */
 enum {
@@ -42,6 +44,96 @@ static const char *STATE_NAMES[S_LEN] = {
     "drive_current", "steer_current"};
 static PyObject *state_names[S_LEN];
 
+
+/* ---------------------------------------------------------------- CPython's float semantics
+ * The kernel's scoring and sensing must give the bits of the Python reference, which uses
+ * math.hypot (CPython's vector_norm, not libm's hypot), float % and math.remainder. */
+typedef struct { double hi, lo; } dlen;
+
+static inline dlen dl_fast_sum(double a, double b)
+{
+    double x = a + b;
+    double y = (a - x) + b;
+    dlen r = {x, y};
+    return r;
+}
+
+/* Dekker's exact product (CPython 3.11 uses this split; 3.12's fma gives the same exact pair). */
+static inline dlen dl_mul(double x, double y)
+{
+    const double c = 134217729.0; /* 2**27 + 1 */
+    double t = c * x, xh = t - (t - x), xl = x - xh;
+    t = c * y;
+    double yh = t - (t - y), yl = y - yh;
+    double z = x * y;
+    double zz = (((xh * yh - z) + xh * yl) + xl * yh) + xl * yl;
+    dlen r = {z, zz};
+    return r;
+}
+
+static double vector_norm2(double a, double b, double max)
+{
+    int max_e;
+    frexp(max, &max_e);
+    if (max_e < -1023)
+        return DBL_MIN * vector_norm2(a / DBL_MIN, b / DBL_MIN, max / DBL_MIN);
+    double scale = ldexp(1.0, -max_e);
+    double csum = 1.0, frac1 = 0.0, frac2 = 0.0, v[2] = {a, b};
+    dlen pr, sm;
+    for (int i = 0; i < 2; i++) {
+        double x = v[i] * scale;
+        pr = dl_mul(x, x);
+        sm = dl_fast_sum(csum, pr.hi);
+        csum = sm.hi;
+        frac1 += pr.lo;
+        frac2 += sm.lo;
+    }
+    double h = sqrt(csum - 1.0 + (frac1 + frac2));
+    pr = dl_mul(-h, h);
+    sm = dl_fast_sum(csum, pr.hi);
+    csum = sm.hi;
+    frac1 += pr.lo;
+    frac2 += sm.lo;
+    double x = csum - 1.0 + (frac1 + frac2);
+    h += x / (2.0 * h);
+    return h / scale;
+}
+
+/* math.hypot(a, b), bit for bit (Modules/mathmodule.c: math_hypot + vector_norm). */
+static double py_hypot(double a, double b)
+{
+    double x0 = fabs(a), x1 = fabs(b), max = 0.0;
+    int nan = 0;
+    if (isnan(x0))
+        nan = 1;
+    else if (x0 > max)
+        max = x0;
+    if (isnan(x1))
+        nan = 1;
+    else if (x1 > max)
+        max = x1;
+    if (isinf(max))
+        return max;
+    if (nan)
+        return NAN;
+    if (max == 0.0)
+        return max;
+    return vector_norm2(x0, x1, max);
+}
+
+/* Python's float % (Objects/floatobject.c: float_rem). */
+static inline double py_mod(double vx, double wx)
+{
+    double mod = fmod(vx, wx);
+    if (mod) {
+        if ((wx < 0) != (mod < 0))
+            mod += wx;
+    } else {
+        mod = copysign(0.0, wx);
+    }
+    return mod;
+}
+
 /* math.hypot(a, b) exactly as the Python loop computes it; sets *err on failure. */
 static double call_hypot(double a, double b, int *err)
 {
@@ -55,7 +147,7 @@ static double call_hypot(double a, double b, int *err)
         *err = 1;
         return 0.0;
     }
-    r = PyObject_Vectorcall(py_hypot, args, 2, NULL);
+    r = PyObject_Vectorcall(py_hypot_obj, args, 2, NULL);
     Py_DECREF(args[0]);
     Py_DECREF(args[1]);
     if (r == NULL) {
@@ -69,7 +161,7 @@ static double call_hypot(double a, double b, int *err)
 
 /* One robot, n substeps. Returns 0, or -1 with a Python error set. */
 static int advance_one(const double *K, void *cpb, void *cpspace, long drive_cmd, long steer_cmd,
-                       double dt, long n, double mu_scale, double *st)
+                       double dt, long n, double mu_scale, double *st, int c_hypot)
 {
     const double xd = K[K_XD], xs = K[K_XS], rw = K[K_RW], inv_rs = K[K_INV_RS], lim = K[K_LIM];
     const double im = K[K_IM], iI = K[K_II];
@@ -164,7 +256,7 @@ static int advance_one(const double *K, void *cpb, void *cpspace, long drive_cmd
             for (int it = 0; it < 8; it++) {
                 double n1 = l1 - a1 / k11;
                 double n2 = l2 - a2 / k22;
-                double norm = call_hypot(n1, n2, &err);
+                double norm = c_hypot ? py_hypot(n1, n2) : call_hypot(n1, n2, &err);
                 if (err)
                     return -1;
                 if (norm > cap_d) {
@@ -196,7 +288,7 @@ static int advance_one(const double *K, void *cpb, void *cpspace, long drive_cmd
         cp_set_t(cpb, (xd * l1 + cd * xs * l3) * iI * i_dt);
         ww -= iJ * rw * l2;
         cp_step(cpspace, dt);
-        if (PyErr_Occurred())
+        if (!c_hypot && PyErr_Occurred())
             return -1;
     }
     st[S_WW] = ww;
@@ -253,7 +345,7 @@ static int get_constants(PyObject *obj, Py_buffer *view)
 
 static int check_bound(void)
 {
-    if (cp_step == NULL || py_hypot == NULL) {
+    if (cp_step == NULL || py_hypot_obj == NULL) {
         PyErr_SetString(PyExc_RuntimeError, "mkv_env._fastsim: bind() has not been called");
         return -1;
     }
@@ -288,7 +380,7 @@ static PyObject *fs_advance(PyObject *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     if (get_constants(args[0], &kv) < 0)
         return NULL;
-    int rc = advance_one((const double *)kv.buf, body, space, drive, steer, dt, n, mu_scale, st);
+    int rc = advance_one((const double *)kv.buf, body, space, drive, steer, dt, n, mu_scale, st, 0);
     PyBuffer_Release(&kv);
     if (rc < 0 || store_state(args[8], st) < 0)
         return NULL;
@@ -338,7 +430,7 @@ static PyObject *fs_advance_many(PyObject *self, PyObject *const *args, Py_ssize
         PyObject *state = PySequence_Fast_GET_ITEM(fast[5], i);
         if (PyErr_Occurred() || load_state(state, st) < 0 ||
             advance_one((const double *)kv.buf, body, space, drive, steer, dt, n, mu_scale,
-                        st) < 0 ||
+                        st, 0) < 0 ||
             store_state(state, st) < 0) {
             PyBuffer_Release(&kv);
             goto done;
@@ -443,10 +535,991 @@ static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     cp_set_f = (set_vect_fn)p[3];
     cp_set_t = (set_double_fn)p[4];
     cp_step = (step_fn)p[5];
-    Py_XDECREF(py_hypot);
-    py_hypot = args[6];
-    Py_INCREF(py_hypot);
+    Py_XDECREF(py_hypot_obj);
+    py_hypot_obj = args[6];
+    Py_INCREF(py_hypot_obj);
     Py_RETURN_NONE;
+}
+
+
+/* ============================================================================ the step kernel
+ * Batch: N robots' whole control period after the action is decoded (physics, sensors, tracker,
+ * reward, termination, info numbers), each robot in a slot of C state, written into numpy
+ * buffers registered once. The Python classes in envs.py, sensors.py and tracker.py are the
+ * reference: every operation below is theirs, in their order, on the same doubles, so the two
+ * give the same bits (tests/mkv_env/test_step_kernel.py). Nothing here calls Python, so a batch
+ * steps with the GIL released and, with num_threads > 1, on worker threads (each robot has its
+ * own Chipmunk space; a robot's result does not depend on which thread ran it). */
+
+#include <pthread.h>
+#include <sched.h>
+#include <stdatomic.h>
+
+#define NCH 10
+#define NOISE_ROWS 256
+#define OBSTACLE_TYPE 10
+
+typedef struct { const void *shape; cpVect point; double distance; cpVect gradient; } cpPQInfo;
+typedef struct { uintptr_t group; unsigned int categories, mask; } cpFilter;
+typedef void *(*pq_fn)(void *, cpVect, double, cpFilter, cpPQInfo *);
+typedef void (*arb_shapes_fn)(void *, void **, void **);
+typedef uintptr_t (*shape_type_fn)(void *);
+
+static get_vect_fn cp_get_p = NULL;
+static pq_fn cp_pq = NULL;
+static arb_shapes_fn cp_arb_shapes = NULL;
+static shape_type_fn cp_shape_type = NULL;
+
+/* Contact counting as mkv_env.world._on_begin/_on_separate, on the World's int64 counts. */
+static void contact_begin(void *arb, void *space, void *data)
+{
+    int64_t *counts = data;
+    void *a, *b;
+    cp_arb_shapes(arb, &a, &b);
+    uintptr_t ta = cp_shape_type(a);
+    uintptr_t t = ta != OBSTACLE_TYPE ? ta : cp_shape_type(b);
+    if (t < 5) {
+        counts[t] += 1;
+        counts[0] += 1;
+    }
+}
+
+static void contact_separate(void *arb, void *space, void *data)
+{
+    int64_t *counts = data;
+    void *a, *b;
+    cp_arb_shapes(arb, &a, &b);
+    uintptr_t ta = cp_shape_type(a);
+    uintptr_t t = ta != OBSTACLE_TYPE ? ta : cp_shape_type(b);
+    if (t < 5)
+        counts[t] -= 1;
+}
+
+/* Parameters of a batch (the env's constructor arguments), in the order of envs.kernel_params. */
+enum {
+    P_DT, P_SUBSTEPS, P_PERIOD, P_STUCK_SPEED, P_JAM_STEPS, P_ESC_DIST, P_ESC_FWD, P_FREE_CLEAR,
+    P_KIND, P_PROGRESS, P_STUCK_PEN, P_COLL_PEN, P_ESC_REWARD, P_COVERAGE, P_STILL_PEN,
+    P_JAM_PEN, P_TIME_PEN, P_SHAPING, P_CELL, P_TICK, P_BATT_V, P_BATT_R, P_LEN
+};
+enum { KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 };
+/* A slot's doubles: the wheel state (S_*, advance_one's layout) and then the rest. */
+enum {
+    V_MU = S_LEN, V_TICK_D, V_TICK_R, V_X, V_Y, V_HEAD, V_DIST, V_LAST, V_STUCK_RUN, V_JAMS,
+    V_ESCAPES, V_IN_JAM, V_JAM_X, V_JAM_Y, V_COLLS, V_FWD, V_EVENTS, V_PHI, V_LEN
+};
+/* Output buffers, registered by Batch.outputs(). */
+enum {
+    O_OBS, O_REW, O_TERM, O_STUCK, O_BUMPED, O_COLL, O_DIST, O_JAMS, O_ESC, O_COLLS, O_IN_JAM,
+    O_POSE, O_CELLS, O_ESCAPED, O_LEN
+};
+static const char O_FMT[O_LEN] = {'f', 'd', '?', '?', '?', '?', 'd', 'q', 'q', 'q', '?', 'd', 'q', '?'};
+static const int O_WIDTH[O_LEN] = {NCH, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1};
+
+enum { ERR_NONE, ERR_NONFINITE, ERR_CELL, ERR_MEMORY, ERR_UNBOUND };
+
+typedef struct {
+    void *body, *space;
+    int64_t *contacts;
+    double *patches;
+    Py_ssize_t npatch;
+    double v[V_LEN];
+    double noise[NOISE_ROWS * NCH];
+    long row;
+    uint64_t *cells;
+    int64_t ncells, cap;
+    int err;
+    PyObject *keep; /* the World's counts array: kept alive while bound */
+} Slot;
+
+typedef struct BatchObject BatchObject;
+
+typedef struct {
+    BatchObject *b;
+    int group;
+    pthread_t th;
+} Worker;
+
+struct BatchObject {
+    PyObject_HEAD
+    Py_ssize_t n;
+    Slot *slots;
+    double K[K_LEN], P[P_LEN];
+    double iq[NCH], q[NCH], lo[NCH], hi[NCH];
+    Py_buffer out[O_LEN];
+    int have_out;
+    /* the current job */
+    const int64_t *acts;
+    const uint8_t *active;
+    /* threads */
+    int nthreads, started;
+    Worker *workers;
+    pthread_mutex_t mu;
+    pthread_cond_t cv;
+    long gen;
+    int stop;
+    atomic_int pending;
+};
+
+/* ---------------------------------------------------------------- the cell set of MKV-v1 */
+static inline uint64_t cell_hash(uint64_t k)
+{
+    k ^= k >> 33;
+    k *= 0xff51afd7ed558ccdULL;
+    k ^= k >> 33;
+    return k;
+}
+
+/* 1 if the cell was new (and is now in), 0 if seen, -1 on error. */
+static int cell_add(Slot *s, double cx, double cy)
+{
+    if (!(fabs(cx) < 2147483647.0 && fabs(cy) < 2147483647.0))
+        return -1;
+    uint64_t key = ((uint64_t)(uint32_t)(int32_t)cx << 32) | (uint64_t)(uint32_t)(int32_t)cy;
+    key += 1; /* 0 marks an empty bucket; (uint64)-1 + 1 wraps to 0 only for (-1, -1) */
+    if (key == 0)
+        key = 0x8000000000000000ULL; /* unused by in-range cells (cx = INT32_MIN) */
+    if ((s->ncells + 1) * 2 > s->cap) {
+        int64_t cap = s->cap ? s->cap * 2 : 256;
+        uint64_t *t = calloc((size_t)cap, sizeof(uint64_t));
+        if (t == NULL)
+            return -1;
+        for (int64_t i = 0; i < s->cap; i++) {
+            uint64_t k = s->cells[i];
+            if (k) {
+                uint64_t h = cell_hash(k) & (uint64_t)(cap - 1);
+                while (t[h])
+                    h = (h + 1) & (uint64_t)(cap - 1);
+                t[h] = k;
+            }
+        }
+        free(s->cells);
+        s->cells = t;
+        s->cap = cap;
+    }
+    uint64_t h = cell_hash(key) & (uint64_t)(s->cap - 1);
+    while (s->cells[h]) {
+        if (s->cells[h] == key)
+            return 0;
+        h = (h + 1) & (uint64_t)(s->cap - 1);
+    }
+    s->cells[h] = key;
+    s->ncells += 1;
+    return 1;
+}
+
+static void cells_clear(Slot *s)
+{
+    if (s->cells)
+        memset(s->cells, 0, (size_t)s->cap * sizeof(uint64_t));
+    s->ncells = 0;
+}
+
+/* ---------------------------------------------------------------- one robot, one period */
+#define OUT(b, k, T) ((T *)(b)->out[k].buf)
+
+static inline int is_clear(const Slot *s, double x, double y, double radius)
+{
+    cpPQInfo info;
+    cpVect p = {x, y};
+    cpFilter f = {1, 0xffffffffu, 0xffffffffu}; /* mkv_env.robot.ROBOT_FILTER */
+    return cp_pq(s->space, p, radius, f, &info) == NULL;
+}
+
+/* Returns the slot's error code (0 = fine). Results go to the output buffers at row i. */
+static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
+{
+    Slot *s = &b->slots[i];
+    const double *P = b->P;
+    double *v = s->v;
+    if (s->body == NULL)
+        return s->err = ERR_UNBOUND;
+    /* World.step: the floor under the drive wheel, looked up once per period */
+    if (s->npatch) {
+        cpVect pos = cp_get_p(s->body);
+        double th = cp_get_a(s->body);
+        double xd = b->K[K_XD];
+        double x = pos.x + xd * cos(th), y = pos.y + xd * sin(th);
+        double scale = 1.0;
+        for (Py_ssize_t k = 0; k < s->npatch; k++) {
+            const double *pt = s->patches + 5 * k;
+            if (pt[0] <= x && x <= pt[2] && pt[1] <= y && y <= pt[3]) {
+                scale = pt[4];
+                break;
+            }
+        }
+        v[V_MU] = scale;
+    }
+    advance_one(b->K, s->body, s->space, drive, steer, P[P_DT], (long)P[P_SUBSTEPS], v[V_MU], v,
+                1);
+
+    /* SensorSuite.read */
+    const int64_t *c = s->contacts;
+    double tick = P[P_TICK];
+    double dt_ = floor(v[S_DRIVE_ANGLE] / tick), rt_ = floor(v[S_ROLLER_ANGLE] / tick);
+    double d0 = v[V_TICK_D], r0 = v[V_TICK_R];
+    v[V_TICK_D] = dt_;
+    v[V_TICK_R] = rt_;
+    double i_d = v[S_I_DRIVE], i_s = v[S_I_STEER];
+    const double *nz = s->noise + NCH * s->row;
+    s->row += 1;
+    double angle = cp_get_a(s->body);
+    double truth[NCH];
+    truth[0] = (dt_ - d0) + nz[0];
+    truth[1] = (rt_ - r0) + nz[1];
+    truth[2] = v[S_DELTA] + nz[2];
+    truth[3] = py_mod(angle + nz[3] + M_PI, 2.0 * M_PI) - M_PI;
+    truth[4] = (double)(c[2] > 0) + nz[4];
+    truth[5] = (double)(c[3] > 0) + nz[5];
+    truth[6] = (double)(c[4] > 0) + nz[6];
+    truth[7] = i_d + nz[7];
+    truth[8] = i_s + nz[8];
+    truth[9] = P[P_BATT_V] - P[P_BATT_R] * (fabs(i_d) + fabs(i_s)) + nz[9];
+    float *obs = OUT(b, O_OBS, float) + NCH * i;
+    for (int k = 0; k < NCH; k++) {
+        double y = truth[k] * b->iq[k];
+        if (!isfinite(y))
+            return s->err = ERR_NONFINITE;
+        double r = rint(y);
+        if (r == 0.0)
+            r = 0.0;
+        double val = r * b->q[k];
+        double m = (b->lo[k] > val) ? b->lo[k] : val;
+        obs[k] = (float)((b->hi[k] < m) ? b->hi[k] : m);
+    }
+
+    /* MKVEnv._pose + MotionTracker.update */
+    cpVect pos = cp_get_p(s->body);
+    double x = pos.x, y = pos.y, heading = remainder(angle, 2.0 * M_PI);
+    double dx = x - v[V_X], dy = y - v[V_Y];
+    double step = py_hypot(dx, dy);
+    double mid = v[V_HEAD] + 0.5 * remainder(heading - v[V_HEAD], 2.0 * M_PI);
+    double progress = dx * cos(mid) + dy * sin(mid);
+    v[V_X] = x;
+    v[V_Y] = y;
+    v[V_HEAD] = heading;
+    v[V_DIST] += step;
+    v[V_LAST] = step;
+    int stuck = drive != 0 && step < P[P_STUCK_SPEED] * P[P_PERIOD];
+    v[V_STUCK_RUN] = stuck ? v[V_STUCK_RUN] + 1.0 : 0.0;
+    double events = (double)c[0];
+    int collision = events > v[V_EVENTS];
+    if (collision)
+        v[V_COLLS] += 1.0;
+    v[V_EVENTS] = events;
+    v[V_FWD] = progress > 1e-3 ? v[V_FWD] + progress : 0.0;
+    int escaped = 0;
+    if (v[V_IN_JAM] != 0.0) {
+        if (!stuck && v[V_FWD] >= P[P_ESC_FWD] &&
+            py_hypot(x - v[V_JAM_X], y - v[V_JAM_Y]) >= P[P_ESC_DIST] &&
+            is_clear(s, x, y, P[P_FREE_CLEAR])) {
+            v[V_IN_JAM] = 0.0;
+            v[V_ESCAPES] += 1.0;
+            escaped = 1;
+        }
+    } else if (v[V_STUCK_RUN] >= P[P_JAM_STEPS]) {
+        v[V_IN_JAM] = 1.0;
+        v[V_JAMS] += 1.0;
+        v[V_JAM_X] = x;
+        v[V_JAM_Y] = y;
+    }
+
+    /* the env class's _reward and _terminated */
+    double reward;
+    int terminated = 0;
+    int kind = (int)P[P_KIND];
+    if (kind == KIND_WANDER || kind == KIND_JAM) {
+        reward = P[P_PROGRESS] * progress - P[P_STUCK_PEN] * (double)stuck -
+                 P[P_COLL_PEN] * (double)collision;
+        if (kind == KIND_JAM) {
+            reward = reward + P[P_ESC_REWARD] * (double)escaped;
+            terminated = escaped;
+        }
+    } else if (kind == KIND_WANDER_V1) {
+        double new_cell = 0.0;
+        if (progress > 0) {
+            int r = cell_add(s, floor(x / P[P_CELL]), floor(y / P[P_CELL]));
+            if (r < 0)
+                return s->err = ERR_CELL;
+            new_cell = (double)r;
+        }
+        int still = v[V_LAST] < P[P_STUCK_SPEED] * P[P_PERIOD];
+        reward = P[P_COVERAGE] * new_cell - P[P_STILL_PEN] * (double)still -
+                 P[P_STUCK_PEN] * (double)stuck - P[P_JAM_PEN] * v[V_IN_JAM] -
+                 P[P_COLL_PEN] * (double)collision;
+    } else {
+        double d = py_hypot(v[V_X] - v[V_JAM_X], v[V_Y] - v[V_JAM_Y]);
+        double q = d / P[P_ESC_DIST];
+        double phi = (1.0 < q) ? 1.0 : q;
+        double shaped = P[P_SHAPING] * (phi - v[V_PHI]);
+        v[V_PHI] = phi;
+        reward = P[P_ESC_REWARD] * (double)escaped - P[P_TIME_PEN] -
+                 P[P_STUCK_PEN] * (double)stuck - P[P_COLL_PEN] * (double)collision + shaped;
+        terminated = escaped;
+    }
+
+    OUT(b, O_REW, double)[i] = reward;
+    OUT(b, O_TERM, uint8_t)[i] = (uint8_t)terminated;
+    OUT(b, O_STUCK, uint8_t)[i] = (uint8_t)stuck;
+    OUT(b, O_BUMPED, uint8_t)[i] = (uint8_t)(c[2] > 0 || c[3] > 0 || c[4] > 0);
+    OUT(b, O_COLL, uint8_t)[i] = (uint8_t)collision;
+    OUT(b, O_DIST, double)[i] = v[V_DIST];
+    OUT(b, O_JAMS, int64_t)[i] = (int64_t)v[V_JAMS];
+    OUT(b, O_ESC, int64_t)[i] = (int64_t)v[V_ESCAPES];
+    OUT(b, O_COLLS, int64_t)[i] = (int64_t)v[V_COLLS];
+    OUT(b, O_IN_JAM, uint8_t)[i] = (uint8_t)(v[V_IN_JAM] != 0.0);
+    double *pose = OUT(b, O_POSE, double) + 3 * i;
+    pose[0] = x;
+    pose[1] = y;
+    pose[2] = heading;
+    OUT(b, O_CELLS, int64_t)[i] = s->ncells;
+    OUT(b, O_ESCAPED, uint8_t)[i] = (uint8_t)(v[V_ESCAPES] > 0.0);
+    return 0;
+}
+
+/* Rows [lo, hi) of the current job. */
+static void run_range(BatchObject *b, Py_ssize_t lo, Py_ssize_t hi)
+{
+    const int64_t *a = b->acts;
+    for (Py_ssize_t i = lo; i < hi; i++) {
+        if (b->active != NULL && !b->active[i])
+            continue;
+        /* [drive, steer] in {0,1,2}: motor commands a0 - 1 and 1 - a1 (steer 0 = left = +1) */
+        step_slot(b, i, (long)(a[2 * i] - 1), (long)(1 - a[2 * i + 1]));
+    }
+}
+
+static inline Py_ssize_t group_lo(BatchObject *b, int g) { return b->n * g / b->nthreads; }
+
+static void *worker_main(void *arg)
+{
+    Worker *w = arg;
+    BatchObject *b = w->b;
+    long seen = 0;
+    for (;;) {
+        /* spin a little (back-to-back steps), then sleep on the condition variable */
+        long gen = 0;
+        for (int spin = 0; spin < 20000; spin++) {
+            gen = __atomic_load_n(&b->gen, __ATOMIC_ACQUIRE);
+            if (gen != seen || __atomic_load_n(&b->stop, __ATOMIC_ACQUIRE))
+                break;
+            sched_yield();
+        }
+        pthread_mutex_lock(&b->mu);
+        while (b->gen == seen && !b->stop)
+            pthread_cond_wait(&b->cv, &b->mu);
+        gen = b->gen;
+        int stop = b->stop;
+        pthread_mutex_unlock(&b->mu);
+        if (stop)
+            return NULL;
+        seen = gen;
+        run_range(b, group_lo(b, w->group), group_lo(b, w->group + 1));
+        atomic_fetch_sub_explicit(&b->pending, 1, memory_order_acq_rel);
+    }
+}
+
+static int start_workers(BatchObject *b)
+{
+    if (b->nthreads <= 1 || b->started)
+        return 0;
+    b->workers = calloc((size_t)b->nthreads, sizeof(Worker));
+    if (b->workers == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    for (int g = 1; g < b->nthreads; g++) {
+        b->workers[g].b = b;
+        b->workers[g].group = g;
+        if (pthread_create(&b->workers[g].th, NULL, worker_main, &b->workers[g]) != 0) {
+            b->nthreads = g; /* the ones started keep working; the rest run on fewer threads */
+            break;
+        }
+    }
+    b->started = 1;
+    return 0;
+}
+
+static void run_job(BatchObject *b)
+{
+    if (b->nthreads <= 1 || b->n < 2) {
+        run_range(b, 0, b->n);
+        return;
+    }
+    atomic_store(&b->pending, b->nthreads - 1);
+    pthread_mutex_lock(&b->mu);
+    __atomic_add_fetch(&b->gen, 1, __ATOMIC_RELEASE);
+    pthread_cond_broadcast(&b->cv);
+    pthread_mutex_unlock(&b->mu);
+    run_range(b, 0, group_lo(b, 1));
+    while (atomic_load_explicit(&b->pending, memory_order_acquire) > 0)
+        sched_yield();
+}
+
+/* ---------------------------------------------------------------- the Python type */
+static PyObject *raise_slot_error(Slot *s, Py_ssize_t i)
+{
+    switch (s->err) {
+    case ERR_NONFINITE:
+        PyErr_SetString(PyExc_ValueError, "cannot quantize a non-finite sensor value");
+        break;
+    case ERR_CELL:
+        PyErr_Format(PyExc_ValueError, "robot %zd left the arena (coverage cell out of range)", i);
+        break;
+    case ERR_UNBOUND:
+        PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
+        break;
+    default:
+        PyErr_NoMemory();
+    }
+    s->err = 0;
+    return NULL;
+}
+
+static int get_doubles(PyObject *obj, double *dst, Py_ssize_t want, const char *what)
+{
+    Py_buffer v;
+    if (PyObject_GetBuffer(obj, &v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return -1;
+    int ok = v.itemsize == sizeof(double) && v.format && strcmp(v.format, "d") == 0 &&
+             v.len == want * (Py_ssize_t)sizeof(double);
+    if (ok)
+        memcpy(dst, v.buf, (size_t)v.len);
+    PyBuffer_Release(&v);
+    if (!ok) {
+        PyErr_Format(PyExc_ValueError, "%s must be %zd float64 values", what, want);
+        return -1;
+    }
+    return 0;
+}
+
+static void batch_dealloc(BatchObject *b)
+{
+    if (b->started && b->workers) {
+        pthread_mutex_lock(&b->mu);
+        b->stop = 1;
+        pthread_cond_broadcast(&b->cv);
+        pthread_mutex_unlock(&b->mu);
+        for (int g = 1; g < b->nthreads; g++)
+            pthread_join(b->workers[g].th, NULL);
+    }
+    free(b->workers);
+    pthread_mutex_destroy(&b->mu);
+    pthread_cond_destroy(&b->cv);
+    if (b->have_out)
+        for (int k = 0; k < O_LEN; k++)
+            PyBuffer_Release(&b->out[k]);
+    if (b->slots) {
+        for (Py_ssize_t i = 0; i < b->n; i++) {
+            free(b->slots[i].patches);
+            free(b->slots[i].cells);
+            Py_XDECREF(b->slots[i].keep);
+        }
+        PyMem_Free(b->slots);
+    }
+    Py_TYPE(b)->tp_free((PyObject *)b);
+}
+
+/* Batch(n, K, params, sensor(4 x 10: inv_q, q, low, high), num_threads) */
+static PyObject *batch_new(PyTypeObject *type, PyObject *args, PyObject *kw)
+{
+    Py_ssize_t n;
+    int nthreads;
+    PyObject *K, *P, *S;
+    if (!PyArg_ParseTuple(args, "nOOOi", &n, &K, &P, &S, &nthreads))
+        return NULL;
+    if (n < 1 || nthreads < 1) {
+        PyErr_SetString(PyExc_ValueError, "Batch needs n >= 1 and num_threads >= 1");
+        return NULL;
+    }
+    if (check_bound() < 0 || cp_pq == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "mkv_env._fastsim: bind() has not been called");
+        return NULL;
+    }
+    BatchObject *b = (BatchObject *)type->tp_alloc(type, 0);
+    if (b == NULL)
+        return NULL;
+    pthread_mutex_init(&b->mu, NULL);
+    pthread_cond_init(&b->cv, NULL);
+    b->n = n;
+    b->nthreads = nthreads > n ? (int)n : nthreads;
+    b->slots = PyMem_Calloc((size_t)n, sizeof(Slot));
+    if (b->slots == NULL) {
+        Py_DECREF(b);
+        return PyErr_NoMemory();
+    }
+    double sens[4 * NCH];
+    if (get_doubles(K, b->K, K_LEN, "K") < 0 || get_doubles(P, b->P, P_LEN, "params") < 0 ||
+        get_doubles(S, sens, 4 * NCH, "sensor constants") < 0) {
+        Py_DECREF(b);
+        return NULL;
+    }
+    memcpy(b->iq, sens, sizeof b->iq);
+    memcpy(b->q, sens + NCH, sizeof b->q);
+    memcpy(b->lo, sens + 2 * NCH, sizeof b->lo);
+    memcpy(b->hi, sens + 3 * NCH, sizeof b->hi);
+    for (Py_ssize_t i = 0; i < n; i++)
+        b->slots[i].row = NOISE_ROWS;
+    return (PyObject *)b;
+}
+
+static Slot *get_slot(BatchObject *b, PyObject *idx, Py_ssize_t *out)
+{
+    Py_ssize_t i = PyLong_AsSsize_t(idx);
+    if (i == -1 && PyErr_Occurred())
+        return NULL;
+    if (i < 0 || i >= b->n) {
+        PyErr_Format(PyExc_IndexError, "slot %zd out of range", i);
+        return NULL;
+    }
+    if (out)
+        *out = i;
+    return &b->slots[i];
+}
+
+/* outputs(obs, rew, term, stuck, bumped, collision, distance, jams, escapes, collisions, in_jam,
+ *         pose, cells, escaped): C-contiguous numpy arrays with n rows, written by every step. */
+static PyObject *batch_outputs(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer tmp[O_LEN];
+    if (nargs != O_LEN) {
+        PyErr_Format(PyExc_TypeError, "outputs() takes %d arrays", O_LEN);
+        return NULL;
+    }
+    int k;
+    for (k = 0; k < O_LEN; k++) {
+        if (PyObject_GetBuffer(args[k], &tmp[k],
+                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
+            goto fail;
+        Py_ssize_t item = O_FMT[k] == 'f' ? 4 : O_FMT[k] == '?' ? 1 : 8;
+        const char *fm = tmp[k].format;
+        int fmt_ok = fm != NULL && fm[0] != 0 && fm[1] == 0 &&
+                     (fm[0] == O_FMT[k] || (O_FMT[k] == 'q' && fm[0] == 'l'));
+        if (!fmt_ok ||
+            tmp[k].itemsize != item || tmp[k].len != b->n * O_WIDTH[k] * item) {
+            PyErr_Format(PyExc_ValueError, "output %d must be %zd x %d of format '%c'", k, b->n,
+                         O_WIDTH[k], O_FMT[k]);
+            k++;
+            goto fail;
+        }
+    }
+    if (b->have_out)
+        for (int j = 0; j < O_LEN; j++)
+            PyBuffer_Release(&b->out[j]);
+    memcpy(b->out, tmp, sizeof tmp);
+    b->have_out = 1;
+    Py_RETURN_NONE;
+fail:
+    for (int j = 0; j < k; j++)
+        PyBuffer_Release(&tmp[j]);
+    return NULL;
+}
+
+/* bind(i, body_ptr, space_ptr, counts_array, patches(list of 5-tuples)) */
+static PyObject *batch_bind(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "bind() takes 5 arguments");
+        return NULL;
+    }
+    Slot *s = get_slot(b, args[0], NULL);
+    if (s == NULL)
+        return NULL;
+    void *body = PyLong_AsVoidPtr(args[1]), *space = PyLong_AsVoidPtr(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_buffer cv;
+    if (PyObject_GetBuffer(args[3], &cv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
+        return NULL;
+    int ok = cv.itemsize == 8 && cv.len == 40 && cv.format &&
+             (strcmp(cv.format, "q") == 0 || strcmp(cv.format, "l") == 0);
+    int64_t *counts = cv.buf;
+    PyBuffer_Release(&cv); /* the array is kept alive (s->keep) and never resized */
+    if (!ok || body == NULL || space == NULL) {
+        PyErr_SetString(PyExc_ValueError, "bind: bad body, space or counts (int64 x 5)");
+        return NULL;
+    }
+    PyObject *fast = PySequence_Fast(args[4], "patches must be a sequence");
+    if (fast == NULL)
+        return NULL;
+    Py_ssize_t np_ = PySequence_Fast_GET_SIZE(fast);
+    double *pt = np_ ? malloc((size_t)np_ * 5 * sizeof(double)) : NULL;
+    if (np_ && pt == NULL) {
+        Py_DECREF(fast);
+        return PyErr_NoMemory();
+    }
+    for (Py_ssize_t k = 0; k < np_; k++) {
+        PyObject *row = PySequence_Fast(PySequence_Fast_GET_ITEM(fast, k), "patch");
+        if (row == NULL || PySequence_Fast_GET_SIZE(row) != 5) {
+            Py_XDECREF(row);
+            free(pt);
+            Py_DECREF(fast);
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "a patch is (x0, y0, x1, y1, scale)");
+            return NULL;
+        }
+        for (int j = 0; j < 5; j++)
+            pt[5 * k + j] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(row, j));
+        Py_DECREF(row);
+    }
+    Py_DECREF(fast);
+    if (PyErr_Occurred()) {
+        free(pt);
+        return NULL;
+    }
+    free(s->patches);
+    s->patches = pt;
+    s->npatch = np_;
+    s->body = body;
+    s->space = space;
+    s->contacts = counts;
+    Py_INCREF(args[3]);
+    Py_XSETREF(s->keep, args[3]);
+    Py_RETURN_NONE;
+}
+
+/* load(i, values(V_LEN float64), row, cells(list of (cx, cy))): a slot's state */
+static PyObject *batch_load(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "load() takes 4 arguments");
+        return NULL;
+    }
+    Slot *s = get_slot(b, args[0], NULL);
+    if (s == NULL)
+        return NULL;
+    double v[V_LEN];
+    if (get_doubles(args[1], v, V_LEN, "state") < 0)
+        return NULL;
+    long row = PyLong_AsLong(args[2]);
+    if (row == -1 && PyErr_Occurred())
+        return NULL;
+    if (row < 0 || row > NOISE_ROWS) {
+        PyErr_SetString(PyExc_ValueError, "noise row out of range");
+        return NULL;
+    }
+    PyObject *fast = PySequence_Fast(args[3], "cells must be a sequence");
+    if (fast == NULL)
+        return NULL;
+    cells_clear(s);
+    for (Py_ssize_t k = 0; k < PySequence_Fast_GET_SIZE(fast); k++) {
+        double cx, cy;
+        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(fast, k), "dd", &cx, &cy) ||
+            cell_add(s, cx, cy) < 0) {
+            Py_DECREF(fast);
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "bad coverage cell");
+            return NULL;
+        }
+    }
+    Py_DECREF(fast);
+    memcpy(s->v, v, sizeof v);
+    s->row = row;
+    s->err = 0;
+    Py_RETURN_NONE;
+}
+
+/* set_noise(i, block (256 x 10 float64)): a new block of noise rows, read from row 0 */
+static PyObject *batch_set_noise(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "set_noise() takes 2 arguments");
+        return NULL;
+    }
+    Slot *s = get_slot(b, args[0], NULL);
+    if (s == NULL || get_doubles(args[1], s->noise, NOISE_ROWS * NCH, "noise block") < 0)
+        return NULL;
+    s->row = 0;
+    Py_RETURN_NONE;
+}
+
+/* state(i) -> (values tuple, row, noise bytes, cells list) */
+static PyObject *batch_state(BatchObject *b, PyObject *idx)
+{
+    Slot *s = get_slot(b, idx, NULL);
+    if (s == NULL)
+        return NULL;
+    PyObject *vals = PyTuple_New(V_LEN);
+    PyObject *cells = PyList_New(0);
+    if (vals == NULL || cells == NULL)
+        goto fail;
+    for (int k = 0; k < V_LEN; k++)
+        PyTuple_SET_ITEM(vals, k, PyFloat_FromDouble(s->v[k]));
+    for (int64_t k = 0; k < s->cap; k++) {
+        uint64_t key = s->cells[k];
+        if (!key)
+            continue;
+        if (key == 0x8000000000000000ULL)
+            key = 0;
+        key -= 1;
+        PyObject *t = Py_BuildValue("(ll)", (long)(int32_t)(uint32_t)(key >> 32),
+                                    (long)(int32_t)(uint32_t)(key & 0xffffffffu));
+        if (t == NULL || PyList_Append(cells, t) < 0) {
+            Py_XDECREF(t);
+            goto fail;
+        }
+        Py_DECREF(t);
+    }
+    PyObject *noise = PyBytes_FromStringAndSize((const char *)s->noise, sizeof s->noise);
+    if (noise == NULL)
+        goto fail;
+    return Py_BuildValue("(NlNN)", vals, s->row, noise, cells);
+fail:
+    Py_XDECREF(vals);
+    Py_XDECREF(cells);
+    return NULL;
+}
+
+/* step1(i, drive, steer) -> info tuple, or None when the slot needs a new noise block first.
+ * drive/steer are motor commands (-1/0/+1). The observation goes to row i of the obs buffer.
+ * Tuple: (reward, terminated, stuck, bumped, collision, distance_m, jams, escapes, collisions,
+ *         in_jam, x, y, heading, cells_visited, escaped) */
+static PyObject *batch_step1(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t i;
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "step1() takes 3 arguments");
+        return NULL;
+    }
+    Slot *s = get_slot(b, args[0], &i);
+    if (s == NULL)
+        return NULL;
+    long drive = PyLong_AsLong(args[1]), steer = PyLong_AsLong(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (!b->have_out) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs() not set");
+        return NULL;
+    }
+    if (s->row >= NOISE_ROWS)
+        Py_RETURN_NONE;
+    if (step_slot(b, i, drive, steer))
+        return raise_slot_error(s, i);
+    double *pose = OUT(b, O_POSE, double) + 3 * i;
+    return Py_BuildValue(
+        "(dOOOOdLLLOdddLO)", OUT(b, O_REW, double)[i],
+        OUT(b, O_TERM, uint8_t)[i] ? Py_True : Py_False,
+        OUT(b, O_STUCK, uint8_t)[i] ? Py_True : Py_False,
+        OUT(b, O_BUMPED, uint8_t)[i] ? Py_True : Py_False,
+        OUT(b, O_COLL, uint8_t)[i] ? Py_True : Py_False, OUT(b, O_DIST, double)[i],
+        (long long)OUT(b, O_JAMS, int64_t)[i], (long long)OUT(b, O_ESC, int64_t)[i],
+        (long long)OUT(b, O_COLLS, int64_t)[i], OUT(b, O_IN_JAM, uint8_t)[i] ? Py_True : Py_False,
+        pose[0], pose[1], pose[2], (long long)OUT(b, O_CELLS, int64_t)[i],
+        OUT(b, O_ESCAPED, uint8_t)[i] ? Py_True : Py_False);
+}
+
+/* step(actions (n x 2 int64, values 0..2), active (n bool) or None) -> None, or the list of
+ * active slots that need a new noise block first (nothing stepped then). Every active robot is
+ * stepped with the GIL released, on num_threads threads. */
+static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer av, mv;
+    int have_mask = 0;
+    PyObject *result = NULL;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "step() takes 2 arguments");
+        return NULL;
+    }
+    if (!b->have_out) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs() not set");
+        return NULL;
+    }
+    if (PyObject_GetBuffer(args[0], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return NULL;
+    if (av.itemsize != 8 || av.len != b->n * 16 || av.format == NULL ||
+        (strcmp(av.format, "q") != 0 && strcmp(av.format, "l") != 0)) {
+        PyErr_Format(PyExc_ValueError, "actions must be int64 of shape (%zd, 2)", b->n);
+        goto done_a;
+    }
+    if (args[1] != Py_None) {
+        if (PyObject_GetBuffer(args[1], &mv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+            goto done_a;
+        have_mask = 1;
+        if (mv.itemsize != 1 || mv.len != b->n || mv.format == NULL ||
+            strcmp(mv.format, "?") != 0) {
+            PyErr_Format(PyExc_ValueError, "active must be bool of shape (%zd,)", b->n);
+            goto done;
+        }
+    }
+    const int64_t *a = av.buf;
+    const uint8_t *act = have_mask ? mv.buf : NULL;
+    for (Py_ssize_t i = 0; i < 2 * b->n; i++)
+        if (a[i] < 0 || a[i] > 2) {
+            PyErr_Format(PyExc_ValueError, "action value %lld out of {0, 1, 2}", (long long)a[i]);
+            goto done;
+        }
+    PyObject *need = NULL;
+    for (Py_ssize_t i = 0; i < b->n; i++) {
+        if (act && !act[i])
+            continue;
+        if (b->slots[i].body == NULL) {
+            raise_slot_error(&b->slots[i], i);
+            b->slots[i].err = 0;
+            PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
+            Py_XDECREF(need);
+            goto done;
+        }
+        if (b->slots[i].row >= NOISE_ROWS) {
+            if (need == NULL && (need = PyList_New(0)) == NULL)
+                goto done;
+            PyObject *k = PyLong_FromSsize_t(i);
+            if (k == NULL || PyList_Append(need, k) < 0) {
+                Py_XDECREF(k);
+                Py_DECREF(need);
+                goto done;
+            }
+            Py_DECREF(k);
+        }
+    }
+    if (need != NULL) {
+        result = need;
+        goto done;
+    }
+    if (start_workers(b) < 0)
+        goto done;
+    b->acts = a;
+    b->active = act;
+    Py_BEGIN_ALLOW_THREADS
+    run_job(b);
+    Py_END_ALLOW_THREADS
+    b->acts = NULL;
+    b->active = NULL;
+    for (Py_ssize_t i = 0; i < b->n; i++) {
+        if (b->slots[i].err) {
+            raise_slot_error(&b->slots[i], i);
+            goto done;
+        }
+        if (act && !act[i]) {
+            OUT(b, O_REW, double)[i] = 0.0;
+            OUT(b, O_TERM, uint8_t)[i] = 0;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    if (have_mask)
+        PyBuffer_Release(&mv);
+done_a:
+    PyBuffer_Release(&av);
+    return result;
+}
+
+/* physics(actions, active) -> None: only the physics of every active robot (the floor the
+ * benchmark compares against); sensors, tracker and outputs untouched. */
+static PyObject *batch_physics(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer av;
+    if (nargs != 1) {
+        PyErr_SetString(PyExc_TypeError, "physics() takes 1 argument");
+        return NULL;
+    }
+    if (PyObject_GetBuffer(args[0], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return NULL;
+    if (av.itemsize != 8 || av.len != b->n * 16) {
+        PyBuffer_Release(&av);
+        PyErr_Format(PyExc_ValueError, "actions must be int64 of shape (%zd, 2)", b->n);
+        return NULL;
+    }
+    const int64_t *a = av.buf;
+    for (Py_ssize_t i = 0; i < b->n; i++) {
+        Slot *s = &b->slots[i];
+        if (s->body == NULL)
+            continue;
+        advance_one(b->K, s->body, s->space, (long)(a[2 * i] - 1), (long)(1 - a[2 * i + 1]),
+                    b->P[P_DT], (long)b->P[P_SUBSTEPS], s->v[V_MU], s->v, 1);
+    }
+    PyBuffer_Release(&av);
+    Py_RETURN_NONE;
+}
+
+static PyObject *batch_get_n(BatchObject *b, void *closure) { return PyLong_FromSsize_t(b->n); }
+static PyObject *batch_get_threads(BatchObject *b, void *closure)
+{
+    return PyLong_FromLong(b->nthreads);
+}
+
+static PyMethodDef batch_methods[] = {
+    {"outputs", (PyCFunction)(void (*)(void))batch_outputs, METH_FASTCALL,
+     "outputs(obs, rew, term, stuck, bumped, collision, distance, jams, escapes, collisions, "
+     "in_jam, pose, cells, escaped): the buffers every step writes."},
+    {"bind", (PyCFunction)(void (*)(void))batch_bind, METH_FASTCALL,
+     "bind(i, body_ptr, space_ptr, counts, patches): slot i steps this world."},
+    {"load", (PyCFunction)(void (*)(void))batch_load, METH_FASTCALL,
+     "load(i, values, row, cells): slot i's state (see mkv_env.kernel)."},
+    {"set_noise", (PyCFunction)(void (*)(void))batch_set_noise, METH_FASTCALL,
+     "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
+    {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},
+    {"step1", (PyCFunction)(void (*)(void))batch_step1, METH_FASTCALL,
+     "step1(i, drive, steer) -> info tuple, or None when slot i needs noise first."},
+    {"step", (PyCFunction)(void (*)(void))batch_step, METH_FASTCALL,
+     "step(actions, active) -> None, or the slots that need noise first."},
+    {"physics", (PyCFunction)(void (*)(void))batch_physics, METH_FASTCALL,
+     "physics(actions): the physics alone of every bound robot (benchmark floor)."},
+    {NULL, NULL, 0, NULL}};
+
+static PyGetSetDef batch_getset[] = {
+    {"n", (getter)batch_get_n, NULL, "number of slots", NULL},
+    {"num_threads", (getter)batch_get_threads, NULL, "threads stepping the batch", NULL},
+    {NULL, NULL, NULL, NULL, NULL}};
+
+static PyTypeObject BatchType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "mkv_env._fastsim.Batch",
+    .tp_basicsize = sizeof(BatchObject),
+    .tp_dealloc = (destructor)batch_dealloc,
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Batch(n, K, params, sensor_constants, num_threads): the step kernel's N slots.",
+    .tp_methods = batch_methods,
+    .tp_getset = batch_getset,
+    .tp_new = batch_new,
+};
+
+/* bind_kernel(get_position, point_query_nearest, arbiter_get_shapes, shape_get_collision_type)
+ * -> (contact_begin address, contact_separate address) */
+static PyObject *fs_bind_kernel(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    void *p[4];
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "bind_kernel() takes 4 arguments");
+        return NULL;
+    }
+    for (int i = 0; i < 4; i++) {
+        p[i] = PyLong_AsVoidPtr(args[i]);
+        if (p[i] == NULL) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "null function pointer");
+            return NULL;
+        }
+    }
+    cp_get_p = (get_vect_fn)p[0];
+    cp_pq = (pq_fn)p[1];
+    cp_arb_shapes = (arb_shapes_fn)p[2];
+    cp_shape_type = (shape_type_fn)p[3];
+    return Py_BuildValue("(NN)", PyLong_FromVoidPtr((void *)contact_begin),
+                         PyLong_FromVoidPtr((void *)contact_separate));
+}
+
+/* hypot(a, b): the C copy of math.hypot the kernel uses (tests compare the two). */
+static PyObject *fs_hypot(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "hypot() takes 2 arguments");
+        return NULL;
+    }
+    double a = PyFloat_AsDouble(args[0]), b = PyFloat_AsDouble(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    return PyFloat_FromDouble(py_hypot(a, b));
+}
+
+static PyObject *fs_pymod(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "pymod() takes 2 arguments");
+        return NULL;
+    }
+    double a = PyFloat_AsDouble(args[0]), b = PyFloat_AsDouble(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    return PyFloat_FromDouble(py_mod(a, b));
 }
 
 static PyMethodDef methods[] = {
@@ -458,6 +1531,13 @@ static PyMethodDef methods[] = {
      "advance_many(K, bodies, spaces, drives, steers, dt, n, mu_scales, states): many robots."},
     {"quantize", (PyCFunction)(void (*)(void))fs_quantize, METH_FASTCALL,
      "quantize(truth, inv_q, q, low, high, out): sensor ADC step and clipping into out."},
+    {"bind_kernel", (PyCFunction)(void (*)(void))fs_bind_kernel, METH_FASTCALL,
+     "bind_kernel(get_p, point_query_nearest, arbiter_get_shapes, shape_get_type) -> "
+     "(contact_begin, contact_separate) addresses."},
+    {"hypot", (PyCFunction)(void (*)(void))fs_hypot, METH_FASTCALL,
+     "hypot(a, b): the kernel's copy of math.hypot."},
+    {"pymod", (PyCFunction)(void (*)(void))fs_pymod, METH_FASTCALL,
+     "pymod(a, b): the kernel's copy of Python's float %."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fastsim",
@@ -473,7 +1553,16 @@ PyMODINIT_FUNC PyInit__fastsim(void)
     PyObject *m = PyModule_Create(&module);
     if (m == NULL)
         return NULL;
-    if (PyModule_AddIntConstant(m, "N_CONSTANTS", K_LEN) < 0) {
+    if (PyType_Ready(&BatchType) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&BatchType);
+    if (PyModule_AddObject(m, "Batch", (PyObject *)&BatchType) < 0 ||
+        PyModule_AddIntConstant(m, "N_PARAMS", P_LEN) < 0 ||
+        PyModule_AddIntConstant(m, "N_VALUES", V_LEN) < 0 ||
+        PyModule_AddIntConstant(m, "NOISE_ROWS", NOISE_ROWS) < 0 ||
+        PyModule_AddIntConstant(m, "N_CONSTANTS", K_LEN) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -11,6 +11,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from mkv_env import kernel as _kernel
+from mkv_env import robot as _robot
 from mkv_env.actions import ACTION_NVEC, NOOP_ACTION, OFF, action_space
 from mkv_env.jams import SCENARIOS, build_scenario
 from mkv_env.params import RobotParams, channel_specs
@@ -111,12 +113,16 @@ class MKVEnv(gym.Env):
       stuck/jam/escape measures.
     * ``progress_reward``, ``stuck_penalty``, ``collision_penalty``: reward weights.
     * ``render_mode``: ``"rgb_array"`` or ``"human"`` (pygame, imported lazily).
+    * ``kernel``: ``"c"`` (default where the extension is built: the whole step after the action
+      is decoded runs compiled, :mod:`mkv_env.kernel`) or ``"python"`` (the reference
+      implementation, everything in Python). Both give the same bits.
 
     ## Version History
     * v0: initial release.
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+    _KERNEL_KIND = _kernel.KIND_WANDER
 
     def __init__(
         self,
@@ -137,7 +143,15 @@ class MKVEnv(gym.Env):
         progress_reward: float = 10.0,
         stuck_penalty: float = 0.1,
         collision_penalty: float = 0.05,
+        kernel: str | None = None,
     ):
+        if kernel is None:
+            kernel = _kernel.default_kernel()
+        _check(kernel in ("c", "python"),
+               f"kernel must be 'c', 'python' or None, got {kernel!r}")
+        _check(kernel == "python" or _kernel.AVAILABLE,
+               "kernel='c' needs the compiled extension mkv_env._fastsim, which is not built "
+               "(no C compiler at install time); use kernel='python'")
         _check(render_mode is None or render_mode in self.metadata["render_modes"],
                f"render_mode must be one of {self.metadata['render_modes']} or None, "
                f"got {render_mode!r}")
@@ -180,46 +194,126 @@ class MKVEnv(gym.Env):
         self.progress_reward = float(progress_reward)
         self.stuck_penalty, self.collision_penalty = float(stuck_penalty), float(collision_penalty)
 
-        self.sensors = SensorSuite(self.channel_specs)
-        self.sensor_names = list(self.sensors.names)
+        self._sensors = SensorSuite(self.channel_specs)
+        self.sensor_names = list(self._sensors.names)
         self.observation_space = spaces.Box(
-            self.sensors.low.astype(np.float32), self.sensors.high.astype(np.float32),
+            self._sensors.low.astype(np.float32), self._sensors.high.astype(np.float32),
             dtype=np.float32,
         )
         self.action_space = action_space()
-        self.tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
-                                     escape_distance_m, float(escape_forward_m))
+        self._tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
+                                      escape_distance_m, float(escape_forward_m))
         self.world: World | None = None
         self.trail: list[tuple[float, float]] = []
         self._renderer = None
         self._last_action = NOOP_ACTION
+        self.kernel = kernel
+        # the reference runs the robot's Python substep loop; the C kernel the compiled one
+        self._robot_kernel = ("c" if kernel == "c" else
+                              "cffi" if _robot.DEFAULT_KERNEL == "c" else _robot.DEFAULT_KERNEL)
+        self._batch = self._out = None
+        self._slot = 0
+        self._py_owns = True  # Python's objects hold the newest state (else the kernel's slot)
+        self._dirty: list = []  # envs of a shared batch whose state Python took back
+
+    # ------------------------------------------------------------------ state owners
+    @property
+    def tracker(self) -> MotionTracker:
+        """Ground-truth motion bookkeeping (distance, stuck, jams, escapes) of the episode."""
+        self._to_python()
+        return self._tracker
+
+    @property
+    def sensors(self) -> SensorSuite:
+        """The sensor model (channels, noise stream, encoder state)."""
+        self._to_python()
+        return self._sensors
+
+    def _to_python(self) -> None:
+        """Make the Python objects current (pull the kernel slot's state) and theirs to change:
+        the next step pushes them back."""
+        if self._batch is not None and not self._py_owns:
+            _kernel.pull(self, self._batch, self._slot)
+            self._py_owns = True
+            self._dirty.append(self)
+
+    def _push(self) -> None:
+        """Hand the Python objects' state to the kernel's slot (after a reset, or after Python
+        code took it back)."""
+        _kernel.push(self, self._batch, self._slot)
+        self.world.robot._sync = self._to_python
+        self._py_owns = False
+
+    def __getstate__(self):
+        self._to_python()
+        state = self.__dict__.copy()
+        state["_batch"] = state["_out"] = None  # C memory: a copy gets a batch of its own
+        state["_dirty"] = []
+        state["_slot"] = 0
+        state["_py_owns"] = True
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if self.kernel == "c" and self.world is not None:
+            self._batch, self._out = _kernel.new_batch(self, 1)
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.world = self._build_world()
-        self.sensors.reset(self.np_random, self.world)
+        self._sensors.reset(self.np_random, self.world)
         self._reset_tracker()
         self.trail = [self._pose()[:2]]
         self._last_action = NOOP_ACTION
-        obs = self.sensors.read(self.world)
+        obs = self._sensors.read(self.world)
+        info = self._info(False, False)
+        if self.kernel == "c":
+            if self._batch is None:
+                self._batch, self._out = _kernel.new_batch(self, 1)
+            self._push()
         if self.render_mode == "human":
             self.render()
-        return obs, self._info(False, False)
+        return obs, info
 
     def step(self, action):
         if self.world is None:
             raise RuntimeError("call reset() before step()")
         drive, steer = self._decode(action)
-        self.world.step(drive, steer, self.control_period_s, self.substeps)
-        return self._after_physics(drive)
+        b = self._batch
+        if self.kernel != "c":  # the Python reference
+            self.world.step(drive, steer, self.control_period_s, self.substeps)
+            return self._after_physics(drive)
+        if self._py_owns:
+            self._push()
+        r = b.step1(self._slot, drive, steer)
+        if r is None:  # the slot used up its noise block: the next one, as the reference draws it
+            b.set_noise(self._slot, self._sensors.draw_block())
+            r = b.step1(self._slot, drive, steer)
+        (reward, terminated, stuck, bumped, collision, dist, jams, escapes, collisions, in_jam,
+         x, y, heading, cells, escaped) = r
+        info = {"stuck": stuck, "bumped": bumped, "collision": collision, "distance_m": dist,
+                "jams": jams, "escapes": escapes, "collisions": collisions, "in_jam": in_jam,
+                "pose": (x, y, heading)}
+        self._kernel_info(info, cells, escaped)
+        if self.render_mode is not None:
+            self.trail.append((x, y))
+            if len(self.trail) > TRAIL_MAX_POINTS:
+                del self.trail[:TRAIL_DROP_POINTS]
+            if self.render_mode == "human":
+                self.render()
+        return self._out["obs"][self._slot].copy(), reward, terminated, False, info
+
+    def _kernel_info(self, info: dict, cells: int, escaped: bool) -> None:
+        """Add this class's own keys to a step's info built from the kernel's numbers (as
+        :meth:`_info` adds them to the reference's)."""
 
     def _after_physics(self, drive: int):
         """The rest of :meth:`step` once the world has moved: sensors, bookkeeping, reward.
         (:class:`mkv_env.vector.MKVVectorEnv` moves many worlds at once, then calls this.)"""
-        obs = self.sensors.read(self.world)
+        obs = self._sensors.read(self.world)
         pose = self._pose()
-        progress, stuck, collision, escaped = self.tracker.update(
+        progress, stuck, collision, escaped = self._tracker.update(
             pose, drive, self.world.contacts[0], self.world.is_clear)
         reward = self._reward(progress, stuck, collision, escaped)
         terminated = self._terminated(escaped)
@@ -286,15 +380,19 @@ class MKVEnv(gym.Env):
         for _ in range(LAYOUT_ATTEMPTS):
             layout = generate_layout(rng, self.arena_size_m, self.arena_size_m, self.n_clutter,
                                      self.n_patches, self.patch_friction)
-            world = World(layout, self.robot_params, (0.0, 0.0, 0.0))
+            world = self._new_world(layout, (0.0, 0.0, 0.0))
             pose = random_free_pose(world, rng)
             if pose is not None:
                 _place(world, pose)
                 return world
         raise RuntimeError("could not find a free start pose; reduce n_clutter")
 
+    def _new_world(self, layout, pose) -> World:
+        return World(layout, self.robot_params, pose, robot_kernel=self._robot_kernel,
+                     fast_contacts=self.kernel == "c")
+
     def _reset_tracker(self) -> None:
-        self.tracker.reset(self._pose(), False, self.world.contacts[0])
+        self._tracker.reset(self._pose(), False, self.world.contacts[0])
 
     def _pose(self) -> tuple[float, float, float]:
         x, y, th = self.world.robot.pose()
@@ -308,7 +406,7 @@ class MKVEnv(gym.Env):
         return False
 
     def _info(self, stuck: bool, collision: bool) -> dict[str, Any]:
-        t = self.tracker
+        t = self._tracker
         return {
             "stuck": bool(stuck),
             "bumped": any(self.world.bumps),
@@ -361,6 +459,8 @@ class MKVJamEnv(MKVEnv):
     * v0: initial release.
     """
 
+    _KERNEL_KIND = _kernel.KIND_JAM
+
     def __init__(self, scenarios=SCENARIOS, escape_reward: float = 5.0, n_clutter: int = 10,
                  **kwargs):
         scenarios = tuple(scenarios) if not isinstance(scenarios, str) else (scenarios,)
@@ -385,7 +485,7 @@ class MKVJamEnv(MKVEnv):
             layout.walls += [tuple(map(float, w)) for w in walls]
             layout.boxes += [tuple(map(float, b)) for b in boxes]
             layout.cylinders += [tuple(map(float, c)) for c in cylinders]
-            world = World(layout, self.robot_params, pose)
+            world = self._new_world(layout, pose)
             if world.robot_overlaps():
                 continue
             if _drive_until_jammed(world, self, rng):
@@ -396,7 +496,7 @@ class MKVJamEnv(MKVEnv):
                          "the drive motor too weak or the robot too large?)")
 
     def _reset_tracker(self) -> None:
-        self.tracker.reset(self._pose(), True, self.world.contacts[0])
+        self._tracker.reset(self._pose(), True, self.world.contacts[0])
 
     def _reward(self, progress, stuck, collision, escaped) -> float:
         return super()._reward(progress, stuck, collision, escaped) + self.escape_reward * escaped
@@ -406,9 +506,13 @@ class MKVJamEnv(MKVEnv):
 
     def _info(self, stuck: bool, collision: bool) -> dict[str, Any]:
         info = super()._info(stuck, collision)
-        info["escaped"] = self.tracker.escapes > 0
+        info["escaped"] = self._tracker.escapes > 0
         info["scenario"] = self.scenario
         return info
+
+    def _kernel_info(self, info: dict, cells: int, escaped: bool) -> None:
+        info["escaped"] = escaped
+        info["scenario"] = self.scenario
 
 
 COVERAGE_CELL_M = 0.25
@@ -453,6 +557,9 @@ class MKVEnvV1(MKVEnv):
     * v0: initial release.
     """
 
+    _KERNEL_KIND = _kernel.KIND_WANDER_V1
+    _COVERAGE_CELL_M = COVERAGE_CELL_M
+
     def __init__(self, coverage_reward: float = 1.0, still_penalty: float = 0.05,
                  jam_penalty: float = 0.1, stuck_penalty: float = 0.1,
                  collision_penalty: float = 0.05, **kwargs):
@@ -470,7 +577,7 @@ class MKVEnvV1(MKVEnv):
         self._cells = set()
 
     def _reward(self, progress, stuck, collision, escaped) -> float:
-        t = self.tracker
+        t = self._tracker
         new_cell = 0
         if progress > 0:
             cell = (math.floor(t.x / COVERAGE_CELL_M), math.floor(t.y / COVERAGE_CELL_M))
@@ -486,6 +593,9 @@ class MKVEnvV1(MKVEnv):
         info = super()._info(stuck, collision)
         info["cells_visited"] = len(self._cells)
         return info
+
+    def _kernel_info(self, info: dict, cells: int, escaped: bool) -> None:
+        info["cells_visited"] = cells
 
 
 class MKVJamEnvV1(MKVJamEnv):
@@ -522,6 +632,8 @@ class MKVJamEnvV1(MKVJamEnv):
     * v0: initial release.
     """
 
+    _KERNEL_KIND = _kernel.KIND_JAM_V1
+
     def __init__(self, escape_reward: float = 10.0, time_penalty: float = 0.02,
                  stuck_penalty: float = 0.05, collision_penalty: float = 0.05,
                  shaping: float = 0.5, **kwargs):
@@ -533,7 +645,7 @@ class MKVJamEnvV1(MKVJamEnv):
         self._phi = 0.0
 
     def _potential(self) -> float:
-        t = self.tracker
+        t = self._tracker
         d = math.hypot(t.x - t.jam_x, t.y - t.jam_y)
         return min(d / t.escape_distance_m, 1.0)
 
@@ -554,7 +666,7 @@ def _drive_until_jammed(world: World, env: MKVEnv, rng,
                         max_steps: int = JAM_DRIVE_MAX_STEPS) -> bool:
     """Drive forward (steering held at a random command) until stuck for jam_steps steps."""
     steer = int(rng.integers(-1, 2))
-    limit = env.tracker.stuck_speed_mps * env.control_period_s
+    limit = env._tracker.stuck_speed_mps * env.control_period_s
     run = 0
     x0, y0 = world.robot.body.position
     for _ in range(max_steps):
@@ -562,7 +674,7 @@ def _drive_until_jammed(world: World, env: MKVEnv, rng,
         x, y = world.robot.body.position
         run = run + 1 if math.hypot(x - x0, y - y0) < limit else 0
         x0, y0 = x, y
-        if run >= env.tracker.jam_steps:
+        if run >= env._tracker.jam_steps:
             return world.in_contact
     return False
 

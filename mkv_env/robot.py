@@ -76,6 +76,31 @@ class WheelState:
     drive_budget: float = 0.0  # traction impulse left unused by the last substep [N s]
 
 
+def moment_of_inertia(p: RobotParams) -> float:
+    """The chassis's moment of inertia about its centre [kg m^2] (a uniform rectangle)."""
+    return p.mass_kg * (p.length_m**2 + p.width_m**2) / 12.0
+
+
+def kernel_constants(p: RobotParams) -> array.array:
+    """The compiled loop's constants for robots of parameters ``p``, in the order of
+    ``_fastsim.c``'s ``K_*`` enum (each computed as :meth:`Robot._precompute` computes it)."""
+    m = p.mass_kg
+    moment = moment_of_inertia(p)
+    dm, sm = p.drive_motor, p.steer_motor
+    weight = m * GRAVITY_MPS2
+    k = array.array("d", (
+        p.drive_x_m, p.steer_x_m, p.drive_wheel_radius_m, 1.0 / p.steer_wheel_radius_m,
+        p.steer_limit_rad, 1.0 / m, 1.0 / moment, p.tire_friction,
+        p.drive_load_fraction * weight, p.steer_load_fraction * weight, sm.supply_v,
+        sm.k_nm_per_a, sm.resistance_ohm, sm.inertia_kgm2,
+        sm.k_nm_per_a**2 / sm.resistance_ohm + sm.viscous_nms, p.steer_coulomb_nm,
+        dm.supply_v, dm.k_nm_per_a, dm.resistance_ohm, dm.inertia_kgm2,
+        dm.k_nm_per_a**2 / dm.resistance_ohm + dm.viscous_nms, m, moment))
+    if _fastsim is not None:
+        assert len(k) == _fastsim.N_CONSTANTS
+    return k
+
+
 class Robot:
     """The MK-V chassis in a pymunk space, with its wheel and motor model.
 
@@ -88,8 +113,7 @@ class Robot:
     def __init__(self, space: pymunk.Space, params: RobotParams, position, heading: float):
         p = self.params = params
         hl, hw = p.length_m / 2, p.width_m / 2
-        inertia = p.mass_kg * (p.length_m**2 + p.width_m**2) / 12.0
-        self.body = pymunk.Body(p.mass_kg, inertia)
+        self.body = pymunk.Body(p.mass_kg, moment_of_inertia(p))
         self.body.position = position
         self.body.angle = heading
         chassis = pymunk.Poly(self.body, [(-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw)], radius=0.0)
@@ -107,11 +131,26 @@ class Robot:
             s.elasticity = 0.0
             s.filter = ROBOT_FILTER
         space.add(self.body, *self.shapes)
-        self.state = WheelState()
+        self._state = WheelState()
+        #: Called before :attr:`state` is read when another owner (the compiled step kernel of
+        #: an env, mkv_env/kernel.py) may hold newer wheel state; None otherwise.
+        self._sync = None
         self._mu_scale = 1.0
         self.kernel = DEFAULT_KERNEL  # "c", "cffi" or "api" (same results; see DEFAULT_KERNEL)
         self._ptrs: tuple | None = None  # (space, cpBody address, cpSpace address)
         self._precompute()
+
+    @property
+    def state(self) -> WheelState:
+        """The wheels' and motors' internal state (brought up to date from the env's compiled
+        step kernel first, when it is the one stepping this robot)."""
+        if self._sync is not None:
+            self._sync()
+        return self._state
+
+    @state.setter
+    def state(self, value: WheelState) -> None:
+        self._state = value
 
     def _precompute(self) -> None:
         p = self.params
@@ -129,14 +168,8 @@ class Robot:
         self._s_c = sm.k_nm_per_a**2 / sm.resistance_ohm + sm.viscous_nms
         self._s_j = sm.inertia_kgm2
         if _fastsim is not None:
-            # the compiled loop's constants, in the order of _fastsim.c's K_* enum
-            self.kernel_constants = array.array("d", (
-                p.drive_x_m, p.steer_x_m, p.drive_wheel_radius_m, 1.0 / p.steer_wheel_radius_m,
-                p.steer_limit_rad, self._im, self._iI, p.tire_friction, self._n_drive,
-                self._n_steer, self._s_v, self._s_k, self._s_r, self._s_j, self._s_c,
-                p.steer_coulomb_nm, self._d_v, self._d_k, self._d_r, self._d_j, self._d_c,
-                p.mass_kg, self.body.moment))
-            assert len(self.kernel_constants) == _fastsim.N_CONSTANTS
+            self.kernel_constants = kernel_constants(p)
+            assert self.kernel_constants[-1] == self.body.moment
 
     def pointers(self, space) -> tuple:
         """(space, address of the cpBody, address of ``space``'s cpSpace), cached, for the
@@ -150,6 +183,7 @@ class Robot:
     def __getstate__(self):
         state = self.__dict__.copy()
         state["_ptrs"] = None
+        state["_sync"] = None  # the owner re-attaches itself
         return state
 
     def can_use_c(self, space) -> bool:

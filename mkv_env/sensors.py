@@ -48,6 +48,7 @@ class SensorSuite:
         self._low_l, self._high_l = self.low.tolist(), self.high.tolist()
         self._tick_angle = _TWO_PI / TICKS_PER_REV
         self._rng = None
+        self._block: np.ndarray | None = None  # the current noise block (rows x channels)
         self._noise: list[list[float]] = []
         self._row = 0
         self._last_ticks = (0, 0)
@@ -58,6 +59,16 @@ class SensorSuite:
         self._rng = rng
         self._row = _NOISE_BLOCK
         self._last_ticks = self._ticks(world)
+
+    def draw_block(self) -> np.ndarray:
+        """The next block of noise rows (bias + std * standard normal), drawn from the episode's
+        generator; kept as the current block. (The compiled step kernel asks for blocks through
+        this too, so the draws are the same.)"""
+        block = self._rng.standard_normal((_NOISE_BLOCK, len(self.names)))
+        block *= self._std
+        block += self._bias
+        self._block = block
+        return block
 
     def _ticks(self, world: World) -> tuple[int, int]:
         st = world.robot.state
@@ -74,10 +85,8 @@ class SensorSuite:
         c = world.contacts
         i_d, i_s = st.drive_current, st.steer_current
         if self._row >= _NOISE_BLOCK:
-            block = self._rng.standard_normal((_NOISE_BLOCK, len(self.names)))
-            block *= self._std
-            block += self._bias
-            self._noise = block.tolist()  # plain floats: per-step work stays in Python scalars
+            # plain floats: per-step work stays in Python scalars
+            self._noise = self.draw_block().tolist()
             self._row = 0
         nz = self._noise[self._row]
         self._row += 1

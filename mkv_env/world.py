@@ -7,6 +7,7 @@ pickling rebuild it, and tests inspect it without touching pymunk.
 
 from __future__ import annotations
 
+import array
 import bisect
 import math
 from dataclasses import dataclass, field
@@ -228,10 +229,11 @@ def add_obstacles(space: pymunk.Space, layout: Layout, dx: float = 0.0) -> None:
     space.add(*shapes)
 
 
-def count_contacts(space: pymunk.Space, counts: list[int] | None = None) -> list[int]:
-    """Count robot-obstacle contacts of ``space`` in ``counts`` (made if None; indexed by the
-    robot part's collision type, ``counts[0]`` the contact events), which is returned."""
-    counts = [0] * 5 if counts is None else counts
+def count_contacts(space: pymunk.Space, counts=None):
+    """Count robot-obstacle contacts of ``space`` in ``counts`` (made if None: an int64
+    ``array.array`` of 5, which the compiled step kernel's callbacks can also write; indexed by
+    the robot part's collision type, ``counts[0]`` the contact events), which is returned."""
+    counts = array.array("q", bytes(40)) if counts is None else counts
     for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
         space.on_collision(ctype, OBSTACLE, begin=_on_begin, separate=_on_separate, data=counts)
     return counts
@@ -245,7 +247,8 @@ class World:
             obstacle shapes touching that part now; ``contacts[0]`` counts contact events.
     """
 
-    def __init__(self, layout: Layout, robot_params: RobotParams, pose, iterations: int = 10):
+    def __init__(self, layout: Layout, robot_params: RobotParams, pose, iterations: int = 10,
+                 robot_kernel: str | None = None, fast_contacts: bool = False):
         self.layout = layout
         self.robot_params = robot_params
         self.space = space = pymunk.Space()
@@ -254,6 +257,25 @@ class World:
         add_obstacles(space, layout)
         self.contacts = count_contacts(space)
         self.robot = Robot(space, robot_params, pose[:2], pose[2])
+        if robot_kernel is not None:
+            self.robot.kernel = robot_kernel
+        #: True when contacts are counted by the compiled kernel's C callbacks
+        #: (:func:`mkv_env.kernel.install_contacts`) rather than Python ones: same counts.
+        self.fast_contacts = False
+        if fast_contacts:
+            self.use_fast_contacts()
+
+    def use_fast_contacts(self) -> None:
+        """Count contacts with C callbacks (no Python called while Chipmunk steps)."""
+        from mkv_env.kernel import install_contacts
+
+        install_contacts(self)
+        self.fast_contacts = True
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if state.get("fast_contacts"):  # pymunk restored the Python callbacks; put C back
+            self.use_fast_contacts()
 
     # ------------------------------------------------------------------ stepping
     def step(self, drive_cmd: int, steer_cmd: int, period_s: float, substeps: int) -> None:

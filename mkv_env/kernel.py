@@ -1,0 +1,166 @@
+"""The compiled step kernel: a whole MK-V control period after the action is decoded, in C.
+
+``mkv_env._fastsim.Batch`` holds N robots ("slots"). Stepping a slot runs, in C, everything
+:meth:`mkv_env.envs.MKVEnv.step` does in Python once the action is decoded: the floor-patch lookup
+and the wheel/motor substeps with Chipmunk (:meth:`mkv_env.robot.Robot.advance`), the sensors
+(:meth:`mkv_env.sensors.SensorSuite.read`: noise rows, quantisation, clipping), the pose and the
+tracker (:meth:`mkv_env.tracker.MotionTracker.update`, the free-clearance query included), the
+reward and termination of the env's class and the numbers that go into ``info``. Contacts are
+counted by C collision callbacks on the World's own count array (:func:`install_contacts`).
+
+The Python code stays the reference (``gym.make(id, kernel="python")``). The C copy performs the
+same IEEE operations in the same order (``math.hypot`` is CPython's ``vector_norm``, copied; float
+``%`` and ``math.remainder`` as CPython computes them; no FMA contraction), so both kernels give the
+same bits: ``tests/mkv_env/test_step_kernel.py`` drives both with random actions, parameters and
+seeds and compares every observation, reward, flag and info value.
+
+Random numbers stay numpy's: the sensor noise is still drawn by the env's ``np_random`` in blocks
+of 256 rows (:meth:`SensorSuite.draw_block`); a slot that has used its block asks for a new one
+(``step`` returns the slots that need one, before stepping anything), so the draws happen in the
+same order as the reference's.
+
+State moves between Python and C at well-defined points only: a reset ``push``es the Python
+objects' state into the slot; reading ``env.tracker``, ``env.sensors`` or ``robot.state`` after C
+steps ``pull``s it back (and hands ownership to Python until the next step pushes it again).
+"""
+
+from __future__ import annotations
+
+import array
+
+import numpy as np
+
+from mkv_env import robot as _robot
+from mkv_env.params import SENSOR_NAMES
+from mkv_env.robot import BUMP_FL, BUMP_FR, BUMP_REAR, CHASSIS, OBSTACLE
+
+_fastsim = _robot._fastsim
+_ffi, _cp = _robot._ffi, _robot._cp
+
+#: True when the compiled step kernel can run (built extension and pymunk's cffi layer).
+AVAILABLE = _fastsim is not None and _cp is not None and hasattr(_fastsim, "Batch")
+
+if AVAILABLE:
+    _BEGIN, _SEPARATE = _fastsim.bind_kernel(*(
+        int(_ffi.cast("uintptr_t", _ffi.addressof(_cp, name))) for name in (
+            "cpBodyGetPosition", "cpSpacePointQueryNearest", "cpArbiterGetShapes",
+            "cpShapeGetCollisionType")))
+    N_VALUES, N_PARAMS, NOISE_ROWS = _fastsim.N_VALUES, _fastsim.N_PARAMS, _fastsim.NOISE_ROWS
+
+#: The env classes' reward/termination rules, as the kernel numbers them.
+KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
+
+#: Names of the kernel's output buffers, in Batch.outputs order: (dtype, width).
+OUTPUTS = (
+    ("obs", np.float32, len(SENSOR_NAMES)), ("reward", np.float64, 0),
+    ("terminated", np.bool_, 0), ("stuck", np.bool_, 0), ("bumped", np.bool_, 0),
+    ("collision", np.bool_, 0), ("distance_m", np.float64, 0), ("jams", np.int64, 0),
+    ("escapes", np.int64, 0), ("collisions", np.int64, 0), ("in_jam", np.bool_, 0),
+    ("pose", np.float64, 3), ("cells_visited", np.int64, 0), ("escaped", np.bool_, 0),
+)
+
+
+def default_kernel() -> str:
+    """``"c"`` when the compiled kernel is built and the robot's compiled loop is the default
+    (:data:`mkv_env.robot.DEFAULT_KERNEL`), else ``"python"``."""
+    return "c" if AVAILABLE and _robot.DEFAULT_KERNEL == "c" else "python"
+
+
+def make_outputs(n: int) -> dict[str, np.ndarray]:
+    """Fresh output buffers for ``n`` slots (name -> array)."""
+    return {name: np.zeros((n, w) if w else n, dtype=dt) for name, dt, w in OUTPUTS}
+
+
+def new_batch(env, n: int, num_threads: int = 1):
+    """A Batch of ``n`` slots for envs configured like ``env`` (same class and arguments), with
+    output buffers attached: (batch, outputs dict)."""
+    b = _fastsim.Batch(n, _robot.kernel_constants(env.robot_params), params(env),
+                       sensor_constants(env._sensors), int(num_threads))
+    out = make_outputs(n)
+    b.outputs(*out.values())
+    return b, out
+
+
+def params(env) -> array.array:
+    """The kernel's parameter vector (``P_*`` in _fastsim.c) of an env."""
+    from mkv_env.sensors import BATTERY_INTERNAL_OHM, BATTERY_NOMINAL_V
+    from mkv_env.tracker import FREE_CLEARANCE_M
+
+    t = env._tracker
+    g = getattr
+    p = (env.control_period_s / env.substeps, env.substeps, t.period_s, t.stuck_speed_mps,
+         t.jam_steps, t.escape_distance_m, t.escape_forward_m, FREE_CLEARANCE_M,
+         env._KERNEL_KIND, g(env, "progress_reward", 0.0), env.stuck_penalty,
+         env.collision_penalty, g(env, "escape_reward", 0.0), g(env, "coverage_reward", 0.0),
+         g(env, "still_penalty", 0.0), g(env, "jam_penalty", 0.0), g(env, "time_penalty", 0.0),
+         g(env, "shaping", 0.0), g(env, "_COVERAGE_CELL_M", 0.25), env._sensors._tick_angle,
+         BATTERY_NOMINAL_V, BATTERY_INTERNAL_OHM)
+    out = array.array("d", map(float, p))
+    assert len(out) == N_PARAMS
+    return out
+
+
+def sensor_constants(sensors) -> np.ndarray:
+    """(inv_q, q, low, high) of every channel, one float64 vector."""
+    return np.concatenate([sensors._inv_q, sensors._q, sensors.low, sensors.high])
+
+
+def install_contacts(world) -> None:
+    """Count ``world``'s robot-obstacle contacts with the kernel's C callbacks (same counts as
+    :func:`mkv_env.world._on_begin`/``_on_separate``, in the same array ``world.contacts``), so
+    Chipmunk never calls back into Python while stepping. The Python callbacks stay registered
+    with pymunk (a pickled world restores them; :meth:`World.__setstate__` re-installs these)."""
+    addr = world.contacts.buffer_info()[0]
+    begin = _ffi.cast("cpCollisionBeginFunc", _BEGIN)
+    separate = _ffi.cast("cpCollisionSeparateFunc", _SEPARATE)
+    data = _ffi.cast("void *", addr)
+    for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
+        h = world.space._handlers[(ctype, OBSTACLE)]._handler
+        h.beginFunc, h.separateFunc, h.userData = begin, separate, data
+
+
+# ---------------------------------------------------------------------- state in and out
+_WHEEL = ("drive_omega", "steer", "steer_rate", "drive_angle", "roller_angle", "drive_budget",
+          "drive_current", "steer_current")
+_TRACK = ("x", "y", "heading", "distance_m", "last_step_m", "stuck_run", "jams", "escapes",
+          "in_jam", "jam_x", "jam_y", "collisions", "forward_run_m", "_events")
+_TRACK_INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events"))
+
+
+def push(env, batch, slot: int) -> None:
+    """Copy ``env``'s Python state (world, wheels, sensors, tracker, reward state) into a slot."""
+    world = env.world
+    robot = world.robot
+    st, t, s = robot._state, env._tracker, env._sensors
+    _, body, space = robot.pointers(world.space)
+    batch.bind(slot, body, space, world.contacts, world.layout.patches)
+    values = array.array("d", [getattr(st, k) for k in _WHEEL])
+    values.append(robot._mu_scale)
+    values.extend(map(float, s._last_ticks))
+    values.extend(float(getattr(t, k)) for k in _TRACK)
+    values.append(getattr(env, "_phi", 0.0))
+    if s._block is not None:
+        batch.set_noise(slot, s._block)
+    batch.load(slot, values, s._row, list(getattr(env, "_cells", ())))
+
+
+def pull(env, batch, slot: int) -> None:
+    """Copy a slot's state back into ``env``'s Python objects (the reverse of :func:`push`)."""
+    values, row, noise, cells = batch.state(slot)
+    robot = env.world.robot
+    st, t, s = robot._state, env._tracker, env._sensors
+    for k, v in zip(_WHEEL, values, strict=False):
+        setattr(st, k, v)
+    robot._mu_scale = values[8]
+    s._last_ticks = (int(values[9]), int(values[10]))
+    for k, v in zip(_TRACK, values[11:], strict=False):
+        setattr(t, k, int(v) if k in _TRACK_INT else v)
+    t.in_jam = bool(t.in_jam)
+    if hasattr(env, "_phi"):
+        env._phi = values[-1]
+    if hasattr(env, "_cells"):
+        env._cells = set(cells)
+    if row != s._row or s._block is None or s._block.tobytes() != noise:
+        s._block = np.frombuffer(noise, dtype=np.float64).reshape(NOISE_ROWS, -1).copy()
+        s._noise = s._block.tolist()
+    s._row = row
