@@ -1,12 +1,16 @@
-"""A native vector env: N MK-V robots stepped in one process, their physics in one C call.
+"""A native vector env: N MK-V robots stepped in one process by one call into the step kernel.
 
 ``gym.make_vec("MKV-v0", num_envs=16, vectorization_mode="vector_entry_point")`` (and the same
 for every MK-V id) returns an :class:`MKVVectorEnv`. It holds N ordinary single envs of the id's
-class and, each step, moves all N robots with one call into the compiled substep loop
-(:func:`mkv_env._fastsim.advance_many`) before each env reads its sensors and scores the step
-exactly as :meth:`mkv_env.envs.MKVEnv.step` does. Because the same code runs per robot, env ``i``
-of a vector env reset with ``seed`` follows the same trajectory, bit for bit, as a single env
-reset with ``seed + i`` and given the same actions (``tests/mkv_env/test_vector.py``).
+class (they build and reset the worlds) and one compiled step kernel with N slots
+(:mod:`mkv_env.kernel`): each step is one C call that moves every robot, reads its sensors,
+tracks it and scores it, writing observations, rewards, flags and the info numbers straight into
+preallocated arrays, with the GIL released and, with ``num_threads=K``, on K threads (disjoint
+groups of robots; results do not depend on K). Python then only handles the batch: autoreset,
+truncation and the resets themselves. Env ``i`` of a vector env reset with ``seed`` follows the
+same trajectory, bit for bit, as a single env reset with ``seed + i`` and given the same actions
+(``tests/mkv_env/test_vector.py``); ``kernel="python"`` runs the reference implementation (each
+robot's step in Python) instead.
 
 Semantics are Gymnasium 1.x's (those of ``SyncVectorEnv`` over ``gymnasium.make(id)``):
 
@@ -18,7 +22,8 @@ Semantics are Gymnasium 1.x's (those of ``SyncVectorEnv`` over ``gymnasium.make(
   the ``autoreset_mode`` keyword;
 * truncation after ``max_episode_steps`` (the registration's limit, as ``TimeLimit`` does);
 * infos are dicts of arrays with ``_key`` masks; ``info["pose"]`` is a float array (n, 3)
-  (``vector_infos=False`` skips them: 1.1-1.2x the steps/s at 16 robots).
+  (``vector_infos=False`` skips them); the per-env dicts are built only when read
+  (:attr:`MKVVectorEnv.env_infos`).
 
 For Stable-Baselines3, wrap it with :class:`mkv_env.sb3_vec.SB3VecEnv`.
 """
@@ -34,9 +39,11 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from mkv_env import kernel as _kernel
 from mkv_env import robot as _robot
 from mkv_env.actions import ACTION_NVEC, OFF
-from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
+from mkv_env.envs import (TRAIL_DROP_POINTS as _TRAIL_DROP, TRAIL_MAX_POINTS as _TRAIL_MAX,
+                          MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1)
 
 _MODES = {m.value: m for m in AutoresetMode}
 _VALID = frozenset(range(ACTION_NVEC[0]))  # values of an action's entries (both take 0, 1, 2)
@@ -51,10 +58,12 @@ class MKVVectorEnv(VectorEnv):
         max_episode_steps: truncation limit (None: never truncate).
         autoreset_mode: ``"NextStep"`` (default), ``"SameStep"`` or ``"Disabled"`` (or the
             :class:`gymnasium.vector.AutoresetMode` members).
-        vector_infos: False skips building Gymnasium's vector info (1.1-1.2x the steps/s
-            at 16 robots): ``step`` and ``reset`` return ``{}`` (plus ``final_obs`` in
-            SameStep mode), and the per-env dicts stay readable as :attr:`env_infos`.
-        **kwargs: the single env's arguments (``gym.make(id, **kwargs)``).
+        vector_infos: False skips building Gymnasium's vector info: ``step`` and ``reset``
+            return ``{}`` (plus ``final_obs`` in SameStep mode); the per-env dicts stay readable
+            as :attr:`env_infos`.
+        num_threads: threads stepping the robots (compiled kernel only; default 1). Each thread
+            steps a fixed group of robots with the GIL released; results do not depend on it.
+        **kwargs: the single env's arguments (``gym.make(id, **kwargs)``), ``kernel`` included.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"]}
@@ -62,7 +71,7 @@ class MKVVectorEnv(VectorEnv):
     def __init__(self, num_envs: int, env_cls: type = MKVEnv,
                  max_episode_steps: int | None = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
-                 vector_infos: bool = True, **kwargs):
+                 vector_infos: bool = True, num_threads: int = 1, **kwargs):
         if not (isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
                 and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -76,6 +85,9 @@ class MKVVectorEnv(VectorEnv):
                              f"got {autoreset_mode!r}")
         if not isinstance(vector_infos, (bool, np.bool_)):
             raise ValueError(f"vector_infos must be True or False, got {vector_infos!r}")
+        if not (isinstance(num_threads, (int, np.integer)) and not isinstance(num_threads, bool)
+                and 1 <= num_threads <= 256):
+            raise ValueError(f"num_threads must be an integer in [1, 256], got {num_threads!r}")
         if kwargs.get("render_mode") not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be 'rgb_array' or None for a vector env, "
                              f"got {kwargs['render_mode']!r}")
@@ -87,6 +99,7 @@ class MKVVectorEnv(VectorEnv):
                          "autoreset_mode": mode}
         self.render_mode = kwargs.get("render_mode")
         first = self.envs[0]
+        self.kernel = first.kernel
         self.single_observation_space = first.observation_space
         self.single_action_space = first.action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -99,13 +112,72 @@ class MKVVectorEnv(VectorEnv):
         self._everyone = list(range(n))
         self._started = False
         self._slot_cache: tuple | None = None
-        #: The per-env info dicts of the last reset/step (None where an env did not report), and
-        #: in SameStep mode the final infos of the envs that ended; SB3VecEnv reads these.
-        self.env_infos: list[dict | None] = [None] * self.num_envs
-        self.final_env_infos: list[dict | None] = [None] * self.num_envs
+        self._env_infos: list[dict | None] = [None] * n
+        self._final_env_infos: list[dict | None] = [None] * n
+        self._lazy_infos: tuple | None = None  # (arrays, rows) to build env_infos from
+        self._lazy_final: tuple | None = None
         self.vector_infos = bool(vector_infos)  # False: skip Gymnasium's vector info (SB3VecEnv)
         self._period, self._substeps = first.control_period_s, first.substeps
         self._dt = self._period / self._substeps
+        self.num_threads = 1
+        self._batch = None
+        if self.kernel == "c":  # one kernel for every robot: env i is its slot i
+            self._batch, self._out = _kernel.new_batch(first, n, int(num_threads))
+            self.num_threads = self._batch.num_threads
+            self._dirty: list = []
+            for i, env in enumerate(self.envs):
+                env._batch, env._out, env._slot, env._dirty = self._batch, self._out, i, self._dirty
+            self._obs = self._out["obs"]
+            self._keys = list(_STEP_KEYS) + list(_CLASS_KEYS.get(env_cls._KERNEL_KIND, ()))
+            self._has_scenario = hasattr(first, "scenario")
+            self._scenarios = np.full(n, None, dtype=object)
+            self._active = np.ones(n, dtype=bool)
+
+    # ------------------------------------------------------------------ per-env info dicts
+    @property
+    def env_infos(self) -> list[dict | None]:
+        """The per-env info dicts of the last reset/step (None where an env did not report);
+        built on first read from the step's arrays."""
+        if self._lazy_infos is not None:
+            self._env_infos = self._dicts(*self._lazy_infos)
+            self._lazy_infos = None
+        return self._env_infos
+
+    @env_infos.setter
+    def env_infos(self, value) -> None:
+        self._env_infos, self._lazy_infos = value, None
+
+    @property
+    def final_env_infos(self) -> list[dict | None]:
+        """In SameStep mode, the final info dicts of the envs whose episode ended this step."""
+        if self._lazy_final is not None:
+            self._final_env_infos = self._dicts(*self._lazy_final)
+            self._lazy_final = None
+        return self._final_env_infos
+
+    @final_env_infos.setter
+    def final_env_infos(self, value) -> None:
+        self._final_env_infos, self._lazy_final = value, None
+
+    def _dicts(self, cols: dict, rows) -> list[dict | None]:
+        """Per-env dicts from info columns (the rows that reported; None elsewhere)."""
+        out: list[dict | None] = [None] * self.num_envs
+        values = {k: (v.tolist() if v.dtype != object else list(v)) for k, v in cols.items()}
+        for i in rows:
+            d = {k: values[k][i] for k in cols}
+            d["pose"] = tuple(d["pose"])
+            out[i] = d
+        return out
+
+    @property
+    def np_random_seed(self) -> tuple:
+        """The seeds of the envs' generators (as ``SyncVectorEnv``)."""
+        return tuple(env.np_random_seed for env in self.envs)
+
+    @property
+    def np_random(self) -> tuple:
+        """The envs' generators (as ``SyncVectorEnv``)."""
+        return tuple(env.np_random for env in self.envs)
 
     # ------------------------------------------------------------------ Gymnasium API
     def reset(self, *, seed: int | list | None = None, options: dict | None = None):
@@ -123,15 +195,22 @@ class MKVVectorEnv(VectorEnv):
         mask = np.ones(n, dtype=bool)
         if options is not None and "reset_mask" in options:
             mask = options.pop("reset_mask")
-            if not (isinstance(mask, np.ndarray) and mask.dtype == np.bool_
-                    and mask.shape == (n,) and mask.any()):
-                raise ValueError(f"options['reset_mask'] must be a bool array of shape ({n},) "
-                                 "with at least one True")
+            if not isinstance(mask, np.ndarray):
+                raise TypeError(f"options['reset_mask'] must be a numpy array, got {type(mask)}")
+            if mask.shape != (n,):
+                raise ValueError(f"options['reset_mask'] must have shape ({n},), "
+                                 f"got {mask.shape}")
+            if mask.dtype != np.bool_:
+                raise TypeError(f"options['reset_mask'] must have dtype bool, got {mask.dtype}")
+            if not mask.any():
+                raise ValueError("options['reset_mask'] must have at least one True")
         infos: list[dict | None] = [None] * n
         for i in np.flatnonzero(mask):
             self._obs[i], infos[i] = self.envs[i].reset(seed=seeds[i], options=options)
             self._elapsed[i] = 0
             self._autoreset[i] = False
+            if self._batch is not None and self._has_scenario:
+                self._scenarios[i] = self.envs[i].scenario
         self._started = True
         self.env_infos = infos
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
@@ -139,13 +218,151 @@ class MKVVectorEnv(VectorEnv):
     def step(self, actions):
         if not self._started:
             raise gym.error.ResetNeeded("call reset() before step()")
-        n = self.num_envs
-        drives, steers = self._commands(actions)
-        mode = self.autoreset_mode
-        if mode == AutoresetMode.DISABLED and self._autoreset.any():
+        if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
             raise gym.error.ResetNeeded(
                 f"envs {np.flatnonzero(self._autoreset).tolist()} have ended: with "
                 "autoreset_mode Disabled, reset them (options={'reset_mask': ...}) first")
+        if self._batch is not None:
+            return self._step_kernel(actions)
+        return self._step_reference(actions)
+
+    def _step_kernel(self, actions):
+        """One step of every robot through the compiled kernel (see the module doc)."""
+        n = self.num_envs
+        acts = self._actions(actions)
+        mode = self.autoreset_mode
+        resetting = mode == AutoresetMode.NEXT_STEP and self._autoreset.any()
+        if resetting:
+            active = np.logical_not(self._autoreset, out=self._active)
+            reset_idx = np.flatnonzero(self._autoreset).tolist()
+        else:
+            active, reset_idx = None, ()
+        if self._dirty:  # Python code took some envs' state back: hand it to the kernel again
+            for env in self._dirty:
+                if env._py_owns and env.world is not None:
+                    env._push()
+            self._dirty.clear()
+        b, envs, out = self._batch, self.envs, self._out
+        try:
+            need = b.step(acts, active)
+        except ValueError:  # the kernel checks the values before it steps anything
+            raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) of "
+                             "[drive, steer] with each in {0, 1, 2}") from None
+        while need is not None:  # robots that used up their noise block: the next, as drawn
+            for i in need:       # by the reference, then the step
+                b.set_noise(i, envs[i]._sensors.draw_block())
+            need = b.step(acts, active)
+        obs = out["obs"]
+        rewards = out["reward"].copy()
+        terminated = out["terminated"].copy()
+        elapsed = self._elapsed
+        if resetting:
+            elapsed += active
+        else:
+            elapsed += 1
+        if self.max_episode_steps is None:
+            truncated = np.zeros(n, dtype=bool)
+        else:
+            truncated = elapsed >= self.max_episode_steps
+            if resetting:
+                truncated &= active
+        if self.render_mode is not None:
+            self._trails(active)
+        info: dict[str, Any] = {}
+        want = self.vector_infos
+        cols = self._columns()
+        for i in reset_idx:
+            obs[i], d = envs[i].reset()
+            elapsed[i] = 0
+            self._put(cols, i, d)
+        final_lazy = None
+        if mode == AutoresetMode.SAME_STEP:
+            done = np.flatnonzero(terminated | truncated)
+            if len(done):
+                final_obs = np.full(n, None, dtype=object)
+                final_cols = {k: v.copy() for k, v in cols.items()}
+                for i in done:
+                    final_obs[i] = obs[i].copy()
+                    obs[i], d = envs[i].reset()
+                    elapsed[i] = 0
+                    self._put(cols, i, d)
+                mask = np.zeros(n, dtype=bool)
+                mask[done] = True
+                final_lazy = (final_cols, done.tolist())
+                info = {"final_obs": final_obs, "_final_obs": mask,
+                        "final_info": self._vector_info(final_cols, mask) if want else {},
+                        "_final_info": mask.copy()}
+            self._autoreset[:] = False
+        else:
+            self._autoreset = terminated | truncated
+        if want:
+            info = {**self._vector_info(cols, None), **info}
+        self._lazy_infos = (cols, self._everyone)  # per-env dicts only if someone reads them
+        self._lazy_final = final_lazy
+        if final_lazy is None:
+            self._final_env_infos = [None] * n
+        return obs.copy(), rewards, terminated, truncated, info
+
+    def _columns(self) -> dict[str, np.ndarray]:
+        """This step's info values, one array per key (copies: the kernel reuses its buffers)."""
+        out = self._out
+        cols = {k: out[k].copy() for k in self._keys}
+        if self._has_scenario:
+            cols["scenario"] = self._scenarios.copy()
+        return cols
+
+    def _put(self, cols: dict, i: int, d: dict) -> None:
+        """Env i's info dict ``d`` (from a reset) into row i of the columns."""
+        for k, v in d.items():
+            cols[k][i] = v
+        if self._has_scenario:
+            self._scenarios[i] = d["scenario"]
+
+    def _vector_info(self, cols: dict, mask) -> dict[str, Any]:
+        """Gymnasium's vector info from info columns: every key with its ``_key`` mask (all
+        True, or ``mask``), as ``VectorEnv._add_info`` builds it from the per-env dicts."""
+        n = self.num_envs
+        keys = list(cols)
+        masks = (np.ones((len(keys), n), dtype=bool) if mask is None
+                 else np.repeat(mask[None, :], len(keys), axis=0))
+        info: dict[str, Any] = {}
+        for k, m in zip(keys, masks, strict=True):
+            info[k] = cols[k] if mask is None else _masked(cols[k], mask)
+            info[f"_{k}"] = m
+        return info
+
+    def _trails(self, active) -> None:
+        """Rendering only: each moved robot's trail gets its new position."""
+        pose = self._out["pose"]
+        for i, env in enumerate(self.envs):
+            if active is None or active[i]:
+                env.trail.append((float(pose[i, 0]), float(pose[i, 1])))
+                if len(env.trail) > _TRAIL_MAX:
+                    del env.trail[:_TRAIL_DROP]
+
+    def _actions(self, actions) -> np.ndarray:
+        """Actions as a C-contiguous int64 (n, 2) array (the kernel checks the values)."""
+        a = actions if isinstance(actions, np.ndarray) else np.asarray(actions)
+        n = self.num_envs
+        if a.ndim == 0 and a.dtype.kind in "iubfc":  # as SyncVectorEnv: a number can't iterate
+            raise TypeError(f"actions must be an array of shape ({n}, 2), got {actions!r}")
+        if a.shape == (n, 2) and a.dtype.kind in "iubf":
+            if a.dtype == np.int64 and a.flags.c_contiguous:
+                return a
+            if a.dtype.kind != "f":
+                return np.ascontiguousarray(a, dtype=np.int64)
+            if np.isfinite(a).all():
+                whole = a.astype(np.int64)
+                if np.array_equal(whole, a):  # floats must be whole numbers
+                    return whole
+        raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) "
+                         "of [drive, steer] with each in {0, 1, 2}")
+
+    def _step_reference(self, actions):
+        """One step of every robot in Python, each scored by its own env's code."""
+        n = self.num_envs
+        drives, steers = self._commands(actions)
+        mode = self.autoreset_mode
         resetting = (np.flatnonzero(self._autoreset).tolist()
                      if mode == AutoresetMode.NEXT_STEP and self._autoreset.any() else [])
         if resetting:
@@ -206,6 +423,8 @@ class MKVVectorEnv(VectorEnv):
             gym.logger.warn("render() called without a render_mode; pass render_mode= to "
                             "make_vec()")
             return None
+        if not self._started:
+            raise gym.error.ResetNeeded("call reset() before render()")
         return tuple(env.render() for env in self.envs)
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
@@ -238,6 +457,9 @@ class MKVVectorEnv(VectorEnv):
     def _commands(self, actions) -> tuple[list[int], list[int]]:
         """Validated actions (n, 2) -> per-env drive and steer motor commands (-1/0/+1 each)."""
         a = actions if isinstance(actions, np.ndarray) else np.asarray(actions)
+        if a.ndim == 0 and a.dtype.kind in "iubfc":  # as SyncVectorEnv: a number can't iterate
+            raise TypeError(f"actions must be an array of shape ({self.num_envs}, 2), "
+                            f"got {actions!r}")
         if a.shape == (self.num_envs, 2) and a.dtype.kind in "iubf":
             flat = a.ravel().tolist()
             if set(flat) <= _VALID:  # floats must be whole numbers: 1.0 == 1 is in the set
@@ -319,6 +541,21 @@ class MKVVectorEnv(VectorEnv):
             mask = out[f"_{k}"] = np.zeros(n, dtype=bool)
             mask[idx] = True
         return out
+
+
+#: Info keys every MK-V env reports after a step, in its order, and each class's own.
+_STEP_KEYS = ("stuck", "bumped", "collision", "distance_m", "jams", "escapes", "collisions",
+              "in_jam", "pose")
+_CLASS_KEYS = {_kernel.KIND_JAM: ("escaped",), _kernel.KIND_JAM_V1: ("escaped",),
+               _kernel.KIND_WANDER_V1: ("cells_visited",)}
+
+
+def _masked(col: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``col`` with the rows outside ``mask`` zeroed (None for objects), as Gymnasium leaves
+    the entries of envs that did not report."""
+    out = np.zeros_like(col) if col.dtype != object else np.full(col.shape, None, dtype=object)
+    out[mask] = col[mask]
+    return out
 
 
 _SCALARS = (int, float, bool)

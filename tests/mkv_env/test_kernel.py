@@ -101,9 +101,17 @@ def test_sliding_branch_is_exercised_by_the_slippery_case(monkeypatch):
         calls.append(1)
         return math.hypot(a, b)
 
+    # the robot's compiled loop on its own (the step kernel uses its C copy of math.hypot,
+    # tests/mkv_env/test_step_kernel.py): it calls back the hypot it was bound to
     robot_mod.bind_kernel(counting)
     try:
-        _episode("c", "MKV-v1", 7, 100, False, monkeypatch, robot_params={"tire_friction": 0.05})
+        env = gym.make("MKV-v1", kernel="python", robot_params={"tire_friction": 0.05})
+        env.unwrapped._robot_kernel = "c"
+        env.reset(seed=7)
+        assert env.unwrapped.world.robot.kernel == "c"
+        rng = np.random.default_rng(7)
+        for _ in range(100):
+            env.step(rng.integers(0, 3, size=2))
     finally:
         robot_mod.bind_kernel()
     assert len(calls) > 100
