@@ -99,6 +99,66 @@ static double vector_norm2(double a, double b, double max)
     return h / scale;
 }
 
+/* CPython 3.10-3.11's vector_norm for two coordinates: Dekker split, three compensated sums, a
+ * differential correction; below DBL_MIN it divides by the largest coordinate. */
+static double vector_norm2_v311(double a, double b, double max)
+{
+    const double T27 = 134217729.0; /* ldexp(1.0, 27) + 1.0 */
+    double x, t, hi, lo, h, oldcsum, csum = 1.0, frac1 = 0.0, frac2 = 0.0, frac3 = 0.0;
+    double v[2] = {a, b};
+    int max_e;
+    frexp(max, &max_e);
+    if (max_e >= -1023) {
+        double scale = ldexp(1.0, -max_e);
+        for (int i = 0; i < 2; i++) {
+            x = v[i] * scale;
+            t = x * T27;
+            hi = t - (t - x);
+            lo = x - hi;
+            x = hi * hi;
+            oldcsum = csum;
+            csum += x;
+            frac1 += (oldcsum - csum) + x;
+            x = 2.0 * hi * lo;
+            oldcsum = csum;
+            csum += x;
+            frac2 += (oldcsum - csum) + x;
+            frac3 += lo * lo;
+        }
+        h = sqrt(csum - 1.0 + (frac1 + frac2 + frac3));
+        x = h;
+        t = x * T27;
+        hi = t - (t - x);
+        lo = x - hi;
+        x = -hi * hi;
+        oldcsum = csum;
+        csum += x;
+        frac1 += (oldcsum - csum) + x;
+        x = -2.0 * hi * lo;
+        oldcsum = csum;
+        csum += x;
+        frac2 += (oldcsum - csum) + x;
+        x = -lo * lo;
+        oldcsum = csum;
+        csum += x;
+        frac3 += (oldcsum - csum) + x;
+        x = csum - 1.0 + (frac1 + frac2 + frac3);
+        return (h + x / (2.0 * h)) / scale;
+    }
+    for (int i = 0; i < 2; i++) {
+        x = v[i] / max;
+        x = x * x;
+        oldcsum = csum;
+        csum += x;
+        frac1 += (oldcsum - csum) + x;
+    }
+    return max * sqrt(csum - 1.0 + frac1);
+}
+
+/* Which CPython's math.hypot the kernel copies: 0 = 3.10-3.11, 1 = 3.12 and later. Chosen at
+ * import by mkv_env.kernel, which checks the choice against this interpreter's math.hypot. */
+static int hypot_variant = 0;
+
 /* math.hypot(a, b), bit for bit (Modules/mathmodule.c: math_hypot + vector_norm). */
 static double py_hypot(double a, double b)
 {
@@ -118,7 +178,7 @@ static double py_hypot(double a, double b)
         return NAN;
     if (max == 0.0)
         return max;
-    return vector_norm2(x0, x1, max);
+    return hypot_variant ? vector_norm2(x0, x1, max) : vector_norm2_v311(x0, x1, max);
 }
 
 /* Python's float % (Objects/floatobject.c: float_rem). */
@@ -1497,16 +1557,23 @@ static PyObject *fs_bind_kernel(PyObject *self, PyObject *const *args, Py_ssize_
                          PyLong_FromVoidPtr((void *)contact_separate));
 }
 
-/* hypot(a, b): the C copy of math.hypot the kernel uses (tests compare the two). */
+/* hypot(a, b[, variant]): the C copy of math.hypot the kernel uses (tests compare the two);
+ * variant (0 or 1) also becomes the kernel's when given. */
 static PyObject *fs_hypot(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "hypot() takes 2 arguments");
+    if (nargs != 2 && nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "hypot() takes 2 or 3 arguments");
         return NULL;
     }
     double a = PyFloat_AsDouble(args[0]), b = PyFloat_AsDouble(args[1]);
+    long variant = nargs == 3 ? PyLong_AsLong(args[2]) : hypot_variant;
     if (PyErr_Occurred())
         return NULL;
+    if (variant != 0 && variant != 1) {
+        PyErr_SetString(PyExc_ValueError, "variant must be 0 or 1");
+        return NULL;
+    }
+    hypot_variant = (int)variant;
     return PyFloat_FromDouble(py_hypot(a, b));
 }
 

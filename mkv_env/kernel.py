@@ -37,8 +37,39 @@ from mkv_env.robot import BUMP_FL, BUMP_FR, BUMP_REAR, CHASSIS, OBSTACLE
 _fastsim = _robot._fastsim
 _ffi, _cp = _robot._ffi, _robot._cp
 
-#: True when the compiled step kernel can run (built extension and pymunk's cffi layer).
+#: True when the compiled step kernel can run (built extension and pymunk's cffi layer, and its
+#: copy of ``math.hypot`` matches this interpreter's: :func:`_pick_hypot`).
 AVAILABLE = _fastsim is not None and _cp is not None and hasattr(_fastsim, "Batch")
+
+
+def _hypot_probes() -> list[tuple[float, float]]:
+    """Pairs on which CPython's two ``math.hypot`` algorithms (3.10-3.11 and 3.12+) differ
+    somewhere, subnormals included, plus ordinary ones."""
+    rng = np.random.default_rng(20261124)
+    pairs = []
+    for scale in (5e-324, 1e-310, 1e-308, 1e-150, 1e-3, 1.0, 1e3, 1e300):
+        a = rng.standard_normal(400) * scale
+        b = a * rng.choice([1e-9, 1e-3, 0.5, 1.0, 3.0], size=a.size) * rng.standard_normal(a.size)
+        pairs += zip(a.tolist(), b.tolist(), strict=True)
+    return pairs
+
+
+def _pick_hypot() -> bool:
+    """Make the kernel use the ``math.hypot`` algorithm of this Python (CPython changed it in
+    3.12; both are in _fastsim.c): the one that reproduces ``math.hypot`` on every probe.
+    False if neither does (then the kernel is not used: the reference runs)."""
+    import math
+
+    probes = _hypot_probes()
+    for variant in (0, 1):
+        if all(_fastsim.hypot(a, b, variant) == math.hypot(a, b) for a, b in probes):
+            _fastsim.hypot(0.0, 0.0, variant)  # (the last call sets the kernel's variant)
+            return True
+    return False
+
+
+if AVAILABLE:
+    AVAILABLE = _pick_hypot()
 
 if AVAILABLE:
     _BEGIN, _SEPARATE = _fastsim.bind_kernel(*(

@@ -24,11 +24,13 @@ from mkv_env.teacher import ScriptedTeacher
 IDS = ("MKV-v0", "MKVJam-v0", "MKV-v1", "MKVJam-v1")
 
 
-def fingerprint(env_id: str, episodes: int, steps: int) -> str:
+def fingerprint(env_id: str, episodes: int, steps: int, kernel: str | None = None) -> str:
+    """The digest of ``episodes`` episodes of ``env_id`` (``kernel``: "c", "python" or None for
+    the default)."""
     h = hashlib.sha256()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        env = gym.make(env_id)
+        env = gym.make(env_id, kernel=kernel)
     for ep in range(episodes):
         obs, _ = env.reset(seed=1000 + ep)
         teacher = ScriptedTeacher(seed=ep) if ep % 2 else None
@@ -50,10 +52,12 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--kernel", choices=("c", "python"), default=None,
+                    help="the step kernel (default: the compiled one where built)")
     args = ap.parse_args(argv)
     total = hashlib.sha256()
     for env_id in IDS:
-        d = fingerprint(env_id, args.episodes, args.steps)
+        d = fingerprint(env_id, args.episodes, args.steps, args.kernel)
         total.update(d.encode())
         print(f"{env_id:<12}{d}")
     print(f"{'all':<12}{total.hexdigest()[:16]}")

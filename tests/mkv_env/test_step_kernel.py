@@ -1,0 +1,273 @@
+"""The compiled step kernel (mkv_env/kernel.py, the Batch of _fastsim.c) gives the bits of the
+Python reference (``kernel="python"``): every observation, reward, flag and info value, for all
+four ids, random actions, parameters and seeds, single envs and vector envs (every autoreset
+mode, one and several threads); and the recorded fingerprints of every id are unchanged."""
+
+import importlib.util
+import math
+import pickle
+import struct
+import warnings
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import mkv_env  # noqa: F401
+from mkv_env import kernel as kernel_mod
+
+IDS = ("MKV-v0", "MKVJam-v0", "MKV-v1", "MKVJam-v1")
+needs_c = pytest.mark.skipif(not kernel_mod.AVAILABLE, reason="compiled kernel not built")
+
+# scripts/env_fingerprint.py --episodes 3 --steps 200, recorded before the step kernel existed
+FINGERPRINTS = {"MKV-v0": "b26c6aec4be61f77", "MKVJam-v0": "e122c4fc65612fba",
+                "MKV-v1": "b0ab5090ce0aced4", "MKVJam-v1": "97a9d7d540261518"}
+
+
+def _fingerprint_module():
+    path = Path(__file__).resolve().parents[2] / "scripts" / "env_fingerprint.py"
+    spec = importlib.util.spec_from_file_location("env_fingerprint", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("kernel", [pytest.param("c", marks=needs_c), "python"])
+def test_recorded_fingerprints_are_unchanged(kernel):
+    fp = _fingerprint_module()
+    got = {env_id: fp.fingerprint(env_id, 3, 200, kernel) for env_id in IDS}
+    assert got == FINGERPRINTS
+
+
+def _bits(x) -> bytes:
+    return struct.pack("<d", x)
+
+
+@needs_c
+@settings(max_examples=300, deadline=None)
+@given(st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True,
+                                                                  allow_infinity=True))
+def test_c_hypot_and_modulo_are_pythons_bit_for_bit(a, b):
+    from mkv_env import _fastsim
+
+    h = math.hypot(a, b)
+    assert _bits(_fastsim.hypot(a, b)) == _bits(h) or (math.isnan(h) and
+                                                      math.isnan(_fastsim.hypot(a, b)))
+    if math.isfinite(a) and math.isfinite(b) and b != 0.0:
+        assert _bits(_fastsim.pymod(a, b)) == _bits(a % b)
+
+
+@needs_c
+def test_c_hypot_on_many_random_pairs_and_subnormals():
+    from mkv_env import _fastsim
+
+    rng = np.random.default_rng(3)
+    for scale in (5e-324, 1e-310, 1e-150, 1e-3, 1.0, 1e5, 1e150, 1e300):
+        a = rng.standard_normal(20_000) * scale
+        b = a * rng.choice([1e-9, 1e-3, 0.5, 1.0, 3.0], size=a.size) * rng.standard_normal(a.size)
+        for x, y in zip(a.tolist(), b.tolist(), strict=True):
+            assert _bits(_fastsim.hypot(x, y)) == _bits(math.hypot(x, y)), (x, y)
+
+
+def _rollout(env, seed: int, steps: int, actions_seed: int):
+    """Every step's observation bytes, reward, flags and info (repr), resets included."""
+    obs, info = env.reset(seed=seed)
+    rows = [(obs.tobytes(), repr(info))]
+    rng = np.random.default_rng(actions_seed)
+    for _ in range(steps):
+        obs, r, te, tr, info = env.step(rng.integers(0, 3, size=2))
+        rows.append((obs.tobytes(), _bits(r), te, tr, repr(info)))
+        if te or tr:
+            obs, info = env.reset()
+            rows.append((obs.tobytes(), repr(info)))
+    return rows
+
+
+def _make(env_id, kernel, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return gym.make(env_id, kernel=kernel, **kw)
+
+
+@needs_c
+@pytest.mark.parametrize("env_id", IDS)
+def test_kernels_give_the_same_episodes(env_id):
+    for seed in range(2):
+        ref = _rollout(_make(env_id, "python"), seed, 650, seed)
+        got = _rollout(_make(env_id, "c"), seed, 650, seed)
+        assert got == ref
+
+
+_params = st.fixed_dictionaries({
+    "n_clutter": st.integers(0, 30),
+    "n_patches": st.integers(0, 6),
+    "patch_friction": st.floats(0.05, 2.0),
+    "sensor_noise": st.sampled_from([0.0, 0.5, 1.0, 3.0]),
+    "stuck_speed_mps": st.floats(0.005, 0.2),
+    "jam_steps": st.integers(1, 6),
+    "escape_distance_m": st.floats(0.05, 0.6),
+    "escape_forward_m": st.floats(0.0, 0.3),
+    "stuck_penalty": st.floats(-1.0, 1.0),
+    "collision_penalty": st.floats(-1.0, 1.0),
+    "robot_params": st.fixed_dictionaries({
+        "tire_friction": st.floats(0.03, 1.5),
+        "drive_motor": st.fixed_dictionaries({"supply_v": st.floats(3.0, 20.0)})}),
+})
+
+
+@needs_c
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(env_id=st.sampled_from(IDS), params=_params, seed=st.integers(0, 2**31 - 1),
+       actions_seed=st.integers(0, 1000), max_steps=st.integers(5, 120))
+def test_kernels_agree_for_random_parameters_seeds_and_actions(env_id, params, seed,
+                                                                actions_seed, max_steps):
+    kw = dict(params, max_episode_steps=max_steps)
+    if env_id.startswith("MKVJam"):
+        kw["n_clutter"] = min(kw["n_clutter"], 10)
+    try:
+        ref_env = _make(env_id, "python", **kw)
+        ref = _rollout(ref_env, seed, 150, actions_seed)
+    except ValueError as e:  # a jam these parameters cannot build: both kernels say so
+        with pytest.raises(ValueError, match=str(e)[:30]):
+            _rollout(_make(env_id, "c", **kw), seed, 150, actions_seed)
+        return
+    assert _rollout(_make(env_id, "c", **kw), seed, 150, actions_seed) == ref
+
+
+@needs_c
+def test_reading_python_state_mid_episode_hands_it_back_and_forth():
+    """env.tracker / robot.state read (and changed) between C steps are pulled from and pushed
+    back to the kernel: the episode is the reference's."""
+    ref, got = _make("MKVJam-v1", "python"), _make("MKVJam-v1", "c")
+    rng = np.random.default_rng(0)
+    for env in (ref, got):
+        env.reset(seed=11)
+    for t in range(200):
+        a = rng.integers(0, 3, size=2)
+        r1, r2 = ref.step(a), got.step(a)
+        assert r1[0].tobytes() == r2[0].tobytes() and repr(r1[1:]) == repr(r2[1:])
+        if t % 37 == 0:
+            u1, u2 = ref.unwrapped, got.unwrapped
+            assert vars(u1.tracker) == vars(u2.tracker)
+            assert u1.world.robot.state == u2.world.robot.state
+            assert u1.sensors._row == u2.sensors._row
+            u1.tracker.distance_m += 1.0  # a change made in Python reaches the kernel
+            u2.tracker.distance_m += 1.0
+        if r1[2] or r1[3]:
+            ref.reset()
+            got.reset()
+
+
+@needs_c
+@pytest.mark.parametrize("env_id", IDS)
+def test_pickled_c_env_continues_as_the_reference(env_id):
+    ref, got = _make(env_id, "python"), _make(env_id, "c")
+    for env in (ref, got):
+        env.reset(seed=4)
+    rng = np.random.default_rng(1)
+    for a in rng.integers(0, 3, size=(30, 2)):
+        ref.step(a)
+        got.step(a)
+    got = pickle.loads(pickle.dumps(got))
+    for a in rng.integers(0, 3, size=(300, 2)):
+        r1, r2 = ref.step(a), got.step(a)
+        assert r1[0].tobytes() == r2[0].tobytes() and repr(r1[1:]) == repr(r2[1:])
+        if r1[2] or r1[3]:
+            break
+
+
+def test_without_the_compiled_kernel_everything_runs_on_the_reference(monkeypatch):
+    monkeypatch.setattr(kernel_mod, "AVAILABLE", False)
+    env = _make("MKV-v0", None)
+    assert env.unwrapped.kernel == "python"
+    env.reset(seed=0)
+    env.step(np.array([2, 1]))
+    with pytest.raises(ValueError, match="kernel='c' needs the compiled extension"):
+        _make("MKV-v0", "c")
+    venv = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    assert venv.unwrapped.kernel == "python"
+    venv.reset(seed=0)
+    venv.step(np.ones((2, 2), dtype=np.int64))
+
+
+@pytest.mark.parametrize("bad", ["C", "cuda", 1, ""])
+def test_bad_kernel_is_a_one_line_error(bad):
+    with pytest.raises(ValueError, match="kernel must be"):
+        _make("MKV-v0", bad)
+
+
+# ---------------------------------------------------------------------- vector envs
+def _vector_run(env_id, kernel, mode, threads, n=5, steps=260, seed=3, max_steps=40,
+                vector_infos=True):
+    kw = {"kernel": kernel, "autoreset_mode": mode, "max_episode_steps": max_steps,
+          "vector_infos": vector_infos}
+    if kernel == "c":
+        kw["num_threads"] = threads
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **kw)
+    rows = []
+    obs, info = venv.reset(seed=seed)
+    rows.append((obs.tobytes(), _info_bytes(info)))
+    rng = np.random.default_rng(seed)
+    ended = np.zeros(n, dtype=bool)
+    for _ in range(steps):
+        if mode == "Disabled" and ended.any():
+            obs, info = venv.reset(options={"reset_mask": ended.copy()})
+            rows.append((obs.tobytes(), _info_bytes(info)))
+        obs, r, te, tr, info = venv.step(rng.integers(0, 3, size=(n, 2)))
+        ended = te | tr
+        rows.append((obs.tobytes(), r.tobytes(), te.tobytes(), tr.tobytes(), _info_bytes(info),
+                     repr(venv.unwrapped.env_infos), repr(venv.unwrapped.final_env_infos)))
+    venv.close()
+    return rows
+
+
+def _info_bytes(info) -> list:
+    out = []
+    for k in sorted(info):
+        v = info[k]
+        if k in ("final_info",):
+            out.append((k, _info_bytes(v)))
+        elif isinstance(v, np.ndarray) and v.dtype == object:
+            out.append((k, repr([x.tobytes() if isinstance(x, np.ndarray) else x for x in v])))
+        else:
+            out.append((k, str(v.dtype), v.shape, v.tobytes()))
+    return out
+
+
+@needs_c
+@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("mode", ["NextStep", "SameStep", "Disabled"])
+def test_vector_kernel_equals_the_reference_in_every_autoreset_mode(env_id, mode):
+    ref = _vector_run(env_id, "python", mode, 1)
+    for threads in (1, 2, 3):
+        assert _vector_run(env_id, "c", mode, threads) == ref, (mode, threads)
+
+
+@needs_c
+def test_vector_results_do_not_depend_on_the_thread_count():
+    ref = _vector_run("MKV-v1", "c", "NextStep", 1, n=16, steps=400, max_steps=150)
+    for threads in (2, 4, 16):
+        assert _vector_run("MKV-v1", "c", "NextStep", threads, n=16, steps=400,
+                           max_steps=150) == ref
+
+
+@needs_c
+def test_vector_without_infos_keeps_per_env_dicts():
+    a = _vector_run("MKVJam-v1", "c", "SameStep", 2, vector_infos=False)
+    b = _vector_run("MKVJam-v1", "python", "SameStep", 1, vector_infos=False)
+    assert a == b
+    assert all(r[4] == [] or all(k[0] in ("final_obs", "_final_obs", "final_info",
+                                           "_final_info") for k in r[4]) for r in a[1:])
+
+
+@needs_c
+def test_vector_env_rejects_bad_thread_counts():
+    for bad in (0, -1, 1.5, True, 1000):
+        with pytest.raises(ValueError, match="num_threads"):
+            gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                         num_threads=bad)
