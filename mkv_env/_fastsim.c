@@ -785,34 +785,13 @@ static inline int is_clear(const Slot *s, double x, double y, double radius)
     return cp_pq(s->space, p, radius, f, &info) == NULL;
 }
 
-/* Returns the slot's error code (0 = fine). Results go to the output buffers at row i. */
-static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
+/* SensorSuite.read on slot i's current state: the observation into row i of the obs buffer.
+ * Returns 0 or an error code. */
+static int read_sensors(BatchObject *b, Py_ssize_t i)
 {
     Slot *s = &b->slots[i];
     const double *P = b->P;
     double *v = s->v;
-    if (s->body == NULL)
-        return s->err = ERR_UNBOUND;
-    /* World.step: the floor under the drive wheel, looked up once per period */
-    if (s->npatch) {
-        cpVect pos = cp_get_p(s->body);
-        double th = cp_get_a(s->body);
-        double xd = b->K[K_XD];
-        double x = pos.x + xd * cos(th), y = pos.y + xd * sin(th);
-        double scale = 1.0;
-        for (Py_ssize_t k = 0; k < s->npatch; k++) {
-            const double *pt = s->patches + 5 * k;
-            if (pt[0] <= x && x <= pt[2] && pt[1] <= y && y <= pt[3]) {
-                scale = pt[4];
-                break;
-            }
-        }
-        v[V_MU] = scale;
-    }
-    advance_one(b->K, s->body, s->space, drive, steer, P[P_DT], (long)P[P_SUBSTEPS], v[V_MU], v,
-                1);
-
-    /* SensorSuite.read */
     const int64_t *c = s->contacts;
     double tick = P[P_TICK];
     double dt_ = floor(v[S_DRIVE_ANGLE] / tick), rt_ = floor(v[S_ROLLER_ANGLE] / tick);
@@ -846,6 +825,41 @@ static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
         double m = (b->lo[k] > val) ? b->lo[k] : val;
         obs[k] = (float)((b->hi[k] < m) ? b->hi[k] : m);
     }
+    return 0;
+}
+
+/* Returns the slot's error code (0 = fine). Results go to the output buffers at row i. */
+static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
+{
+    Slot *s = &b->slots[i];
+    const double *P = b->P;
+    double *v = s->v;
+    if (s->body == NULL)
+        return s->err = ERR_UNBOUND;
+    /* World.step: the floor under the drive wheel, looked up once per period */
+    if (s->npatch) {
+        cpVect pos = cp_get_p(s->body);
+        double th = cp_get_a(s->body);
+        double xd = b->K[K_XD];
+        double x = pos.x + xd * cos(th), y = pos.y + xd * sin(th);
+        double scale = 1.0;
+        for (Py_ssize_t k = 0; k < s->npatch; k++) {
+            const double *pt = s->patches + 5 * k;
+            if (pt[0] <= x && x <= pt[2] && pt[1] <= y && y <= pt[3]) {
+                scale = pt[4];
+                break;
+            }
+        }
+        v[V_MU] = scale;
+    }
+    advance_one(b->K, s->body, s->space, drive, steer, P[P_DT], (long)P[P_SUBSTEPS], v[V_MU], v,
+                1);
+
+    /* SensorSuite.read */
+    const int64_t *c = s->contacts;
+    if (read_sensors(b, i))
+        return s->err;
+    double angle = cp_get_a(s->body);
 
     /* MKVEnv._pose + MotionTracker.update */
     cpVect pos = cp_get_p(s->body);
@@ -1367,6 +1381,25 @@ static PyObject *batch_step1(BatchObject *b, PyObject *const *args, Py_ssize_t n
         OUT(b, O_ESCAPED, uint8_t)[i] ? Py_True : Py_False);
 }
 
+/* read(i) -> True, or False when slot i needs a new noise block first: SensorSuite.read on the
+ * slot's current state (a reset's first observation), into row i of the obs buffer. */
+static PyObject *batch_read(BatchObject *b, PyObject *idx)
+{
+    Py_ssize_t i;
+    Slot *s = get_slot(b, idx, &i);
+    if (s == NULL)
+        return NULL;
+    if (!b->have_out || s->body == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs or world not set");
+        return NULL;
+    }
+    if (s->row >= NOISE_ROWS)
+        Py_RETURN_FALSE;
+    if (read_sensors(b, i))
+        return raise_slot_error(s, i);
+    Py_RETURN_TRUE;
+}
+
 /* step(actions (n x 2 int64, values 0..2), active (n bool) or None) -> None, or the list of
  * active slots that need a new noise block first (nothing stepped then). Every active robot is
  * stepped with the GIL released, on num_threads threads. */
@@ -1508,6 +1541,8 @@ static PyMethodDef batch_methods[] = {
     {"set_noise", (PyCFunction)(void (*)(void))batch_set_noise, METH_FASTCALL,
      "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
     {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},
+    {"read", (PyCFunction)batch_read, METH_O,
+     "read(i) -> True, or False when slot i needs noise first: a reset's observation."},
     {"step1", (PyCFunction)(void (*)(void))batch_step1, METH_FASTCALL,
      "step1(i, drive, steer) -> info tuple, or None when slot i needs noise first."},
     {"step", (PyCFunction)(void (*)(void))batch_step, METH_FASTCALL,
@@ -1589,6 +1624,204 @@ static PyObject *fs_pymod(PyObject *self, PyObject *const *args, Py_ssize_t narg
     return PyFloat_FromDouble(py_mod(a, b));
 }
 
+
+/* ============================================================================ arena layouts
+ * generate_layout(bitgen_capsule, W, H, n_clutter, n_patches, patch_scale, reserved, consts)
+ * mkv_env.world.generate_layout in C: the same draws from the same numpy bit generator
+ * (Generator.random() is next_double of its bit generator; uniform(a, b) = a + (b - a) * u), the
+ * same geometry and the same rejections, so the same layout to the bit. consts (float64):
+ * margin, tries, box lo/hi, cylinder lo/hi, wall piece lo/hi, corner arm lo/hi, dead-end gap
+ * lo/hi, dead-end depth lo/hi, clutter gap lo/hi, patch side lo/hi, wall radius, then the 5
+ * cumulative kind probabilities (box, cylinder, wall, corner, dead end).
+ * Returns (boxes, cylinders, walls, patches): lists of float tuples (walls without the arena's). */
+typedef struct {
+    void *state;
+    uint64_t (*next_uint64)(void *st);
+    uint32_t (*next_uint32)(void *st);
+    double (*next_double)(void *st);
+    uint64_t (*next_raw)(void *st);
+} np_bitgen;
+
+enum {
+    L_MARGIN, L_TRIES, L_BOX0, L_BOX1, L_CYL0, L_CYL1, L_WALL0, L_WALL1, L_ARM0, L_ARM1, L_GAP0,
+    L_GAP1, L_DEPTH0, L_DEPTH1, L_CGAP0, L_CGAP1, L_PATCH0, L_PATCH1, L_WALL_R, L_CDF, L_LEN = L_CDF + 5
+};
+
+typedef struct { double x, y, r; } circle;
+
+static inline double uni(np_bitgen *g, double a, double b) { return a + (b - a) * g->next_double(g->state); }
+
+static inline void bounding_wall(const double *w, double wall_r, circle *c)
+{
+    c->x = 0.5 * (w[0] + w[2]);
+    c->y = 0.5 * (w[1] + w[3]);
+    c->r = 0.5 * py_hypot(w[2] - w[0], w[3] - w[1]) + wall_r;
+}
+
+static PyObject *tuple_of(const double *v, int n)
+{
+    PyObject *t = PyTuple_New(n);
+    if (t == NULL)
+        return NULL;
+    for (int i = 0; i < n; i++) {
+        PyObject *f = PyFloat_FromDouble(v[i]);
+        if (f == NULL) {
+            Py_DECREF(t);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(t, i, f);
+    }
+    return t;
+}
+
+static int append_tuple(PyObject *list, const double *v, int n)
+{
+    PyObject *t = tuple_of(v, n);
+    if (t == NULL)
+        return -1;
+    int rc = PyList_Append(list, t);
+    Py_DECREF(t);
+    return rc;
+}
+
+static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "generate_layout() takes 8 arguments");
+        return NULL;
+    }
+    np_bitgen *g = PyCapsule_GetPointer(args[0], "BitGenerator");
+    if (g == NULL)
+        return NULL;
+    double W = PyFloat_AsDouble(args[1]), H = PyFloat_AsDouble(args[2]);
+    long n_clutter = PyLong_AsLong(args[3]), n_patches = PyLong_AsLong(args[4]);
+    double patch_scale = PyFloat_AsDouble(args[5]);
+    if (PyErr_Occurred())
+        return NULL;
+    double L[L_LEN];
+    if (get_doubles(args[7], L, L_LEN, "layout constants") < 0)
+        return NULL;
+    PyObject *res = PySequence_Fast(args[6], "reserved must be a sequence");
+    if (res == NULL)
+        return NULL;
+    Py_ssize_t nres = PySequence_Fast_GET_SIZE(res);
+    Py_ssize_t cap = nres + 3 * (n_clutter > 0 ? n_clutter : 0) + 4;
+    circle *circles = PyMem_Malloc((size_t)cap * sizeof(circle));
+    PyObject *boxes = PyList_New(0), *cyls = PyList_New(0), *walls = PyList_New(0);
+    PyObject *patches = PyList_New(0), *out = NULL;
+    if (circles == NULL || !boxes || !cyls || !walls || !patches) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_ssize_t nc = 0;
+    for (Py_ssize_t k = 0; k < nres; k++) {
+        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(res, k), "ddd", &circles[nc].x,
+                              &circles[nc].y, &circles[nc].r))
+            goto done;
+        nc++;
+    }
+    const double m = L[L_MARGIN], wr = L[L_WALL_R];
+    const long tries = (long)L[L_TRIES];
+    for (long item = 0; item < n_clutter; item++) {
+        for (long attempt = 0; attempt < tries; attempt++) {
+            double u = g->next_double(g->state);
+            int kind = 0;
+            while (kind < 4 && !(u < L[L_CDF + kind])) /* bisect_right over the cdf */
+                kind++;
+            double cx = uni(g, m, W - m);
+            double cy = uni(g, m, H - m);
+            double ang = uni(g, -M_PI, M_PI);
+            double spec[3][5];
+            circle b[3];
+            int ni = 0, is_wall = 1;
+            if (kind == 0) {
+                double w = uni(g, L[L_BOX0], L[L_BOX1]);
+                double h = uni(g, L[L_BOX0], L[L_BOX1]);
+                spec[0][0] = cx; spec[0][1] = cy; spec[0][2] = w; spec[0][3] = h; spec[0][4] = ang;
+                b[0].x = cx; b[0].y = cy; b[0].r = 0.5 * py_hypot(w, h);
+                ni = 1;
+                is_wall = 0;
+            } else if (kind == 1) {
+                double r = uni(g, L[L_CYL0], L[L_CYL1]);
+                spec[0][0] = cx; spec[0][1] = cy; spec[0][2] = r;
+                b[0].x = cx; b[0].y = cy; b[0].r = r;
+                ni = 1;
+                is_wall = 0;
+            } else if (kind == 2) {
+                double half = 0.5 * uni(g, L[L_WALL0], L[L_WALL1]);
+                double dx = half * cos(ang), dy = half * sin(ang);
+                spec[0][0] = cx - dx; spec[0][1] = cy - dy; spec[0][2] = cx + dx; spec[0][3] = cy + dy;
+                ni = 1;
+            } else if (kind == 3) {
+                double la = uni(g, L[L_ARM0], L[L_ARM1]);
+                double lb = uni(g, L[L_ARM0], L[L_ARM1]);
+                double ex = cx + la * cos(ang), ey = cy + la * sin(ang);
+                double fx = cx - lb * sin(ang), fy = cy + lb * cos(ang);
+                spec[0][0] = cx; spec[0][1] = cy; spec[0][2] = ex; spec[0][3] = ey;
+                spec[1][0] = cx; spec[1][1] = cy; spec[1][2] = fx; spec[1][3] = fy;
+                ni = 2;
+            } else {
+                double gap = uni(g, L[L_GAP0], L[L_GAP1]);
+                double depth = uni(g, L[L_DEPTH0], L[L_DEPTH1]);
+                /* mkv_env.world.dead_end_walls */
+                double c = cos(ang), s = sin(ang);
+                double half = 0.5 * gap + wr;
+                double blx = cx + c * 0.0 - s * half, bly = cy + s * 0.0 + c * half;
+                double brx = cx + c * 0.0 - s * -half, bry = cy + s * 0.0 + c * -half;
+                double olx = cx + c * depth - s * half, oly = cy + s * depth + c * half;
+                double orx = cx + c * depth - s * -half, ory = cy + s * depth + c * -half;
+                double segs[3][4] = {{blx, bly, brx, bry}, {blx, bly, olx, oly},
+                                     {brx, bry, orx, ory}};
+                for (int j = 0; j < 3; j++)
+                    memcpy(spec[j], segs[j], sizeof segs[j]);
+                ni = 3;
+            }
+            if (is_wall)
+                for (int j = 0; j < ni; j++)
+                    bounding_wall(spec[j], wr, &b[j]);
+            int inside = 1;
+            for (int j = 0; j < ni && inside; j++)
+                inside = b[j].r < b[j].x && b[j].x < W - b[j].r && b[j].r < b[j].y &&
+                         b[j].y < H - b[j].r;
+            if (!inside)
+                continue;
+            double cgap = uni(g, L[L_CGAP0], L[L_CGAP1]);
+            int hit = 0;
+            for (int j = 0; j < ni && !hit; j++)
+                for (Py_ssize_t k = 0; k < nc && !hit; k++)
+                    hit = py_hypot(b[j].x - circles[k].x, b[j].y - circles[k].y) <
+                          b[j].r + circles[k].r + cgap;
+            if (hit)
+                continue;
+            for (int j = 0; j < ni; j++) {
+                PyObject *dst = kind == 0 ? boxes : kind == 1 ? cyls : walls;
+                if (append_tuple(dst, spec[j], kind == 0 ? 5 : kind == 1 ? 3 : 4) < 0)
+                    goto done;
+                circles[nc++] = b[j];
+            }
+            break;
+        }
+    }
+    for (long k = 0; k < n_patches; k++) {
+        double pw = uni(g, L[L_PATCH0], L[L_PATCH1]);
+        double ph = uni(g, L[L_PATCH0], L[L_PATCH1]);
+        double x0 = uni(g, 0, W - pw);
+        double y0 = uni(g, 0, H - ph);
+        double p[5] = {x0, y0, x0 + pw, y0 + ph, patch_scale};
+        if (append_tuple(patches, p, 5) < 0)
+            goto done;
+    }
+    out = PyTuple_Pack(4, boxes, cyls, walls, patches);
+done:
+    PyMem_Free(circles);
+    Py_DECREF(res);
+    Py_XDECREF(boxes);
+    Py_XDECREF(cyls);
+    Py_XDECREF(walls);
+    Py_XDECREF(patches);
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"bind", (PyCFunction)(void (*)(void))fs_bind, METH_FASTCALL,
      "bind(get_v, get_w, get_a, set_f, set_t, step, hypot): Chipmunk entry points."},
@@ -1601,6 +1834,9 @@ static PyMethodDef methods[] = {
     {"bind_kernel", (PyCFunction)(void (*)(void))fs_bind_kernel, METH_FASTCALL,
      "bind_kernel(get_p, point_query_nearest, arbiter_get_shapes, shape_get_type) -> "
      "(contact_begin, contact_separate) addresses."},
+    {"generate_layout", (PyCFunction)(void (*)(void))fs_generate_layout, METH_FASTCALL,
+     "generate_layout(bitgen, W, H, n_clutter, n_patches, patch_scale, reserved, consts): "
+     "mkv_env.world.generate_layout's draws and geometry in C."},
     {"hypot", (PyCFunction)(void (*)(void))fs_hypot, METH_FASTCALL,
      "hypot(a, b): the kernel's copy of math.hypot."},
     {"pymod", (PyCFunction)(void (*)(void))fs_pymod, METH_FASTCALL,

@@ -266,12 +266,18 @@ class MKVEnv(gym.Env):
         self._reset_tracker()
         self.trail = [self._pose()[:2]]
         self._last_action = NOOP_ACTION
-        obs = self._sensors.read(self.world)
         info = self._info(False, False)
-        if self.kernel == "c":
+        if self.kernel == "c":  # the first observation from the kernel (same bits)
             if self._batch is None:
                 self._batch, self._out = _kernel.new_batch(self, 1)
             self._push()
+            b, i = self._batch, self._slot
+            if not b.read(i):
+                b.set_noise(i, self._sensors.draw_block())
+                b.read(i)
+            obs = self._out["obs"][i].copy()
+        else:
+            obs = self._sensors.read(self.world)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -378,14 +384,20 @@ class MKVEnv(gym.Env):
     def _build_world(self) -> World:
         rng = self.np_random
         for _ in range(LAYOUT_ATTEMPTS):
-            layout = generate_layout(rng, self.arena_size_m, self.arena_size_m, self.n_clutter,
-                                     self.n_patches, self.patch_friction)
+            layout = self._generate_layout(rng, self.arena_size_m, self.arena_size_m,
+                                           self.n_clutter, self.n_patches, self.patch_friction)
             world = self._new_world(layout, (0.0, 0.0, 0.0))
             pose = random_free_pose(world, rng)
             if pose is not None:
                 _place(world, pose)
                 return world
         raise RuntimeError("could not find a free start pose; reduce n_clutter")
+
+    def _generate_layout(self, *args, **kwargs):
+        """:func:`mkv_env.world.generate_layout`, or its compiled copy with the C kernel."""
+        if self.kernel == "c":
+            return _kernel.generate_layout(*args, **kwargs)
+        return generate_layout(*args, **kwargs)
 
     def _new_world(self, layout, pose) -> World:
         return World(layout, self.robot_params, pose, robot_kernel=self._robot_kernel,
@@ -480,8 +492,8 @@ class MKVJamEnv(MKVEnv):
         kind = self.scenarios[int(rng.integers(len(self.scenarios)))]
         for _ in range(JAM_ATTEMPTS):
             walls, boxes, cylinders, reserved, pose = build_scenario(kind, rng, W, W)
-            layout = generate_layout(rng, W, W, self.n_clutter, self.n_patches,
-                                     self.patch_friction, reserved=reserved)
+            layout = self._generate_layout(rng, W, W, self.n_clutter, self.n_patches,
+                                           self.patch_friction, reserved=reserved)
             layout.walls += [tuple(map(float, w)) for w in walls]
             layout.boxes += [tuple(map(float, b)) for b in boxes]
             layout.cylinders += [tuple(map(float, c)) for c in cylinders]

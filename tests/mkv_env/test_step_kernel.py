@@ -271,3 +271,22 @@ def test_vector_env_rejects_bad_thread_counts():
         with pytest.raises(ValueError, match="num_threads"):
             gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
                          num_threads=bad)
+
+
+# ---------------------------------------------------------------------- resets
+@needs_c
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), size=st.floats(2.0, 20.0), n_clutter=st.integers(0, 80),
+       n_patches=st.integers(0, 8), patch=st.floats(0.05, 2.0),
+       reserved=st.lists(st.tuples(st.floats(0, 20), st.floats(0, 20), st.floats(0, 2)),
+                         max_size=3))
+def test_compiled_layout_generator_draws_and_builds_the_same_arena(seed, size, n_clutter,
+                                                                  n_patches, patch, reserved):
+    from mkv_env import world
+
+    r1, r2 = np.random.default_rng(seed), np.random.default_rng(seed)
+    ref = world.generate_layout(r1, size, size, n_clutter, n_patches, patch, reserved=reserved)
+    got = kernel_mod.generate_layout(r2, size, size, n_clutter, n_patches, patch,
+                                     reserved=reserved)
+    assert got == ref
+    assert r1.bit_generator.state == r2.bit_generator.state  # the same draws, no more, no less
