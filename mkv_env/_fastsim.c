@@ -718,6 +718,9 @@ struct BatchObject {
     long gen;
     int stop;
     atomic_int pending;
+    int running;       /* a job started by step_start and not yet finished */
+    Py_buffer job_acts, job_mask;
+    int job_have_mask;
 };
 
 /* ---------------------------------------------------------------- the cell set of MKV-v1 */
@@ -950,10 +953,14 @@ static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
     return 0;
 }
 
-/* Rows [lo, hi) of the current job. */
-static void run_range(BatchObject *b, Py_ssize_t lo, Py_ssize_t hi)
+/* The current job's robots of thread group g: a fixed, contiguous share per thread, so each
+ * robot's memory (its Chipmunk space, shapes, contact buffers) stays in one core's caches
+ * (threads taking robots in turn measured 1.24x on two cores against 1x; see
+ * benchmarks/env_speed.py). Which thread steps a robot never changes its result. */
+static void run_group(BatchObject *b, int g)
 {
     const int64_t *a = b->acts;
+    Py_ssize_t lo = b->n * g / b->nthreads, hi = b->n * (g + 1) / b->nthreads;
     for (Py_ssize_t i = lo; i < hi; i++) {
         if (b->active != NULL && !b->active[i])
             continue;
@@ -961,8 +968,6 @@ static void run_range(BatchObject *b, Py_ssize_t lo, Py_ssize_t hi)
         step_slot(b, i, (long)(a[2 * i] - 1), (long)(1 - a[2 * i + 1]));
     }
 }
-
-static inline Py_ssize_t group_lo(BatchObject *b, int g) { return b->n * g / b->nthreads; }
 
 static void *worker_main(void *arg)
 {
@@ -987,7 +992,7 @@ static void *worker_main(void *arg)
         if (stop)
             return NULL;
         seen = gen;
-        run_range(b, group_lo(b, w->group), group_lo(b, w->group + 1));
+        run_group(b, w->group);
         atomic_fetch_sub_explicit(&b->pending, 1, memory_order_acq_rel);
     }
 }
@@ -1013,21 +1018,28 @@ static int start_workers(BatchObject *b)
     return 0;
 }
 
-static void run_job(BatchObject *b)
+/* Hand the current job to the worker threads (they start at once). */
+static void launch_job(BatchObject *b)
 {
-    if (b->nthreads <= 1 || b->n < 2) {
-        run_range(b, 0, b->n);
+    if (b->nthreads <= 1)
         return;
-    }
     atomic_store(&b->pending, b->nthreads - 1);
     pthread_mutex_lock(&b->mu);
     __atomic_add_fetch(&b->gen, 1, __ATOMIC_RELEASE);
     pthread_cond_broadcast(&b->cv);
     pthread_mutex_unlock(&b->mu);
-    run_range(b, 0, group_lo(b, 1));
-    while (atomic_load_explicit(&b->pending, memory_order_acquire) > 0)
-        sched_yield();
 }
+
+/* The calling thread joins the job, then waits for the workers (GIL released by the caller). */
+static void finish_job(BatchObject *b)
+{
+    run_group(b, 0);
+    if (b->nthreads > 1)
+        while (atomic_load_explicit(&b->pending, memory_order_acquire) > 0)
+            sched_yield();
+}
+
+static void release_job(BatchObject *b);
 
 /* ---------------------------------------------------------------- the Python type */
 static PyObject *raise_slot_error(Slot *s, Py_ssize_t i)
@@ -1068,6 +1080,11 @@ static int get_doubles(PyObject *obj, double *dst, Py_ssize_t want, const char *
 
 static void batch_dealloc(BatchObject *b)
 {
+    if (b->running) { /* a started step: let it end before the memory goes */
+        finish_job(b);
+        release_job(b);
+        b->running = 0;
+    }
     if (b->started && b->workers) {
         pthread_mutex_lock(&b->mu);
         b->stop = 1;
@@ -1400,100 +1417,166 @@ static PyObject *batch_read(BatchObject *b, PyObject *idx)
     Py_RETURN_TRUE;
 }
 
-/* step(actions (n x 2 int64, values 0..2), active (n bool) or None) -> None, or the list of
- * active slots that need a new noise block first (nothing stepped then). Every active robot is
- * stepped with the GIL released, on num_threads threads. */
-static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+/* Validate a job's buffers and find the active slots that need noise. Returns 0 with the job's
+ * buffers held in b->job_* (and *need a new list, or NULL), or -1 with an error set. */
+static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject **need)
 {
-    Py_buffer av, mv;
-    int have_mask = 0;
-    PyObject *result = NULL;
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "step() takes 2 arguments");
-        return NULL;
-    }
+    Py_buffer *av = &b->job_acts, *mv = &b->job_mask;
+    *need = NULL;
     if (!b->have_out) {
         PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs() not set");
-        return NULL;
+        return -1;
     }
-    if (PyObject_GetBuffer(args[0], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
-        return NULL;
-    if (av.itemsize != 8 || av.len != b->n * 16 || av.format == NULL ||
-        (strcmp(av.format, "q") != 0 && strcmp(av.format, "l") != 0)) {
+    if (b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: a step is already running");
+        return -1;
+    }
+    if (PyObject_GetBuffer(acts, av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return -1;
+    b->job_have_mask = 0;
+    if (av->itemsize != 8 || av->len != b->n * 16 || av->format == NULL ||
+        (strcmp(av->format, "q") != 0 && strcmp(av->format, "l") != 0)) {
         PyErr_Format(PyExc_ValueError, "actions must be int64 of shape (%zd, 2)", b->n);
-        goto done_a;
+        goto fail;
     }
-    if (args[1] != Py_None) {
-        if (PyObject_GetBuffer(args[1], &mv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
-            goto done_a;
-        have_mask = 1;
-        if (mv.itemsize != 1 || mv.len != b->n || mv.format == NULL ||
-            strcmp(mv.format, "?") != 0) {
+    if (mask != Py_None) {
+        if (PyObject_GetBuffer(mask, mv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+            goto fail;
+        b->job_have_mask = 1;
+        if (mv->itemsize != 1 || mv->len != b->n || mv->format == NULL ||
+            strcmp(mv->format, "?") != 0) {
             PyErr_Format(PyExc_ValueError, "active must be bool of shape (%zd,)", b->n);
-            goto done;
+            goto fail;
         }
     }
-    const int64_t *a = av.buf;
-    const uint8_t *act = have_mask ? mv.buf : NULL;
+    const int64_t *a = av->buf;
+    const uint8_t *act = b->job_have_mask ? mv->buf : NULL;
     for (Py_ssize_t i = 0; i < 2 * b->n; i++)
         if (a[i] < 0 || a[i] > 2) {
             PyErr_Format(PyExc_ValueError, "action value %lld out of {0, 1, 2}", (long long)a[i]);
-            goto done;
+            goto fail;
         }
-    PyObject *need = NULL;
     for (Py_ssize_t i = 0; i < b->n; i++) {
         if (act && !act[i])
             continue;
         if (b->slots[i].body == NULL) {
-            raise_slot_error(&b->slots[i], i);
-            b->slots[i].err = 0;
             PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
-            Py_XDECREF(need);
-            goto done;
+            goto fail;
         }
         if (b->slots[i].row >= NOISE_ROWS) {
-            if (need == NULL && (need = PyList_New(0)) == NULL)
-                goto done;
+            if (*need == NULL && (*need = PyList_New(0)) == NULL)
+                goto fail;
             PyObject *k = PyLong_FromSsize_t(i);
-            if (k == NULL || PyList_Append(need, k) < 0) {
+            if (k == NULL || PyList_Append(*need, k) < 0) {
                 Py_XDECREF(k);
-                Py_DECREF(need);
-                goto done;
+                goto fail;
             }
             Py_DECREF(k);
         }
     }
-    if (need != NULL) {
-        result = need;
-        goto done;
-    }
     if (start_workers(b) < 0)
-        goto done;
+        goto fail;
     b->acts = a;
     b->active = act;
-    Py_BEGIN_ALLOW_THREADS
-    run_job(b);
-    Py_END_ALLOW_THREADS
+    return 0;
+fail:
+    Py_CLEAR(*need);
+    PyBuffer_Release(av);
+    if (b->job_have_mask)
+        PyBuffer_Release(mv);
+    b->job_have_mask = 0;
+    return -1;
+}
+
+static void release_job(BatchObject *b)
+{
+    PyBuffer_Release(&b->job_acts);
+    if (b->job_have_mask)
+        PyBuffer_Release(&b->job_mask);
+    b->job_have_mask = 0;
     b->acts = NULL;
     b->active = NULL;
+}
+
+/* After a job: errors, and reward 0 / not terminated for the inactive slots. */
+static PyObject *conclude_job(BatchObject *b)
+{
+    const uint8_t *act = b->active;
+    PyObject *result = Py_None;
     for (Py_ssize_t i = 0; i < b->n; i++) {
         if (b->slots[i].err) {
-            raise_slot_error(&b->slots[i], i);
-            goto done;
+            if (result == Py_None)
+                result = raise_slot_error(&b->slots[i], i);
+            else
+                b->slots[i].err = 0;
         }
         if (act && !act[i]) {
             OUT(b, O_REW, double)[i] = 0.0;
             OUT(b, O_TERM, uint8_t)[i] = 0;
         }
     }
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    if (have_mask)
-        PyBuffer_Release(&mv);
-done_a:
-    PyBuffer_Release(&av);
+    release_job(b);
+    Py_XINCREF(result);
     return result;
+}
+
+/* step(actions (n x 2 int64, values 0..2), active (n bool) or None) -> None, or the list of
+ * active slots that need a new noise block first (nothing stepped then). Every active robot is
+ * stepped with the GIL released, on num_threads threads. */
+static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    PyObject *need;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "step() takes 2 arguments");
+        return NULL;
+    }
+    if (prepare_job(b, args[0], args[1], &need) < 0)
+        return NULL;
+    if (need != NULL) {
+        release_job(b);
+        return need;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    launch_job(b);
+    finish_job(b);
+    Py_END_ALLOW_THREADS
+    return conclude_job(b);
+}
+
+/* step_start(actions, active) -> None (the worker threads are stepping the active robots; call
+ * step_finish() next, and touch no active slot in between), or the list of slots that need
+ * noise first (nothing started). With one thread nothing runs until step_finish(). Inactive
+ * slots may be reset (bind, load, set_noise, read) while the workers run. */
+static PyObject *batch_step_start(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    PyObject *need;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "step_start() takes 2 arguments");
+        return NULL;
+    }
+    if (prepare_job(b, args[0], args[1], &need) < 0)
+        return NULL;
+    if (need != NULL) {
+        release_job(b);
+        return need;
+    }
+    b->running = 1;
+    launch_job(b);
+    Py_RETURN_NONE;
+}
+
+/* step_finish() -> None: this thread joins the started step and waits for it to end. */
+static PyObject *batch_step_finish(BatchObject *b, PyObject *unused)
+{
+    if (!b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: step_finish() without step_start()");
+        return NULL;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    finish_job(b);
+    Py_END_ALLOW_THREADS
+    b->running = 0;
+    return conclude_job(b);
 }
 
 /* physics(actions, active) -> None: only the physics of every active robot (the floor the
@@ -1547,6 +1630,10 @@ static PyMethodDef batch_methods[] = {
      "step1(i, drive, steer) -> info tuple, or None when slot i needs noise first."},
     {"step", (PyCFunction)(void (*)(void))batch_step, METH_FASTCALL,
      "step(actions, active) -> None, or the slots that need noise first."},
+    {"step_start", (PyCFunction)(void (*)(void))batch_step_start, METH_FASTCALL,
+     "step_start(actions, active) -> None, or the slots that need noise first."},
+    {"step_finish", (PyCFunction)batch_step_finish, METH_NOARGS,
+     "step_finish(): join the started step and wait for its end."},
     {"physics", (PyCFunction)(void (*)(void))batch_physics, METH_FASTCALL,
      "physics(actions): the physics alone of every bound robot (benchmark floor)."},
     {NULL, NULL, 0, NULL}};

@@ -97,18 +97,59 @@ def default_kernel() -> str:
     return "c" if AVAILABLE and _robot.DEFAULT_KERNEL == "c" else "python"
 
 
-def make_outputs(n: int) -> dict[str, np.ndarray]:
-    """Fresh output buffers for ``n`` slots (name -> array)."""
-    return {name: np.zeros((n, w) if w else n, dtype=dt) for name, dt, w in OUTPUTS}
+#: The kernel's per-step numbers grouped by dtype: each is a row of one block, so a vector env
+#: snapshots a step with one copy per block (``Outputs.blocks``) instead of one per key.
+_BLOCK_ROWS = {
+    "f": ("reward", "distance_m"),
+    "b": ("terminated", "stuck", "bumped", "collision", "in_jam", "escaped"),
+    "i": ("jams", "escapes", "collisions", "cells_visited"),
+}
+
+
+class Outputs(dict):
+    """The kernel's output buffers for ``n`` slots, by name (rows of dtype blocks; ``obs`` and
+    ``pose`` arrays of their own). ``blocks`` maps "obs", "pose", "f", "b", "i" to the arrays."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.blocks = {
+            "obs": np.zeros((n, len(SENSOR_NAMES)), dtype=np.float32),
+            "pose": np.zeros((n, 3), dtype=np.float64),
+            "f": np.zeros((len(_BLOCK_ROWS["f"]), n), dtype=np.float64),
+            "b": np.zeros((len(_BLOCK_ROWS["b"]), n), dtype=np.bool_),
+            "i": np.zeros((len(_BLOCK_ROWS["i"]), n), dtype=np.int64),
+        }
+        where = {k: (blk, r) for blk, rows in _BLOCK_ROWS.items() for r, k in enumerate(rows)}
+        for name, dt, w in OUTPUTS:
+            if name in ("obs", "pose"):
+                arr = self.blocks[name]
+            else:
+                blk, r = where[name]
+                arr = self.blocks[blk][r]
+            assert arr.dtype == dt and arr.flags.c_contiguous
+            self[name] = arr
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Fresh copies of every output (one copy per block), by name."""
+        copies = {k: v.copy() for k, v in self.blocks.items()}
+        out = {"obs": copies["obs"], "pose": copies["pose"]}
+        for blk, rows in _BLOCK_ROWS.items():
+            out.update(zip(rows, copies[blk], strict=True))
+        return out
+
+
+def make_outputs(n: int) -> Outputs:
+    """Fresh output buffers for ``n`` slots."""
+    return Outputs(n)
 
 
 def new_batch(env, n: int, num_threads: int = 1):
     """A Batch of ``n`` slots for envs configured like ``env`` (same class and arguments), with
-    output buffers attached: (batch, outputs dict)."""
+    output buffers attached: (batch, :class:`Outputs`)."""
     b = _fastsim.Batch(n, _robot.kernel_constants(env.robot_params), params(env),
                        sensor_constants(env._sensors), int(num_threads))
     out = make_outputs(n)
-    b.outputs(*out.values())
+    b.outputs(*(out[name] for name, _, _ in OUTPUTS))
     return b, out
 
 

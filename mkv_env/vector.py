@@ -128,7 +128,7 @@ class MKVVectorEnv(VectorEnv):
             for i, env in enumerate(self.envs):
                 env._batch, env._out, env._slot, env._dirty = self._batch, self._out, i, self._dirty
             self._obs = self._out["obs"]
-            self._keys = list(_STEP_KEYS) + list(_CLASS_KEYS.get(env_cls._KERNEL_KIND, ()))
+            self._kind = env_cls._KERNEL_KIND
             self._has_scenario = hasattr(first, "scenario")
             self._scenarios = np.full(n, None, dtype=object)
             self._active = np.ones(n, dtype=bool)
@@ -243,18 +243,33 @@ class MKVVectorEnv(VectorEnv):
                     env._push()
             self._dirty.clear()
         b, envs, out = self._batch, self.envs, self._out
+        # With worker threads, the envs ending last step are reset while the workers step the
+        # others (their slots are not stepped this step: nothing is shared).
+        overlap = bool(reset_idx) and self.num_threads > 1
+        run = b.step_start if overlap else b.step
         try:
-            need = b.step(acts, active)
+            need = run(acts, active)
         except ValueError:  # the kernel checks the values before it steps anything
             raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) of "
                              "[drive, steer] with each in {0, 1, 2}") from None
         while need is not None:  # robots that used up their noise block: the next, as drawn
             for i in need:       # by the reference, then the step
                 b.set_noise(i, envs[i]._sensors.draw_block())
-            need = b.step(acts, active)
-        obs = out["obs"]
-        rewards = out["reward"].copy()
-        terminated = out["terminated"].copy()
+            need = run(acts, active)
+        early = []
+        if overlap:
+            try:
+                for i in reset_idx:
+                    early.append((i, *envs[i].reset()))
+            finally:
+                b.step_finish()
+            reset_idx = ()
+        # this step's numbers, copied (the kernel reuses its buffers): one copy per dtype block
+        blocks = out.blocks
+        obs, pose = blocks["obs"].copy(), blocks["pose"].copy()
+        rewards, distance = blocks["f"].copy()
+        terminated, stuck, bumped, collision, in_jam, escaped = blocks["b"].copy()
+        jams, escapes, collisions, cells = blocks["i"].copy()
         elapsed = self._elapsed
         if resetting:
             elapsed += active
@@ -263,14 +278,26 @@ class MKVVectorEnv(VectorEnv):
         if self.max_episode_steps is None:
             truncated = np.zeros(n, dtype=bool)
         else:
-            truncated = elapsed >= self.max_episode_steps
+            truncated = np.greater_equal(elapsed, self.max_episode_steps)
             if resetting:
                 truncated &= active
         if self.render_mode is not None:
             self._trails(active)
         info: dict[str, Any] = {}
         want = self.vector_infos
-        cols = self._columns()
+        cols = {"stuck": stuck, "bumped": bumped, "collision": collision,
+                "distance_m": distance, "jams": jams, "escapes": escapes,
+                "collisions": collisions, "in_jam": in_jam, "pose": pose}
+        kind = self._kind
+        if kind == _kernel.KIND_WANDER_V1:
+            cols["cells_visited"] = cells
+        elif kind != _kernel.KIND_WANDER:
+            cols["escaped"] = escaped
+            cols["scenario"] = self._scenarios.copy()
+        for i, o, d in early:
+            obs[i] = o
+            elapsed[i] = 0
+            self._put(cols, i, d)
         for i in reset_idx:
             obs[i], d = envs[i].reset()
             elapsed[i] = 0
@@ -301,15 +328,7 @@ class MKVVectorEnv(VectorEnv):
         self._lazy_final = final_lazy
         if final_lazy is None:
             self._final_env_infos = [None] * n
-        return obs.copy(), rewards, terminated, truncated, info
-
-    def _columns(self) -> dict[str, np.ndarray]:
-        """This step's info values, one array per key (copies: the kernel reuses its buffers)."""
-        out = self._out
-        cols = {k: out[k].copy() for k in self._keys}
-        if self._has_scenario:
-            cols["scenario"] = self._scenarios.copy()
-        return cols
+        return obs, rewards, terminated, truncated, info
 
     def _put(self, cols: dict, i: int, d: dict) -> None:
         """Env i's info dict ``d`` (from a reset) into row i of the columns."""
@@ -322,13 +341,13 @@ class MKVVectorEnv(VectorEnv):
         """Gymnasium's vector info from info columns: every key with its ``_key`` mask (all
         True, or ``mask``), as ``VectorEnv._add_info`` builds it from the per-env dicts."""
         n = self.num_envs
-        keys = list(cols)
-        masks = (np.ones((len(keys), n), dtype=bool) if mask is None
-                 else np.repeat(mask[None, :], len(keys), axis=0))
-        info: dict[str, Any] = {}
-        for k, m in zip(keys, masks, strict=True):
-            info[k] = cols[k] if mask is None else _masked(cols[k], mask)
-            info[f"_{k}"] = m
+        masks = (np.ones((len(cols), n), dtype=bool) if mask is None
+                 else np.repeat(mask[None, :], len(cols), axis=0))
+        if mask is None:
+            info = dict(cols)
+        else:
+            info = {k: _masked(v, mask) for k, v in cols.items()}
+        info.update(zip(map(_MASK_KEY.__getitem__, cols), masks))
         return info
 
     def _trails(self, active) -> None:
@@ -543,11 +562,10 @@ class MKVVectorEnv(VectorEnv):
         return out
 
 
-#: Info keys every MK-V env reports after a step, in its order, and each class's own.
-_STEP_KEYS = ("stuck", "bumped", "collision", "distance_m", "jams", "escapes", "collisions",
-              "in_jam", "pose")
-_CLASS_KEYS = {_kernel.KIND_JAM: ("escaped",), _kernel.KIND_JAM_V1: ("escaped",),
-               _kernel.KIND_WANDER_V1: ("cells_visited",)}
+#: "_key", the name of a vector info key's mask.
+_MASK_KEY = {k: f"_{k}" for k in ("stuck", "bumped", "collision", "distance_m", "jams",
+                                    "escapes", "collisions", "in_jam", "pose", "escaped",
+                                    "scenario", "cells_visited")}
 
 
 def _masked(col: np.ndarray, mask: np.ndarray) -> np.ndarray:
