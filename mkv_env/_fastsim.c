@@ -1909,6 +1909,102 @@ done:
     return out;
 }
 
+
+/* drive_until_jammed(K, body, space, state, mu_scale, patches, steer, dt, substeps, limit,
+ *                    jam_steps, max_steps, counts) -> (jammed, mu_scale)
+ * mkv_env.envs._drive_until_jammed after its steering draw, in C: drive forward with the
+ * steering command held until the robot has moved less than ``limit`` per period for
+ * ``jam_steps`` periods (then jammed = touching an obstacle), at most ``max_steps`` periods.
+ * The floor-patch lookup and substeps are World.step's; the wheel state is read from and
+ * written back to the WheelState object ``state``. */
+static PyObject *fs_drive_until_jammed(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 13) {
+        PyErr_SetString(PyExc_TypeError, "drive_until_jammed() takes 13 arguments");
+        return NULL;
+    }
+    double K[K_LEN], st[S_LEN];
+    if (get_doubles(args[0], K, K_LEN, "K") < 0 || check_bound() < 0 || cp_get_p == NULL)
+        return NULL;
+    void *body = PyLong_AsVoidPtr(args[1]), *space = PyLong_AsVoidPtr(args[2]);
+    double mu = PyFloat_AsDouble(args[4]);
+    long steer = PyLong_AsLong(args[6]);
+    double dt = PyFloat_AsDouble(args[7]);
+    long substeps = PyLong_AsLong(args[8]);
+    double limit = PyFloat_AsDouble(args[9]);
+    long jam_steps = PyLong_AsLong(args[10]), max_steps = PyLong_AsLong(args[11]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (body == NULL || space == NULL) {
+        PyErr_SetString(PyExc_ValueError, "null body or space pointer");
+        return NULL;
+    }
+    Py_buffer cv;
+    if (PyObject_GetBuffer(args[12], &cv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+        return NULL;
+    if (cv.itemsize != 8 || cv.len != 40) {
+        PyBuffer_Release(&cv);
+        PyErr_SetString(PyExc_ValueError, "counts must be int64 x 5");
+        return NULL;
+    }
+    const int64_t *counts = cv.buf;
+    PyObject *fast = PySequence_Fast(args[5], "patches must be a sequence");
+    if (fast == NULL) {
+        PyBuffer_Release(&cv);
+        return NULL;
+    }
+    Py_ssize_t np_ = PySequence_Fast_GET_SIZE(fast);
+    double *pt = np_ ? PyMem_Malloc((size_t)np_ * 5 * sizeof(double)) : NULL;
+    int jammed = 0;
+    PyObject *out = NULL;
+    if (np_ && pt == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t k = 0; k < np_; k++) {
+        PyObject *row = PySequence_Fast_GET_ITEM(fast, k);
+        if (!PyArg_ParseTuple(row, "ddddd", &pt[5 * k], &pt[5 * k + 1], &pt[5 * k + 2],
+                              &pt[5 * k + 3], &pt[5 * k + 4]))
+            goto done;
+    }
+    if (load_state(args[3], st) < 0)
+        goto done;
+    long run = 0;
+    cpVect p0 = cp_get_p(body);
+    for (long t = 0; t < max_steps; t++) {
+        if (np_) {
+            cpVect pos = cp_get_p(body);
+            double th = cp_get_a(body);
+            double x = pos.x + K[K_XD] * cos(th), y = pos.y + K[K_XD] * sin(th);
+            double scale = 1.0;
+            for (Py_ssize_t k = 0; k < np_; k++) {
+                const double *q = pt + 5 * k;
+                if (q[0] <= x && x <= q[2] && q[1] <= y && y <= q[3]) {
+                    scale = q[4];
+                    break;
+                }
+            }
+            mu = scale;
+        }
+        advance_one(K, body, space, 1, steer, dt, substeps, mu, st, 1);
+        cpVect p = cp_get_p(body);
+        run = py_hypot(p.x - p0.x, p.y - p0.y) < limit ? run + 1 : 0;
+        p0 = p;
+        if (run >= jam_steps) {
+            jammed = (counts[1] + counts[2] + counts[3] + counts[4]) > 0;
+            break;
+        }
+    }
+    if (store_state(args[3], st) < 0)
+        goto done;
+    out = Py_BuildValue("(Od)", jammed ? Py_True : Py_False, mu);
+done:
+    PyMem_Free(pt);
+    Py_DECREF(fast);
+    PyBuffer_Release(&cv);
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"bind", (PyCFunction)(void (*)(void))fs_bind, METH_FASTCALL,
      "bind(get_v, get_w, get_a, set_f, set_t, step, hypot): Chipmunk entry points."},
@@ -1921,6 +2017,9 @@ static PyMethodDef methods[] = {
     {"bind_kernel", (PyCFunction)(void (*)(void))fs_bind_kernel, METH_FASTCALL,
      "bind_kernel(get_p, point_query_nearest, arbiter_get_shapes, shape_get_type) -> "
      "(contact_begin, contact_separate) addresses."},
+    {"drive_until_jammed", (PyCFunction)(void (*)(void))fs_drive_until_jammed, METH_FASTCALL,
+     "drive_until_jammed(K, body, space, state, mu, patches, steer, dt, substeps, limit, "
+     "jam_steps, max_steps, counts) -> (jammed, mu): MKVJam's start search in C."},
     {"generate_layout", (PyCFunction)(void (*)(void))fs_generate_layout, METH_FASTCALL,
      "generate_layout(bitgen, W, H, n_clutter, n_patches, patch_scale, reserved, consts): "
      "mkv_env.world.generate_layout's draws and geometry in C."},

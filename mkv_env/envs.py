@@ -679,6 +679,14 @@ def _drive_until_jammed(world: World, env: MKVEnv, rng,
     """Drive forward (steering held at a random command) until stuck for jam_steps steps."""
     steer = int(rng.integers(-1, 2))
     limit = env._tracker.stuck_speed_mps * env.control_period_s
+    if env.kernel == "c":  # the same loop compiled (mkv_env/_fastsim.c)
+        robot = world.robot
+        _, body, space = robot.pointers(world.space)
+        jammed, robot._mu_scale = _robot._fastsim.drive_until_jammed(
+            robot.kernel_constants, body, space, robot._state, robot._mu_scale,
+            world.layout.patches, steer, env.control_period_s / env.substeps, env.substeps,
+            limit, env._tracker.jam_steps, max_steps, world.contacts)
+        return jammed
     run = 0
     x0, y0 = world.robot.body.position
     for _ in range(max_steps):

@@ -178,16 +178,19 @@ def sensor_constants(sensors) -> np.ndarray:
 
 
 def install_contacts(world) -> None:
-    """Count ``world``'s robot-obstacle contacts with the kernel's C callbacks (same counts as
-    :func:`mkv_env.world._on_begin`/``_on_separate``, in the same array ``world.contacts``), so
-    Chipmunk never calls back into Python while stepping. The Python callbacks stay registered
-    with pymunk (a pickled world restores them; :meth:`World.__setstate__` re-installs these)."""
+    """Count ``world``'s robot-obstacle contacts with the kernel's C callbacks: the same counts
+    as :func:`mkv_env.world._on_begin`/``_on_separate``, in the same array ``world.contacts``,
+    but Chipmunk never calls back into Python while stepping. The handlers are pymunk's (made by
+    :func:`mkv_env.world.count_contacts`, whose data keeps the counts alive as long as the space:
+    Chipmunk still calls "separate" while a dying space removes its shapes); only their function
+    pointers are swapped. A pickled world gets its C callbacks back in World.__setstate__."""
     addr = world.contacts.buffer_info()[0]
     begin = _ffi.cast("cpCollisionBeginFunc", _BEGIN)
     separate = _ffi.cast("cpCollisionSeparateFunc", _SEPARATE)
     data = _ffi.cast("void *", addr)
+    handlers = world.space._handlers
     for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
-        h = world.space._handlers[(ctype, OBSTACLE)]._handler
+        h = handlers[(ctype, OBSTACLE)]._handler
         h.beginFunc, h.separateFunc, h.userData = begin, separate, data
 
 

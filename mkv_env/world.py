@@ -255,27 +255,24 @@ class World:
         space.iterations = iterations
         space.damping = SPACE_DAMPING
         add_obstacles(space, layout)
+        #: True when contacts are counted by the compiled kernel's C callbacks
+        #: (:func:`mkv_env.kernel.install_contacts`) rather than Python ones: same counts.
+        self.fast_contacts = bool(fast_contacts)
         self.contacts = count_contacts(space)
+        if fast_contacts:
+            from mkv_env.kernel import install_contacts
+
+            install_contacts(self)
         self.robot = Robot(space, robot_params, pose[:2], pose[2])
         if robot_kernel is not None:
             self.robot.kernel = robot_kernel
-        #: True when contacts are counted by the compiled kernel's C callbacks
-        #: (:func:`mkv_env.kernel.install_contacts`) rather than Python ones: same counts.
-        self.fast_contacts = False
-        if fast_contacts:
-            self.use_fast_contacts()
-
-    def use_fast_contacts(self) -> None:
-        """Count contacts with C callbacks (no Python called while Chipmunk steps)."""
-        from mkv_env.kernel import install_contacts
-
-        install_contacts(self)
-        self.fast_contacts = True
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        if state.get("fast_contacts"):  # pymunk restored the Python callbacks; put C back
-            self.use_fast_contacts()
+        if state.get("fast_contacts"):  # pymunk restored its Python callbacks: C ones again
+            from mkv_env.kernel import install_contacts
+
+            install_contacts(self)
 
     # ------------------------------------------------------------------ stepping
     def step(self, drive_cmd: int, steer_cmd: int, period_s: float, substeps: int) -> None:
