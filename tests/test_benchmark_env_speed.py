@@ -1,13 +1,16 @@
 """benchmarks/env_speed.py runs end to end (tiny sizes) and prints every section it promises: the
-benchmark reaches into private parts of the vector env (``_move``) to split its time, so a
-refactor that breaks it must fail here rather than at ``make bench``."""
+benchmark reaches into private parts of the envs (the step kernel's batch) to split their time,
+so a refactor that breaks it must fail here rather than at ``make bench``."""
 
 import importlib.util
 from pathlib import Path
 
 import pytest
 
+from mkv_env import kernel as kernel_mod
+
 ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.skipif(not kernel_mod.AVAILABLE, reason="compiled kernel not built")
 
 
 @pytest.fixture(scope="module")
@@ -18,17 +21,26 @@ def env_speed():
     return mod
 
 
-def test_env_speed_prints_ratios_splits_and_ceiling(env_speed, capsys):
+def test_env_speed_prints_every_ratio_and_split(env_speed, capsys):
     env_speed.main(["--steps", "600", "--rounds", "1", "--num-envs", "2"])
     out = capsys.readouterr().out
-    for section in ("MKV-v0 / LunarLander-v3", "native vector x2 / MKV-v0 single",
-                    "where an MKV-v0 step's time goes", "native vector x2, us per robot-step",
-                    "one space holding all 2 arenas", "ceiling of native vector x2"):
+    for section in ("MKV-v0 / LunarLander-v3", "native vector x2 / LunarLander-v3",
+                    "time per robot-step / physics alone", "2 threads / 1 thread",
+                    "MKVJam-v0 time per step / MKV-v0's", "compiled kernel / Python reference",
+                    "native vector x2, one thread, us per robot-step",
+                    "where an MKV-v0 step's time goes"):
         assert section in out
+    assert "target >= 3.5" in out and ("met" in out or "MISSED" in out)
 
 
 def test_vector_split_times_every_part(env_speed):
-    """700 steps per robot outlast one 600-step MKV-v0 episode: physics, resets and the rest all
-    got time (the timing hooks are attached to what the vector env really calls)."""
+    """700 steps per robot outlast one 600-step MKV-v0 episode: the kernel, resets and the rest
+    all got time (the timing hooks are attached to what the vector env really calls)."""
     parts = env_speed.vector_split(2, 1400)
-    assert parts["physics"] > 0 and parts["reset"] > 0 and parts["rest"] > 0
+    assert parts["kernel"] > 0 and parts["reset"] > 0 and parts["rest"] > 0
+    assert parts["total"] > parts["kernel"] + parts["reset"]
+
+
+def test_single_split_times_every_part(env_speed):
+    parts = dict(env_speed.where_the_single_step_goes(700))
+    assert all(v > 0 for k, v in parts.items() if k != "Gymnasium's wrappers")
