@@ -46,12 +46,25 @@ class SB3VecEnv(VecEnv):
 
     # ------------------------------------------------------------------ VecEnv API
     def reset(self):
+        """Reset every env with its own seed and its own options (as DummyVecEnv does)."""
         seeds = list(self._seeds)
-        opts = [o for o in self._options if o]
-        options = opts[0] if opts else None
-        obs, info = self.venv.reset(seed=seeds if any(s is not None for s in seeds) else None,
-                                    options=options)
-        self.reset_infos = [dict(d) for d in self.venv.env_infos]
+        seed = seeds if any(s is not None for s in seeds) else None
+        groups: dict[str, tuple[dict, list[int]]] = {}  # envs sharing the same options
+        for i, o in enumerate(self._options):
+            groups.setdefault(repr(sorted((o or {}).items())), (o or {}, []))[1].append(i)
+        if len(groups) == 1:
+            options = next(iter(groups.values()))[0]
+            obs, _ = self.venv.reset(seed=seed, options=dict(options) or None)
+            infos = list(self.venv.env_infos)
+        else:
+            infos = [None] * self.num_envs
+            for options, idx in groups.values():
+                mask = np.zeros(self.num_envs, dtype=bool)
+                mask[idx] = True
+                obs, _ = self.venv.reset(seed=seed, options={**options, "reset_mask": mask})
+                for i in idx:
+                    infos[i] = self.venv.env_infos[i]
+        self.reset_infos = [dict(d) for d in infos]
         self._reset_seeds()
         self._reset_options()
         return obs

@@ -204,6 +204,7 @@ class MKVVectorEnv(VectorEnv):
                 raise TypeError(f"options['reset_mask'] must have dtype bool, got {mask.dtype}")
             if not mask.any():
                 raise ValueError("options['reset_mask'] must have at least one True")
+            options = options or None
         infos: list[dict | None] = [None] * n
         for i in np.flatnonzero(mask):
             self._obs[i], infos[i] = self.envs[i].reset(seed=seeds[i], options=options)

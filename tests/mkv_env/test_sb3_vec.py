@@ -53,3 +53,23 @@ def test_ppo_trains_on_it():
     model.learn(total_timesteps=128)
     assert model.num_timesteps >= 128
     assert len(model.ep_info_buffer) > 0  # episodes ended and were reported
+
+
+def test_reset_gives_each_env_its_own_options():
+    """As SB3's DummyVecEnv: set_options([...]) gives env i options[i] (here: its scenario)."""
+    from mkv_env.sb3_vec import SB3VecEnv
+
+    venv = SB3VecEnv("MKVJam-v0", n_envs=3, seed=0)
+    seen = []
+    for e in venv.venv.envs:
+        orig = e.reset
+
+        def rec(*a, _orig=orig, **k):
+            seen.append(k.get("options"))
+            return _orig(*a, **k)
+
+        e.reset = rec
+    venv.set_options([{"a": 1}, None, {"a": 2}])
+    venv.reset()
+    assert sorted(map(repr, seen)) == sorted(map(repr, [{"a": 1}, None, {"a": 2}]))
+    venv.close()
