@@ -296,3 +296,34 @@ def test_vector_infos_off_gives_empty_infos_and_the_same_steps():
     with pytest.raises(ValueError, match="vector_infos"):
         gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
                      vector_infos="no")
+
+
+@pytest.mark.parametrize("kernel", ["c", "python"])
+def test_deviations_from_sync_vector_env_are_gone(kernel):
+    """What Gymnasium's own vector tests found: the native env now behaves as SyncVectorEnv."""
+    from mkv_env import kernel as kernel_mod
+
+    if kernel == "c" and not kernel_mod.AVAILABLE:
+        pytest.skip("compiled kernel not built")
+    kw = {"kernel": kernel}
+    native = gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                          render_mode="rgb_array", **kw)
+    sync = gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="sync",
+                        render_mode="rgb_array", **kw)
+    for venv in (native, sync):
+        with pytest.raises(gym.error.ResetNeeded):
+            venv.render()
+    for venv in (native, sync):
+        venv.reset(seed=5)
+    assert native.np_random_seed == sync.np_random_seed == (5, 6)
+    for bad, err in ((1, TypeError), (np.int64(2), TypeError), ("x", ValueError)):
+        for venv in (native, sync):
+            with pytest.raises(err):
+                venv.step(bad)
+    for mask, err in (([True, False], TypeError), (np.array([1, 0]), TypeError),
+                      (np.array([True]), ValueError), (np.array([False, False]), ValueError)):
+        for venv in (native, sync):
+            with pytest.raises(err):
+                venv.reset(options={"reset_mask": mask})
+    native.close()
+    sync.close()
