@@ -2005,6 +2005,255 @@ done:
     return out;
 }
 
+
+/* ============================================================================ static arenas
+ * The layout's obstacles as raw Chipmunk shapes (no pymunk wrappers: the step kernel's worlds
+ * build theirs ~10x faster), made exactly as mkv_env.world.add_obstacles makes them through
+ * pymunk: same constructors, same arguments, same order, on the pymunk space's static body. */
+typedef struct { double a, b, c, d, tx, ty; } cpXform;
+typedef void *(*seg_new_fn)(void *, cpVect, cpVect, double);
+typedef void *(*poly_new_fn)(void *, int, cpVect *, cpXform, double);
+typedef void *(*circle_new_fn)(void *, double, cpVect);
+typedef void (*shape_set_u_fn)(void *, uintptr_t);
+typedef void (*shape_set_d_fn)(void *, double);
+typedef void *(*space_add_shape_fn)(void *, void *);
+typedef void (*space_remove_shape_fn)(void *, void *);
+typedef void *(*shape_get_ptr_fn)(void *);
+typedef void (*shape_free_fn)(void *);
+typedef void (*shape_query_cb)(void *, void *, void *);
+typedef unsigned char (*space_shape_query_fn)(void *, void *, shape_query_cb, void *);
+typedef void (*shape_set_hashid_fn)(void *, uintptr_t);
+
+static seg_new_fn cp_seg_new;
+static poly_new_fn cp_poly_new;
+static circle_new_fn cp_circle_new;
+static shape_set_u_fn cp_shape_set_type, cp_shape_set_hashid;
+static shape_set_d_fn cp_shape_set_friction, cp_shape_set_elasticity;
+static space_add_shape_fn cp_space_add_shape;
+static space_remove_shape_fn cp_space_remove_shape;
+static shape_get_ptr_fn cp_shape_get_space, cp_shape_get_body;
+static shape_free_fn cp_shape_free;
+static space_shape_query_fn cp_space_shape_query;
+
+typedef struct {
+    Py_ssize_t n;
+    void *shapes[];
+} StaticShapes;
+
+static void static_free(PyObject *cap)
+{
+    StaticShapes *ss = PyCapsule_GetPointer(cap, "mkv_env.static_shapes");
+    if (ss == NULL) {
+        PyErr_Clear();
+        return;
+    }
+    for (Py_ssize_t k = 0; k < ss->n; k++) {
+        void *sp = cp_shape_get_space(ss->shapes[k]);
+        if (sp != NULL) /* the space still holds it (else a dying space or body let it go) */
+            cp_space_remove_shape(sp, ss->shapes[k]);
+        cp_shape_free(ss->shapes[k]);
+    }
+    PyMem_Free(ss);
+}
+
+/* bind_shapes(13 Chipmunk function addresses) */
+static PyObject *fs_bind_shapes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    void *p[13];
+    if (nargs != 13) {
+        PyErr_SetString(PyExc_TypeError, "bind_shapes() takes 13 arguments");
+        return NULL;
+    }
+    for (int i = 0; i < 13; i++) {
+        p[i] = PyLong_AsVoidPtr(args[i]);
+        if (p[i] == NULL) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "null function pointer");
+            return NULL;
+        }
+    }
+    cp_seg_new = (seg_new_fn)p[0];
+    cp_poly_new = (poly_new_fn)p[1];
+    cp_circle_new = (circle_new_fn)p[2];
+    cp_shape_set_type = (shape_set_u_fn)p[3];
+    cp_shape_set_friction = (shape_set_d_fn)p[4];
+    cp_shape_set_elasticity = (shape_set_d_fn)p[5];
+    cp_space_add_shape = (space_add_shape_fn)p[6];
+    cp_space_remove_shape = (space_remove_shape_fn)p[7];
+    cp_shape_get_space = (shape_get_ptr_fn)p[8];
+    cp_shape_free = (shape_free_fn)p[9];
+    cp_shape_get_body = (shape_get_ptr_fn)p[10];
+    cp_space_shape_query = (space_shape_query_fn)p[11];
+    cp_shape_set_hashid = (shape_set_u_fn)p[12];
+    Py_RETURN_NONE;
+}
+
+static int tuple_doubles(PyObject *t, double *out, int n)
+{
+    PyObject *f = PySequence_Fast(t, "an obstacle must be a sequence of numbers");
+    if (f == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(f) != n) {
+        Py_DECREF(f);
+        PyErr_Format(PyExc_ValueError, "an obstacle needs %d numbers", n);
+        return -1;
+    }
+    for (int i = 0; i < n; i++)
+        out[i] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(f, i));
+    Py_DECREF(f);
+    return PyErr_Occurred() ? -1 : 0;
+}
+
+/* add_static(space, static_body, walls, boxes, cylinders, consts(wall_r, friction, elasticity,
+ *            collision_type, first_hashid)) -> capsule owning the shapes. first_hashid >= 0
+ * gives the shapes the hash ids first_hashid, first_hashid + 1, ... (a pickled world's). */
+static PyObject *fs_add_static(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "add_static() takes 6 arguments");
+        return NULL;
+    }
+    if (cp_seg_new == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "bind_shapes() has not been called");
+        return NULL;
+    }
+    void *space = PyLong_AsVoidPtr(args[0]), *body = PyLong_AsVoidPtr(args[1]);
+    double C[5];
+    if (PyErr_Occurred() || get_doubles(args[5], C, 5, "static constants") < 0)
+        return NULL;
+    PyObject *lists[3] = {NULL, NULL, NULL};
+    const char *what[3] = {"walls", "boxes", "cylinders"};
+    Py_ssize_t total = 0;
+    for (int j = 0; j < 3; j++) {
+        lists[j] = PySequence_Fast(args[2 + j], what[j]);
+        if (lists[j] == NULL)
+            goto fail_lists;
+        total += PySequence_Fast_GET_SIZE(lists[j]);
+    }
+    StaticShapes *ss = PyMem_Malloc(sizeof(StaticShapes) + (size_t)(total ? total : 1) * sizeof(void *));
+    if (ss == NULL) {
+        PyErr_NoMemory();
+        goto fail_lists;
+    }
+    ss->n = 0;
+    PyObject *cap = PyCapsule_New(ss, "mkv_env.static_shapes", static_free);
+    if (cap == NULL) {
+        PyMem_Free(ss);
+        goto fail_lists;
+    }
+    const double wr = C[0];
+    for (int j = 0; j < 3; j++) {
+        for (Py_ssize_t k = 0; k < PySequence_Fast_GET_SIZE(lists[j]); k++) {
+            PyObject *item = PySequence_Fast_GET_ITEM(lists[j], k);
+            double v[5];
+            void *shape;
+            if (j == 0) { /* pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M) */
+                if (tuple_doubles(item, v, 4) < 0)
+                    goto fail_cap;
+                cpVect a = {v[0], v[1]}, b = {v[2], v[3]};
+                shape = cp_seg_new(body, a, b, wr);
+            } else if (j == 1) { /* pymunk.Poly(sb, verts, transform=translation.rotated) */
+                if (tuple_doubles(item, v, 5) < 0)
+                    goto fail_cap;
+                double cx = v[0], cy = v[1], w = v[2], h = v[3], ang = v[4];
+                /* Transform(tx=cx, ty=cy) @ Transform.rotation(ang), pymunk's arithmetic */
+                double c = cos(ang), s = sin(ang), ms = -s;
+                cpXform t = {1.0 * c + 0.0 * s + cx * 0, 0.0 * c + 1.0 * s + cy * 0,
+                             1.0 * ms + 0.0 * c + cx * 0, 0.0 * ms + 1.0 * c + cy * 0,
+                             1.0 * 0.0 + 0.0 * 0.0 + cx * 1, 0.0 * 0.0 + 1.0 * 0.0 + cy * 1};
+                cpVect verts[4] = {{-w / 2, -h / 2}, {w / 2, -h / 2}, {w / 2, h / 2},
+                                   {-w / 2, h / 2}};
+                shape = cp_poly_new(body, 4, verts, t, 0.0);
+            } else { /* pymunk.Circle(sb, r, (cx, cy)) */
+                if (tuple_doubles(item, v, 3) < 0)
+                    goto fail_cap;
+                cpVect off = {v[0], v[1]};
+                shape = cp_circle_new(body, v[2], off);
+            }
+            if (shape == NULL) {
+                PyErr_NoMemory();
+                goto fail_cap;
+            }
+            ss->shapes[ss->n++] = shape;
+        }
+    }
+    for (Py_ssize_t k = 0; k < ss->n; k++) {
+        cp_shape_set_type(ss->shapes[k], (uintptr_t)C[3]);
+        cp_shape_set_friction(ss->shapes[k], C[1]);
+        cp_shape_set_elasticity(ss->shapes[k], C[2]);
+    }
+    for (Py_ssize_t k = 0; k < ss->n; k++) {
+        cp_space_add_shape(space, ss->shapes[k]);
+        if (C[4] >= 0)
+            cp_shape_set_hashid(ss->shapes[k], (uintptr_t)C[4] + (uintptr_t)k);
+    }
+    for (int j = 0; j < 3; j++)
+        Py_DECREF(lists[j]);
+    return cap;
+fail_cap:
+    Py_DECREF(cap); /* frees the shapes made so far (none is in the space yet) */
+fail_lists:
+    for (int j = 0; j < 3; j++)
+        Py_XDECREF(lists[j]);
+    return NULL;
+}
+
+/* static_release(capsule) -> list of the shapes' addresses; the capsule no longer owns them
+ * (mkv_env.kernel.adopt_static hands them to pymunk, which frees them from then on). */
+static PyObject *fs_static_release(PyObject *self, PyObject *cap)
+{
+    StaticShapes *ss = PyCapsule_GetPointer(cap, "mkv_env.static_shapes");
+    if (ss == NULL)
+        return NULL;
+    PyObject *out = PyList_New(ss->n);
+    if (out == NULL)
+        return NULL;
+    for (Py_ssize_t k = 0; k < ss->n; k++) {
+        PyObject *p = PyLong_FromVoidPtr(ss->shapes[k]);
+        if (p == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyList_SET_ITEM(out, k, p);
+    }
+    ss->n = 0;
+    return out;
+}
+
+typedef struct { void *body; int hit; } overlap_data;
+
+static void overlap_cb(void *shape, void *points, void *data)
+{
+    overlap_data *d = data;
+    if (cp_shape_get_body(shape) != d->body)
+        d->hit = 1;
+}
+
+/* overlaps(space, body, shapes) -> bool: World.robot_overlaps (any of ``shapes`` intersects a
+ * shape of another body), without pymunk's query wrappers. */
+static PyObject *fs_overlaps(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "overlaps() takes 3 arguments");
+        return NULL;
+    }
+    void *space = PyLong_AsVoidPtr(args[0]);
+    overlap_data d = {PyLong_AsVoidPtr(args[1]), 0};
+    PyObject *f = PySequence_Fast(args[2], "shapes must be a sequence");
+    if (f == NULL)
+        return NULL;
+    for (Py_ssize_t k = 0; k < PySequence_Fast_GET_SIZE(f) && !d.hit; k++) {
+        void *shape = PyLong_AsVoidPtr(PySequence_Fast_GET_ITEM(f, k));
+        if (shape == NULL)
+            break;
+        cp_space_shape_query(space, shape, overlap_cb, &d);
+    }
+    Py_DECREF(f);
+    if (PyErr_Occurred())
+        return NULL;
+    return PyBool_FromLong(d.hit);
+}
+
 static PyMethodDef methods[] = {
     {"bind", (PyCFunction)(void (*)(void))fs_bind, METH_FASTCALL,
      "bind(get_v, get_w, get_a, set_f, set_t, step, hypot): Chipmunk entry points."},
@@ -2020,6 +2269,14 @@ static PyMethodDef methods[] = {
     {"drive_until_jammed", (PyCFunction)(void (*)(void))fs_drive_until_jammed, METH_FASTCALL,
      "drive_until_jammed(K, body, space, state, mu, patches, steer, dt, substeps, limit, "
      "jam_steps, max_steps, counts) -> (jammed, mu): MKVJam's start search in C."},
+    {"bind_shapes", (PyCFunction)(void (*)(void))fs_bind_shapes, METH_FASTCALL,
+     "bind_shapes(13 Chipmunk function addresses) for add_static and overlaps."},
+    {"add_static", (PyCFunction)(void (*)(void))fs_add_static, METH_FASTCALL,
+     "add_static(space, body, walls, boxes, cylinders, consts) -> capsule owning the shapes."},
+    {"static_release", (PyCFunction)fs_static_release, METH_O,
+     "static_release(capsule) -> the shapes' addresses, no longer owned by the capsule."},
+    {"overlaps", (PyCFunction)(void (*)(void))fs_overlaps, METH_FASTCALL,
+     "overlaps(space, body, shapes) -> True if a shape touches another body's."},
     {"generate_layout", (PyCFunction)(void (*)(void))fs_generate_layout, METH_FASTCALL,
      "generate_layout(bitgen, W, H, n_clutter, n_patches, patch_scale, reserved, consts): "
      "mkv_env.world.generate_layout's draws and geometry in C."},

@@ -6,7 +6,8 @@ and the wheel/motor substeps with Chipmunk (:meth:`mkv_env.robot.Robot.advance`)
 (:meth:`mkv_env.sensors.SensorSuite.read`: noise rows, quantisation, clipping), the pose and the
 tracker (:meth:`mkv_env.tracker.MotionTracker.update`, the free-clearance query included), the
 reward and termination of the env's class and the numbers that go into ``info``. Contacts are
-counted by C collision callbacks on the World's own count array (:func:`install_contacts`).
+counted by C collision callbacks on the World's own count array, and a kernel world's obstacles
+are raw Chipmunk shapes (:mod:`mkv_env._chipmunk`).
 
 The Python code stays the reference (``gym.make(id, kernel="python")``). The C copy performs the
 same IEEE operations in the same order (``math.hypot`` is CPython's ``vector_norm``, copied; float
@@ -30,16 +31,16 @@ import array
 
 import numpy as np
 
+from mkv_env import _chipmunk
 from mkv_env import robot as _robot
 from mkv_env.params import SENSOR_NAMES
-from mkv_env.robot import BUMP_FL, BUMP_FR, BUMP_REAR, CHASSIS, OBSTACLE
 
 _fastsim = _robot._fastsim
 _ffi, _cp = _robot._ffi, _robot._cp
 
 #: True when the compiled step kernel can run (built extension and pymunk's cffi layer, and its
 #: copy of ``math.hypot`` matches this interpreter's: :func:`_pick_hypot`).
-AVAILABLE = _fastsim is not None and _cp is not None and hasattr(_fastsim, "Batch")
+AVAILABLE = _chipmunk.AVAILABLE and hasattr(_fastsim, "Batch")
 
 
 def _hypot_probes() -> list[tuple[float, float]]:
@@ -72,10 +73,6 @@ if AVAILABLE:
     AVAILABLE = _pick_hypot()
 
 if AVAILABLE:
-    _BEGIN, _SEPARATE = _fastsim.bind_kernel(*(
-        int(_ffi.cast("uintptr_t", _ffi.addressof(_cp, name))) for name in (
-            "cpBodyGetPosition", "cpSpacePointQueryNearest", "cpArbiterGetShapes",
-            "cpShapeGetCollisionType")))
     N_VALUES, N_PARAMS, NOISE_ROWS = _fastsim.N_VALUES, _fastsim.N_PARAMS, _fastsim.NOISE_ROWS
 
 #: The env classes' reward/termination rules, as the kernel numbers them.
@@ -120,7 +117,7 @@ class Outputs(dict):
             "i": np.zeros((len(_BLOCK_ROWS["i"]), n), dtype=np.int64),
         }
         where = {k: (blk, r) for blk, rows in _BLOCK_ROWS.items() for r, k in enumerate(rows)}
-        for name, dt, w in OUTPUTS:
+        for name, dt, _ in OUTPUTS:
             if name in ("obs", "pose"):
                 arr = self.blocks[name]
             else:
@@ -175,23 +172,6 @@ def params(env) -> array.array:
 def sensor_constants(sensors) -> np.ndarray:
     """(inv_q, q, low, high) of every channel, one float64 vector."""
     return np.concatenate([sensors._inv_q, sensors._q, sensors.low, sensors.high])
-
-
-def install_contacts(world) -> None:
-    """Count ``world``'s robot-obstacle contacts with the kernel's C callbacks: the same counts
-    as :func:`mkv_env.world._on_begin`/``_on_separate``, in the same array ``world.contacts``,
-    but Chipmunk never calls back into Python while stepping. The handlers are pymunk's (made by
-    :func:`mkv_env.world.count_contacts`, whose data keeps the counts alive as long as the space:
-    Chipmunk still calls "separate" while a dying space removes its shapes); only their function
-    pointers are swapped. A pickled world gets its C callbacks back in World.__setstate__."""
-    addr = world.contacts.buffer_info()[0]
-    begin = _ffi.cast("cpCollisionBeginFunc", _BEGIN)
-    separate = _ffi.cast("cpCollisionSeparateFunc", _SEPARATE)
-    data = _ffi.cast("void *", addr)
-    handlers = world.space._handlers
-    for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
-        h = handlers[(ctype, OBSTACLE)]._handler
-        h.beginFunc, h.separateFunc, h.userData = begin, separate, data
 
 
 # ---------------------------------------------------------------------- arena layouts

@@ -42,8 +42,9 @@ from gymnasium.vector.utils import batch_space
 from mkv_env import kernel as _kernel
 from mkv_env import robot as _robot
 from mkv_env.actions import ACTION_NVEC, OFF
-from mkv_env.envs import (TRAIL_DROP_POINTS as _TRAIL_DROP, TRAIL_MAX_POINTS as _TRAIL_MAX,
-                          MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1)
+from mkv_env.envs import TRAIL_DROP_POINTS as _TRAIL_DROP
+from mkv_env.envs import TRAIL_MAX_POINTS as _TRAIL_MAX
+from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
 
 _MODES = {m.value: m for m in AutoresetMode}
 _VALID = frozenset(range(ACTION_NVEC[0]))  # values of an action's entries (both take 0, 1, 2)
@@ -348,7 +349,7 @@ class MKVVectorEnv(VectorEnv):
             info = dict(cols)
         else:
             info = {k: _masked(v, mask) for k, v in cols.items()}
-        info.update(zip(map(_MASK_KEY.__getitem__, cols), masks))
+        info.update(zip(map(_MASK_KEY.__getitem__, cols), masks, strict=True))
         return info
 
     def _trails(self, active) -> None:

@@ -15,8 +15,19 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymunk
 
+from mkv_env import _chipmunk
 from mkv_env.params import RobotParams
-from mkv_env.robot import BUMP_FL, BUMP_FR, BUMP_REAR, CHASSIS, OBSTACLE, ROBOT_FILTER, Robot
+from mkv_env.robot import (
+    BUMP_FL,
+    BUMP_FR,
+    BUMP_REAR,
+    CHASSIS,
+    OBSTACLE,
+    ROBOT_FILTER,
+    Robot,
+    _cp,
+    _ffi,
+)
 
 WALL_RADIUS_M = 0.04
 """Half thickness of arena walls and wall pieces [m]; far above the <1 cm a substep moves."""
@@ -254,25 +265,32 @@ class World:
         self.space = space = pymunk.Space()
         space.iterations = iterations
         space.damping = SPACE_DAMPING
-        add_obstacles(space, layout)
-        #: True when contacts are counted by the compiled kernel's C callbacks
-        #: (:func:`mkv_env.kernel.install_contacts`) rather than Python ones: same counts.
+        #: True for the compiled step kernel's worlds: obstacles are raw Chipmunk shapes
+        #: (:func:`mkv_env.kernel.add_static`) and contacts are counted by C callbacks
+        #: (:func:`mkv_env.kernel.install_contacts`); the same shapes and counts as pymunk's.
         self.fast_contacts = bool(fast_contacts)
+        self._static = None
+        if fast_contacts:
+            self._static = _chipmunk.add_static(self, WALL_RADIUS_M, OBSTACLE_FRICTION,
+                                                OBSTACLE_ELASTICITY)
+        else:
+            add_obstacles(space, layout)
         self.contacts = count_contacts(space)
         if fast_contacts:
-            from mkv_env.kernel import install_contacts
-
-            install_contacts(self)
+            _chipmunk.install_contacts(self)
         self.robot = Robot(space, robot_params, pose[:2], pose[2])
         if robot_kernel is not None:
             self.robot.kernel = robot_kernel
 
+    def __getstate__(self):
+        if self._static is not None:  # raw obstacle shapes: pymunk takes them over to pickle
+            _chipmunk.adopt_static(self)
+        return self.__dict__.copy()
+
     def __setstate__(self, state):
         self.__dict__.update(state)
         if state.get("fast_contacts"):  # pymunk restored its Python callbacks: C ones again
-            from mkv_env.kernel import install_contacts
-
-            install_contacts(self)
+            _chipmunk.install_contacts(self)
 
     # ------------------------------------------------------------------ stepping
     def step(self, drive_cmd: int, steer_cmd: int, period_s: float, substeps: int) -> None:
@@ -298,10 +316,15 @@ class World:
     # ------------------------------------------------------------------ queries
     def is_clear(self, x: float, y: float, radius: float = ROBOT_CLEARANCE_M) -> bool:
         """True when no obstacle lies within ``radius`` of (x, y) (robot shapes ignored)."""
+        if _cp is not None:  # Chipmunk's own query (pymunk's wraps the same call)
+            return _cp.cpSpacePointQueryNearest(self.space._space, (x, y), radius, ROBOT_FILTER,
+                                                _ffi.NULL) == _ffi.NULL
         return self.space.point_query_nearest((x, y), radius, ROBOT_FILTER) is None
 
     def robot_overlaps(self) -> bool:
         """True when any robot shape intersects an obstacle (used to validate start poses)."""
+        if self.fast_contacts:
+            return _chipmunk.overlaps(self)
         for shape in self.robot.shapes:
             for info in self.space.shape_query(shape):
                 if info.shape.body is not self.robot.body:
