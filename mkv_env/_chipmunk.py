@@ -79,11 +79,14 @@ def adopt_static(world) -> None:
     space, sb, lay = world.space, world.space.static_body, world.layout
     kinds = ([pymunk.Segment] * len(lay.walls) + [pymunk.Poly] * len(lay.boxes)
              + [pymunk.Circle] * len(lay.cylinders))
+    others = list(space._shapes)  # the robot's: after the obstacles, as add_obstacles has it
+    space._shapes.clear()
     for cls, ptr in zip(kinds, _fastsim.static_release(world._static), strict=True):
         shape = cls.__new__(cls)
         shape._init(sb, _ffi.cast("cpShape *", ptr))  # pymunk's own wrapper setup (owns it)
         shape._space = weakref.ref(space)
         space._shapes[shape] = None
+    space._shapes.update(dict.fromkeys(others))
     world._static = None
 
 
