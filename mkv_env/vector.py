@@ -122,6 +122,9 @@ class MKVVectorEnv(VectorEnv):
         self._dt = self._period / self._substeps
         self.num_threads = 1
         self._batch = None
+        if self.kernel != "c" and num_threads != 1:
+            raise ValueError("num_threads > 1 needs the compiled step kernel (kernel='c'); the "
+                             "Python reference steps its robots one by one")
         if self.kernel == "c":  # one kernel for every robot: env i is its slot i
             self._batch, self._out = _kernel.new_batch(first, n, int(num_threads))
             self.num_threads = self._batch.num_threads

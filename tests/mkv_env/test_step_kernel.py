@@ -313,3 +313,9 @@ def test_kernel_worlds_survive_many_resets_pickles_and_collections():
             del env, clone
             if k % 4 == 0:
                 gc.collect()
+
+
+def test_threads_without_the_compiled_kernel_are_refused():
+    with pytest.raises(ValueError, match="num_threads > 1 needs the compiled step kernel"):
+        gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                     kernel="python", num_threads=2)
