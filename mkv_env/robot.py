@@ -117,19 +117,21 @@ class Robot:
         self.body.position = position
         self.body.angle = heading
         chassis = pymunk.Poly(self.body, [(-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw)], radius=0.0)
-        chassis.collision_type = CHASSIS
         g, r = p.bumper_gap_m, 0.008
         front, rear = hl + g, -hl - g
         fl = pymunk.Segment(self.body, (front, 0.0), (front - 0.03, hw), r)
         fr = pymunk.Segment(self.body, (front, 0.0), (front - 0.03, -hw), r)
         rb = pymunk.Segment(self.body, (rear, -hw * 0.8), (rear, hw * 0.8), r)
-        for shape, ctype in ((fl, BUMP_FL), (fr, BUMP_FR), (rb, BUMP_REAR)):
-            shape.collision_type = ctype
         self.shapes = (chassis, fl, fr, rb)
-        for s in self.shapes:
-            s.friction = p.chassis_friction
-            s.elasticity = 0.0
-            s.filter = ROBOT_FILTER
+        for s, ctype in zip(self.shapes, (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR), strict=True):
+            if _cp is not None:  # the calls pymunk's property setters make, without their wrappers
+                _cp.cpShapeSetCollisionType(s._shape, ctype)
+                _cp.cpShapeSetFriction(s._shape, p.chassis_friction)
+                _cp.cpShapeSetElasticity(s._shape, 0.0)
+                _cp.cpShapeSetFilter(s._shape, ROBOT_FILTER)
+            else:  # pragma: no cover - pymunk builds without cffi
+                s.collision_type, s.friction, s.elasticity = ctype, p.chassis_friction, 0.0
+                s.filter = ROBOT_FILTER
         space.add(self.body, *self.shapes)
         self._state = WheelState()
         #: Called before :attr:`state` is read when another owner (the compiled step kernel of
