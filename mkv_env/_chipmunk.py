@@ -37,17 +37,18 @@ if AVAILABLE:
 def install_contacts(world) -> None:
     """Count ``world``'s robot-obstacle contacts with the kernel's C callbacks: the same counts
     as :func:`mkv_env.world._on_begin`/``_on_separate``, in the same array ``world.contacts``,
-    but Chipmunk never calls back into Python while stepping. The handlers are pymunk's (made by
-    :func:`mkv_env.world.count_contacts`, whose data keeps the counts alive as long as the space:
-    Chipmunk still calls "separate" while a dying space removes its shapes); only their function
-    pointers are swapped. A pickled world gets its C callbacks back in World.__setstate__."""
-    addr = world.contacts.buffer_info()[0]
+    but Chipmunk never calls back into Python while stepping. The handlers are registered with
+    Chipmunk directly; the counts array is kept by the pymunk space itself, because Chipmunk
+    still calls "separate" while a dying space removes its shapes (the space's C object is freed
+    before its other attributes). A pickled world gets all this again in World.__setstate__."""
+    counts = world.contacts
     begin = _ffi.cast("cpCollisionBeginFunc", _BEGIN)
     separate = _ffi.cast("cpCollisionSeparateFunc", _SEPARATE)
-    data = _ffi.cast("void *", addr)
-    handlers = world.space._handlers
+    data = _ffi.cast("void *", counts.buffer_info()[0])
+    space = world.space
+    space._mkv_contact_counts = counts  # lives as long as the space (see above)
     for ctype in (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR):
-        h = handlers[(ctype, OBSTACLE)]._handler
+        h = _cp.cpSpaceAddCollisionHandler(space._space, ctype, OBSTACLE)
         h.beginFunc, h.separateFunc, h.userData = begin, separate, data
 
 

@@ -266,18 +266,18 @@ class World:
         space.iterations = iterations
         space.damping = SPACE_DAMPING
         #: True for the compiled step kernel's worlds: obstacles are raw Chipmunk shapes
-        #: (:func:`mkv_env.kernel.add_static`) and contacts are counted by C callbacks
-        #: (:func:`mkv_env.kernel.install_contacts`); the same shapes and counts as pymunk's.
+        #: (:func:`mkv_env._chipmunk.add_static`) and contacts are counted by C callbacks
+        #: (:func:`mkv_env._chipmunk.install_contacts`); the same shapes and counts as pymunk's.
         self.fast_contacts = bool(fast_contacts)
         self._static = None
         if fast_contacts:
             self._static = _chipmunk.add_static(self, WALL_RADIUS_M, OBSTACLE_FRICTION,
                                                 OBSTACLE_ELASTICITY)
+            self.contacts = array.array("q", bytes(40))
+            _chipmunk.install_contacts(self)
         else:
             add_obstacles(space, layout)
-        self.contacts = count_contacts(space)
-        if fast_contacts:
-            _chipmunk.install_contacts(self)
+            self.contacts = count_contacts(space)
         self.robot = Robot(space, robot_params, pose[:2], pose[2])
         if robot_kernel is not None:
             self.robot.kernel = robot_kernel
@@ -289,7 +289,7 @@ class World:
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        if state.get("fast_contacts"):  # pymunk restored its Python callbacks: C ones again
+        if state.get("fast_contacts"):  # Chipmunk-level handlers are not pickled by pymunk
             _chipmunk.install_contacts(self)
 
     # ------------------------------------------------------------------ stepping
