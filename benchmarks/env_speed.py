@@ -79,6 +79,27 @@ def physics_steps_per_second(env_id: str, steps: int, num_envs: int) -> float:
     return acts.shape[0] * num_envs / seconds
 
 
+def kernel_steps_per_second(env_id: str, steps: int, num_envs: int, threads: int) -> float:
+    """Robot-steps/s of the step kernel's call alone (no autoreset, no Python bookkeeping) with
+    ``threads`` threads: how the compiled part scales, whatever the Python around it costs."""
+    envs = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
+                        num_threads=threads)
+    envs.reset(seed=0)
+    v = envs.unwrapped
+    batch, sub = v._batch, v.envs
+    acts = _actions(steps, num_envs)
+    t0 = time.perf_counter()
+    for a in acts:
+        need = batch.step(a, None)
+        while need is not None:
+            for i in need:
+                batch.set_noise(i, sub[i]._sensors.draw_block())
+            need = batch.step(a, None)
+    seconds = time.perf_counter() - t0
+    envs.close()
+    return acts.shape[0] * num_envs / seconds
+
+
 def vector_split(num_envs: int, steps: int, env_id: str = "MKV-v0") -> dict[str, float]:
     """Microseconds per robot-step of the native vector env (one thread, random actions, resets
     included) in its parts: the kernel call (physics + sensing, tracking, scoring, info
@@ -182,9 +203,10 @@ def main(argv=None) -> None:
     ref = "MKV-v0 kernel='python'"
     vec1, vec2 = f"MKV-v0 native vector x{n}", f"MKV-v0 native vector x{n}, 2 threads"
     phys, sync = f"MKV-v0 physics alone x{n}", f"MKV-v0 sync vector x{n}"
+    k1, k2 = f"MKV-v0 kernel call alone x{n}", f"MKV-v0 kernel call alone x{n}, 2 threads"
     rows: dict[str, list[float]] = {k: [] for k in (
         "LunarLander-v3", "MKV-v0", "MKVJam-v0", "MKV-v1", "MKVJam-v1",
-        ref, vec1, vec2, phys, sync)}
+        ref, vec1, vec2, phys, k1, k2, sync)}
     for _ in range(args.rounds):  # alternate so background load hits all alike
         rows["LunarLander-v3"].append(single_steps_per_second("LunarLander-v3", s))
         rows["MKV-v0"].append(single_steps_per_second("MKV-v0", s))
@@ -197,11 +219,13 @@ def main(argv=None) -> None:
         rows[vec2].append(vector_steps_per_second("MKV-v0", s, n, "vector_entry_point",
                                                   num_threads=2))
         rows[phys].append(physics_steps_per_second("MKV-v0", s, n))
+        rows[k1].append(kernel_steps_per_second("MKV-v0", s, n, 1))
+        rows[k2].append(kernel_steps_per_second("MKV-v0", s, n, 2))
         rows[sync].append(vector_steps_per_second("MKV-v0", s // 2, n, "sync"))
     med = {k: statistics.median(v) for k, v in rows.items()}
-    print(f"{'env':<38}{'steps/s (median)':>18}   all rounds")
+    print(f"{'env':<44}{'steps/s (median)':>18}   all rounds")
     for k, v in rows.items():
-        print(f"{k:<38}{med[k]:>18,.0f}   {'  '.join(f'{x:,.0f}' for x in v)}")
+        print(f"{k:<44}{med[k]:>18,.0f}   {'  '.join(f'{x:,.0f}' for x in v)}")
     ll, single = med["LunarLander-v3"], med["MKV-v0"]
     per_robot, floor = 1e6 / med[vec1], 1e6 / med[phys]
     r_single, r_vec = single / ll, med[vec1] / ll
@@ -216,6 +240,8 @@ def main(argv=None) -> None:
           f"{floor:.2f} us = {r_floor:.2f}   (target <= 1.5: {_verdict(r_floor <= 1.5)})")
     print(f"  2 threads / 1 thread, native vector x{n}     = {r_threads:5.2f}   "
           f"(target >= 1.7: {_verdict(r_threads >= 1.7)})")
+    print(f"    (the kernel call alone, 2 threads / 1      = {med[k2] / med[k1]:5.2f}: the rest "
+          "is Python, serial)")
     print(f"  MKVJam-v0 time per step / MKV-v0's          = {r_jam:5.2f}   "
           f"(target <= 1.3: {_verdict(r_jam <= 1.3)})")
     print(f"  MKV-v1 / LunarLander-v3                     = {med['MKV-v1'] / ll:5.2f}")

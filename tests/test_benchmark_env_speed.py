@@ -26,6 +26,7 @@ def test_env_speed_prints_every_ratio_and_split(env_speed, capsys):
     out = capsys.readouterr().out
     for section in ("MKV-v0 / LunarLander-v3", "native vector x2 / LunarLander-v3",
                     "time per robot-step / physics alone", "2 threads / 1 thread",
+                    "the kernel call alone, 2 threads",
                     "MKVJam-v0 time per step / MKV-v0's", "compiled kernel / Python reference",
                     "native vector x2, one thread, us per robot-step",
                     "where an MKV-v0 step's time goes"):
