@@ -15,32 +15,54 @@ Observations are passed to the model as the env gives them, except:
 * a zip written by ``mkv train-ppo`` (it carries ``mkv_meta.json``) gets the observation rescaling
   it was trained with (Gymnasium's ``RescaleObservation``), so ``sb3:PPO:ppo.zip`` and
   ``ppo:ppo.zip`` act the same;
-* rl-zoo3's observation normalisation: a ``vecnormalize.pkl`` beside the zip, in a folder named
-  after the zip (rl-zoo3's ``<run>/<env>.zip`` + ``<run>/<env>/vecnormalize.pkl``), or in the only
-  subfolder of the zip's folder that has one, is applied with its saved statistics (frozen).
+* rl-zoo3's observation normalisation: a ``vecnormalize.pkl`` beside the zip or in a folder named
+  after the zip (rl-zoo3's ``<run>/<env>.zip`` + ``<run>/<env>/vecnormalize.pkl``), and nowhere
+  else, is applied with its saved statistics (frozen).
 
 Other rl-zoo3 wrappers (frame stacking, custom env wrappers) are not reproduced.
 
 The returned policy has SB3's ``predict`` and passes ``state`` and ``episode_start`` through, so a
 recurrent model (RecurrentPPO) keeps its memory across the steps of an episode: the episode
-runners hand back the ``state`` it returns. Loading a zip unpickles parts of it (as
-``ALGO.load`` does): only load files you trust.
+runners hand back the ``state`` it returns.
+
+Trust: nothing in the zip or the ``vecnormalize.pkl`` runs as code. SB3 keeps some of a model's
+settings as cloudpickle payloads (``:serialized:`` entries of the zip's ``data`` JSON); every one
+is replaced before SB3 sees it (``custom_objects``): the spaces by the env's own (after checking
+the zip's readable shape and type against them), the policy class by the algorithm's
+``MlpPolicy`` class, ``policy_kwargs`` rebuilt from their readable JSON through allowlists
+(``net_arch``, activation functions of ``torch.nn``, ...), schedules by constants and training
+state by nothing. Weights are read with ``torch.load(weights_only=True)``. ``vecnormalize.pkl`` is
+read by a restricted unpickler that admits only numpy arrays, Gymnasium spaces and SB3's
+``VecNormalize``/``RunningMeanStd``. A zip that cannot be read this way (a custom policy class,
+unknown ``policy_kwargs``) is refused in one line; ``mkv ... --trust-pickle`` (the environment
+variable ``MKV_TRUST_PICKLE=1``) loads it the way ``ALGO.load`` does, unpickling included, for
+files you trust as you would a Python script.
 """
 
 from __future__ import annotations
 
-import glob
 import importlib
 import json
 import os
 import pickle
+import re
 import zipfile
 
 import numpy as np
 
 from mkv_env.policies import PolicySpecError
 
-__all__ = ["ALGORITHMS", "SB3Model", "load_spec", "find_vecnormalize"]
+__all__ = ["ALGORITHMS", "SB3Model", "TRUST_ENV", "check_spec", "find_vecnormalize",
+           "load_spec", "trusted"]
+
+#: Environment variable that lets sb3: specs unpickle (set by ``--trust-pickle``; inherited by
+#: evaluation workers).
+TRUST_ENV = "MKV_TRUST_PICKLE"
+
+
+def trusted() -> bool:
+    """True when the user allowed unpickling (``--trust-pickle`` / ``MKV_TRUST_PICKLE=1``)."""
+    return os.environ.get(TRUST_ENV, "") == "1"
 
 #: Algorithm name (lower case) -> (module, class).
 ALGORITHMS = {
@@ -91,20 +113,58 @@ class SB3Model:
 
 
 def find_vecnormalize(path: str) -> str | None:
-    """rl-zoo3's ``vecnormalize.pkl`` for a model zip at ``path``, or None (see module doc)."""
+    """rl-zoo3's ``vecnormalize.pkl`` for a model zip at ``path``: in rl-zoo3's own layout
+    (``<folder>/<zip stem>/vecnormalize.pkl``) or beside the zip, as a regular file; else None."""
     folder = os.path.dirname(os.path.abspath(path))
     stem = os.path.splitext(os.path.basename(path))[0]
     for candidate in (os.path.join(folder, stem, "vecnormalize.pkl"),
                       os.path.join(folder, "vecnormalize.pkl")):
         if os.path.isfile(candidate):
             return candidate
-    found = sorted(glob.glob(os.path.join(folder, "*", "vecnormalize.pkl")))
-    return found[0] if len(found) == 1 else None
+    return None
+
+
+#: What a vecnormalize.pkl may name: numpy arrays and scalars, Gymnasium spaces, SB3's own
+#: normalisation classes. Anything else (a payload's os.system, builtins.eval, ...) is refused.
+_PICKLE_ALLOWED = {
+    ("stable_baselines3.common.vec_env.vec_normalize", "VecNormalize"),
+    ("stable_baselines3.common.running_mean_std", "RunningMeanStd"),
+    ("gymnasium.spaces.box", "Box"), ("gymnasium.spaces.discrete", "Discrete"),
+    ("gymnasium.spaces.multi_discrete", "MultiDiscrete"),
+    ("gymnasium.spaces.multi_binary", "MultiBinary"), ("gymnasium.spaces.dict", "Dict"),
+    ("gymnasium.spaces.tuple", "Tuple"), ("collections", "OrderedDict"),
+    ("numpy", "dtype"), ("numpy", "ndarray"),
+    ("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "scalar"), ("numpy.core.multiarray", "scalar"),
+    ("numpy.random._pickle", "__generator_ctor"), ("numpy.random._pickle", "__bit_generator_ctor"),
+    ("numpy.random._pickle", "__randomstate_ctor"),
+    ("numpy.random._pcg64", "PCG64"), ("numpy.random._mt19937", "MT19937"),
+    ("numpy.random.bit_generator", "SeedSequence"),
+    ("numpy.random.bit_generator", "__pyx_unpickle_SeedSequence"),
+}
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    def find_class(self, module, name):
+        if (module, name) not in _PICKLE_ALLOWED:
+            raise pickle.UnpicklingError(f"it names {module}.{name}, which is not a numpy "
+                                         "array, a space or SB3's VecNormalize")
+        return super().find_class(module, name)
+
+
+def _read_vecnormalize(pkl: str):
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    with open(pkl, "rb") as f:
+        stats = pickle.load(f) if trusted() else _RestrictedUnpickler(f).load()
+    if not isinstance(stats, VecNormalize):
+        raise PolicySpecError(f"{pkl}: holds a {type(stats).__name__}, not SB3's VecNormalize "
+                              "statistics")
+    return stats
 
 
 def _vecnormalize_transform(pkl: str):
-    with open(pkl, "rb") as f:
-        stats = pickle.load(f)
+    stats = _read_vecnormalize(pkl)
     if not getattr(stats, "norm_obs", False):
         return None
     return lambda obs: stats.normalize_obs(np.asarray(obs, dtype=np.float32))
@@ -124,6 +184,191 @@ def _mkv_transform(path: str):
     return observation_transform(meta, len(meta.get("sensor_names", [])))
 
 
+# ---------------------------------------------------------------------- reading a zip safely
+def _zip_data(path: str, algo: str) -> dict:
+    """The zip's ``data`` member as JSON (read as text: nothing unpickled)."""
+    why = None
+    try:
+        with zipfile.ZipFile(path) as zf:
+            data = json.loads(zf.read("data"))
+        if not isinstance(data, dict):
+            why = "its 'data' member is not a JSON object"
+    except KeyError:
+        why = "no 'data' member"
+    except zipfile.BadZipFile:
+        why = "not a zip file"
+    except (OSError, ValueError, RecursionError) as e:
+        why = f"unreadable 'data' member: {type(e).__name__}"
+    if why is not None:
+        raise PolicySpecError(f"{path}: cannot load it as a {algo} zip ({why})")
+    return data
+
+
+def _serialized(item) -> bool:
+    return isinstance(item, dict) and ":serialized:" in item
+
+
+#: Keys that tell which algorithm saved a zip (all must be in its data), and keys it must not have.
+_ALGO_SIGNS = {
+    "PPO": ({"clip_range", "n_epochs"}, {"cg_max_steps"}),
+    "RecurrentPPO": ({"clip_range", "n_epochs"}, {"cg_max_steps"}),
+    "A2C": ({"n_steps", "vf_coef"}, {"clip_range", "n_epochs", "cg_max_steps"}),
+    "TRPO": ({"cg_max_steps", "n_critic_updates"}, set()),
+    "DQN": ({"exploration_fraction", "target_update_interval"}, set()),
+    "QRDQN": ({"exploration_fraction", "target_update_interval"}, set()),
+    "SAC": ({"target_entropy", "tau"}, set()),
+    "TD3": ({"policy_delay", "target_policy_noise"}, set()),
+    "DDPG": ({"policy_delay", "target_policy_noise"}, set()),
+    "ARS": ({"n_delta", "n_top"}, set()),
+}
+
+
+def _saved_by(data: dict) -> str | None:
+    """The algorithm that wrote ``data`` (None if it matches none)."""
+    module = data.get("policy_class", {})
+    module = module.get("__module__", "") if isinstance(module, dict) else ""
+    for name, (need, never) in _ALGO_SIGNS.items():
+        if need <= data.keys() and not never & data.keys():
+            if name in ("PPO", "RecurrentPPO"):
+                return "RecurrentPPO" if "recurrent" in module else "PPO"
+            if name in ("DQN", "QRDQN"):
+                return "QRDQN" if "qrdqn" in module else "DQN"
+            return name
+    return None
+
+
+def _check_algorithm(data: dict, cls, path: str) -> None:
+    saved = _saved_by(data)
+    want = cls.__name__
+    same = saved == want or {saved, want} == {"TD3", "DDPG"}
+    if saved is not None and not same:
+        raise PolicySpecError(f"{path} was saved by {saved}, not {want}: use sb3:{saved}:{path}")
+
+
+_ACTIVATIONS = ("Tanh", "ReLU", "ELU", "LeakyReLU", "GELU", "SiLU", "Sigmoid", "SELU", "Mish",
+                "Softplus", "Hardtanh", "Identity")
+_OPTIMIZERS = ("Adam", "AdamW", "RMSprop", "SGD")
+_CLASS_RE = re.compile(r"^<class '([A-Za-z0-9_.]+)'>$")
+# policy_kwargs entries that are plain JSON values
+_PLAIN_KWARGS = {"net_arch", "ortho_init", "log_std_init", "squash_output", "use_expln",
+                 "full_std", "share_features_extractor", "normalize_images", "lstm_hidden_size",
+                 "n_lstm_layers", "shared_lstm", "enable_critic_lstm", "n_critics",
+                 "optimizer_kwargs", "features_extractor_kwargs", "lstm_kwargs", "n_quantiles",
+                 "dueling", "use_sde", "clip_mean", "with_bias"}
+
+
+def _class_named(text, module_prefix: str, allowed: tuple[str, ...]):
+    """The class that SB3 wrote as ``"<class 'torch.nn.modules.activation.Tanh'>"``, if it is in
+    ``allowed`` and under ``module_prefix``; else None."""
+    m = _CLASS_RE.match(text) if isinstance(text, str) else None
+    if m is None:
+        return None
+    module, _, name = m.group(1).rpartition(".")
+    if name not in allowed or not module.startswith(module_prefix):
+        return None
+    return getattr(importlib.import_module(module), name, None)
+
+
+def _policy_kwargs(item, path: str) -> dict:
+    """``policy_kwargs`` rebuilt from the readable part of its JSON (allowlisted keys only)."""
+    out = {}
+    for key, value in item.items():
+        if key in (":type:", ":serialized:"):
+            continue
+        if key in _PLAIN_KWARGS:
+            out[key] = value
+        elif key == "activation_fn":
+            cls = _class_named(value, "torch.nn", _ACTIVATIONS)
+            if cls is None:
+                raise PolicySpecError(f"{path}: policy_kwargs activation_fn {value!r} is not a "
+                                      "torch.nn activation this loader knows (--trust-pickle to "
+                                      "unpickle it)")
+            out[key] = cls
+        elif key == "optimizer_class":
+            cls = _class_named(value, "torch.optim", _OPTIMIZERS)
+            if cls is None:
+                raise PolicySpecError(f"{path}: policy_kwargs optimizer_class {value!r} is not "
+                                      "one this loader knows (--trust-pickle to unpickle it)")
+            out[key] = cls
+        elif key == "features_extractor_class":
+            cls = _class_named(value, "stable_baselines3.common.torch_layers",
+                               ("FlattenExtractor",))
+            if cls is None:
+                raise PolicySpecError(f"{path}: policy_kwargs features_extractor_class {value!r} "
+                                      "is custom code (--trust-pickle to unpickle it)")
+            out[key] = cls
+        else:
+            raise PolicySpecError(f"{path}: policy_kwargs has {key!r}, which this loader does "
+                                  "not rebuild without unpickling (--trust-pickle to allow it)")
+    return out
+
+
+def _space_matches(item, space) -> bool:
+    """Does the readable part of a serialized space (its type and shape) describe ``space``?"""
+    if not isinstance(item, dict):
+        return False
+    if not str(item.get(":type:", "")).endswith(f".{type(space).__name__}'>"):
+        return False
+    shape = item.get("_shape")
+    if shape is not None and tuple(shape) != tuple(space.shape or ()):
+        return False
+    nvec = item.get("nvec")
+    return nvec is None or hasattr(space, "nvec") and nvec == str(space.nvec)
+
+
+_METHOD_RE = re.compile(r"^<function ([A-Za-z_][A-Za-z0-9_]*)\.")
+
+
+def _policy_class(item, cls, path: str):
+    """The algorithm's own policy class that the zip names (by module and by the class name in
+    its methods' readable names); never unpickled. A custom class is refused."""
+    module = item.get("__module__") if isinstance(item, dict) else None
+    names = {m.group(1) for v in (item.values() if isinstance(item, dict) else ())
+             if isinstance(v, str) and (m := _METHOD_RE.match(v))}
+    for policy in dict.fromkeys(cls.policy_aliases.values()):
+        if policy.__module__ == module and (not names or policy.__name__ in names):
+            return policy
+    raise PolicySpecError(f"{path}: its policy class ({module}: {', '.join(sorted(names)) or '?'})"
+                          f" is not one of {cls.__name__}'s own (--trust-pickle to unpickle it)")
+
+
+def _safe_custom_objects(data: dict, cls, env, path: str) -> dict:
+    """``custom_objects`` for :meth:`cls.load` that replace every ``:serialized:`` entry of the
+    zip's data, so nothing is unpickled (see the module doc)."""
+    name = os.path.basename(path)
+    out = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
+    for key in ("action_space", "observation_space"):  # checked first, actions first
+        item = data.get(key)
+        if not _serialized(item):
+            continue
+        if env is None:
+            raise PolicySpecError(f"{path}: loading an SB3 zip without unpickling needs the env "
+                                  "(its spaces replace the zip's)")
+        space = getattr(env, key)
+        if not _space_matches(item, space):
+            kind = str(item.get(":type:", "?")).rpartition(".")[2].rstrip("'>")
+            shape = tuple(item.get("_shape") or ())
+            if key == "action_space":
+                raise PolicySpecError(f"{name} ({cls.__name__}) acts in a {kind} of shape {shape}"
+                                      f" {item.get('nvec', '')} but the env's action space is "
+                                      f"{space}")
+            raise PolicySpecError(f"{name} ({cls.__name__}) expects observations of shape "
+                                  f"{shape} ({kind}) but the env gives {space.shape}")
+        out[key] = space
+    for key, item in data.items():
+        if not _serialized(item) or key in out:
+            continue
+        if key == "policy_class":
+            out[key] = _policy_class(item, cls, path)
+        elif key == "policy_kwargs":
+            out[key] = _policy_kwargs(item, path)
+        elif key in ("clip_range_vf",):
+            out[key] = lambda _: 0.0
+        else:  # training state (buffers' classes, last observations, noise): not needed to act
+            out[key] = None
+    return out
+
+
 def _algorithm(name: str):
     key = name.strip().lower().replace("-", "").replace("_", "")
     if key not in ALGORITHMS:
@@ -137,8 +382,8 @@ def _algorithm(name: str):
         raise PolicySpecError(f"sb3:{cls} needs {extra} (pip install {extra})") from None
 
 
-def load_spec(arg: str, env, seed):
-    """``sb3:ALGO:PATH`` -> :class:`SB3Model`."""
+def check_spec(arg: str):
+    """Validate ``ALGO:PATH`` without reading the file: (algorithm class, path)."""
     algo, sep, path = arg.partition(":")
     path = path.strip()
     if not sep or not algo.strip() or not path:
@@ -149,11 +394,25 @@ def load_spec(arg: str, env, seed):
         raise PolicySpecError(f"{path}: no such file")
     if os.path.isdir(path):
         raise PolicySpecError(f"{path} is a directory, not a model zip")
+    if not os.path.isfile(path):
+        raise PolicySpecError(f"{path} is not a regular file")
+    return cls, path
+
+
+def load_spec(arg: str, env, seed):
+    """``sb3:ALGO:PATH`` -> :class:`SB3Model` (nothing unpickled unless :func:`trusted`)."""
+    cls, path = check_spec(arg)
     from sfm_learn.baselines.sb3 import import_torch
 
     import_torch()
+    if trusted():
+        custom = _CUSTOM_OBJECTS
+    else:
+        data = _zip_data(path, cls.__name__)
+        _check_algorithm(data, cls, path)
+        custom = _safe_custom_objects(data, cls, env, path)
     try:
-        model = cls.load(path, device="cpu", custom_objects=_CUSTOM_OBJECTS)
+        model = cls.load(path, device="cpu", custom_objects=custom)
     except Exception as e:  # a corrupt or foreign file: one line
         reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise PolicySpecError(f"{path}: cannot load it as a {cls.__name__} zip ({reason})") \
@@ -165,6 +424,11 @@ def load_spec(arg: str, env, seed):
     if transform is None and pkl is not None:
         try:
             transform = _vecnormalize_transform(pkl)
+        except PolicySpecError:
+            raise
+        except pickle.UnpicklingError as e:
+            raise PolicySpecError(f"{pkl}: refused: {e} (--trust-pickle to unpickle it anyway)") \
+                from None
         except Exception as e:
             raise PolicySpecError(f"{pkl}: cannot read the normalisation statistics "
                                   f"({type(e).__name__})") from None

@@ -59,12 +59,77 @@ def add_quiet_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+#: Help text of the policy specs every --policy accepts.
+POLICY_HELP = ("teacher, teacher:key=value,..., random, const:NAME, script:PATH, sfm:PATH, "
+               "ppo:PATH, bc:PATH, dagger:PATH, sb3:ALGO:PATH (any Stable-Baselines3 / rl-zoo3 "
+               "zip, read without unpickling anything; --trust-pickle for zips that need it)")
+
+#: What --trust-pickle prints when used.
+TRUST_WARNING = ("warning: --trust-pickle: sb3: zips and vecnormalize.pkl files are unpickled, "
+                 "which can run any code they carry; use it only on files you trust as you "
+                 "would a Python script")
+
+
+def add_trust_argument(p: argparse.ArgumentParser) -> None:
+    """``--trust-pickle``: let ``sb3:`` specs unpickle (documented in docs/trust.md)."""
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="let sb3: specs unpickle the zip's serialized settings and a "
+                        "vecnormalize.pkl (runs code from the files: only for files you trust)")
+
+
+def apply_trust(args) -> None:
+    """Honour ``--trust-pickle`` (for this process and its workers), with a warning."""
+    import sys
+
+    from sfm_learn.baselines.sb3_models import TRUST_ENV
+
+    if getattr(args, "trust_pickle", False):
+        os.environ[TRUST_ENV] = "1"
+    if os.environ.get(TRUST_ENV, "") == "1":
+        print(TRUST_WARNING, file=sys.stderr)
+
+
+def check_spec_files(specs) -> None:
+    """Every spec's syntax and file (exists, is a regular file), and for ``sb3:`` its algorithm,
+    before any file is read (CliError naming the bad spec)."""
+    from mkv_env.policies import PolicySpecError, known_prefixes, make_policy
+
+    for spec in specs:
+        prefix, _, arg = spec.strip().partition(":")
+        try:
+            if prefix not in known_prefixes():  # make_policy's own message
+                raise PolicySpecError(
+                    f"unknown policy spec {spec!r}; known: "
+                    + ", ".join(p + {"teacher": "", "random": "", "const": ":NAME"}.get(p, ":PATH")
+                                for p in known_prefixes()))
+            if prefix == "sb3":
+                from sfm_learn.baselines.sb3_models import check_spec
+
+                check_spec(arg)
+                continue
+        except PolicySpecError as e:
+            text = one_line(e)
+            raise CliError(text if spec in text else f"--policy {spec}: {text}") from None
+        path = spec_path(spec)
+        if path is None or prefix == "teacher" or os.path.isfile(path):
+            continue
+        if not os.path.exists(path) or os.path.isdir(path):
+            try:  # the loader's own message (it refuses before reading anything)
+                make_policy(spec, None, seed=0)
+            except PolicySpecError as e:
+                text = one_line(e)
+                raise CliError(text if spec in text else f"--policy {spec}: {text}") from None
+            raise CliError(f"--policy {spec}: {path}: no such file")
+        raise CliError(f"--policy {spec}: {path} is not a regular file")
+
+
 def check_env_and_policies(env_id: str, env_kwargs: dict, specs=()) -> None:
     """Fail fast (CliError) on an unknown env id, bad env kwargs or a bad policy spec; with
-    several specs, the bad one is named."""
+    several specs, the bad one is named. Every spec's file is checked before any is read."""
     from mkv_env.policies import PolicySpecError, make_policy
     from mkv_env.recorder import make_env
 
+    check_spec_files(specs)
     try:
         env = make_env(env_id, env_kwargs)
     except ValueError as e:

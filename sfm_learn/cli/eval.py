@@ -21,9 +21,12 @@ import os
 
 from sfm_common.files import atomic_write_text
 from sfm_learn.cli.common import (
+    POLICY_HELP,
     CliError,
     add_env_arguments,
     add_quiet_argument,
+    add_trust_argument,
+    apply_trust,
     check_env_and_policies,
     check_output_path,
     check_outputs,
@@ -52,8 +55,7 @@ def _workers(text: str) -> int:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument("--policy", required=True, action="append", metavar="SPEC",
-                   help="teacher, teacher:key=value,..., random, script:PATH, sfm:PATH, "
-                        "ppo:PATH, bc:PATH; repeat to compare several on the same seeds "
+                   help=POLICY_HELP + "; repeat to compare several on the same seeds "
                         "(each spec at most once)")
     p.add_argument("--episodes", type=episodes_type, required=True, metavar="N",
                    help="episodes per policy")
@@ -73,6 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", metavar="OUT.png",
                    help="also write a bar plot of every metric (needs matplotlib)")
     add_quiet_argument(p)
+    add_trust_argument(p)
 
 
 def _check_plot(path: str) -> None:
@@ -89,6 +92,7 @@ def _check_plot(path: str) -> None:
 
 
 def run(args) -> int:
+    apply_trust(args)
     from sfm_learn.evaluation import evaluate_many, evaluations_json
     from sfm_learn.reporting.tables import format_markdown
 

@@ -14,8 +14,11 @@ import os
 
 from sfm_common.files import atomic_path
 from sfm_learn.cli.common import (
+    POLICY_HELP,
     CliError,
     add_env_arguments,
+    add_trust_argument,
+    apply_trust,
     check_env_and_policies,
     check_output_path,
     positive_int,
@@ -25,16 +28,18 @@ from sfm_learn.cli.common import (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p)
-    p.add_argument("--policy", required=True, metavar="SPEC")
+    p.add_argument("--policy", required=True, metavar="SPEC", help=POLICY_HELP)
     p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
                    help="stop after N steps (default: the episode's own end)")
     p.add_argument("--out", metavar="DIR|OUT.gif",
                    help="write frames (PNG files in DIR, or one animated GIF) instead of a "
                         "window; the default without a display is play_frames/")
+    add_trust_argument(p)
 
 
 def run(args) -> int:
+    apply_trust(args)
     from mkv_env.policies import make_policy
     from mkv_env.recorder import make_env, policy_seed
     from mkv_env.teleop import has_display

@@ -10,8 +10,11 @@ from __future__ import annotations
 import argparse
 
 from sfm_learn.cli.common import (
+    POLICY_HELP,
     add_env_arguments,
     add_quiet_argument,
+    add_trust_argument,
+    apply_trust,
     check_env_and_policies,
     check_output_path,
     check_outputs,
@@ -25,15 +28,17 @@ from sfm_learn.cli.common import (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument("--policy", required=True, metavar="SPEC",
-                   help="teacher, teacher:key=value,..., random, script:PATH, sfm:PATH, ...")
+                   help=POLICY_HELP)
     p.add_argument("--episodes", type=episodes_type, required=True, metavar="N")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
                    help="episode i uses env seed S+i (default 0)")
     p.add_argument("--out", required=True, metavar="DATA.npz")
     add_quiet_argument(p)
+    add_trust_argument(p)
 
 
 def run(args) -> int:
+    apply_trust(args)
     from mkv_env.dataset import save
     from mkv_env.recorder import record, summarize
 
