@@ -111,8 +111,10 @@ def run(args) -> int:
         _check_plot(args.plot)
         check_writable(args.plot, "plot")
     check_env_and_policies(args.env, args.env_kwargs, specs)
-    if args.address and args.backend != "ray":
+    if args.address is not None and args.backend != "ray":
         raise CliError("--address is for --backend ray")
+    if args.address is not None and not args.address.strip():
+        raise CliError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
     if args.backend == "ray":
         from sfm_learn.evaluation.ray_eval import init_ray
 

@@ -18,7 +18,14 @@ import argparse
 import json
 import os
 
-from sfm_learn.cli.common import CliError, add_quiet_argument, int_in_range, one_line
+from sfm_learn.cli.common import (
+    CliError,
+    add_quiet_argument,
+    check_outputs,
+    check_png_path,
+    int_in_range,
+    one_line,
+)
 
 workers_type = int_in_range(1, 256)
 
@@ -54,7 +61,16 @@ def _summary(d: str, plot: str | None) -> int:
         envs = list(spec["env"])
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise CliError(f"{spec_path} is damaged: {one_line(e)}") from None
-    agg = aggregate(read_rows(d))
+    if plot is not None:  # never onto the sweep's own files or the user's spec
+        check_png_path(plot, "--plot")
+        inputs = [spec_path] + [os.path.join(d, sub, n) for sub in ("rows", "data", "policies")
+                                if os.path.isdir(os.path.join(d, sub))
+                                for n in os.listdir(os.path.join(d, sub))]
+        check_outputs(inputs, [plot])
+    damaged: list = []
+    agg = aggregate(read_rows(d, damaged))
+    for name, why in damaged:
+        print(f"damaged row {name}: {why} (left out; a resumed sweep runs its job again)")
     metrics = [("escape_rate", "MKVJam"), ("distance_m", "MKV-"), ("stuck_fraction", "MKV-"),
                ("mean_return", "")]
     panels = []
@@ -86,7 +102,18 @@ def run(args) -> int:
         return _summary(args.summary, args.plot)
     if not args.spec or not args.out:
         raise CliError("give SPEC and --out DIR (or --summary DIR)")
-    from sfm_learn.experiments.sweep import check_envs, load_spec, pending, plan, run_sweep
+    if args.address is not None and args.backend != "ray":
+        raise CliError("--address needs --backend ray")
+    if args.address is not None and not args.address.strip():
+        raise CliError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
+    from sfm_learn.experiments.sweep import (
+        check_envs,
+        load_spec,
+        pending,
+        plan,
+        read_rows,
+        run_sweep,
+    )
 
     try:
         spec = load_spec(args.spec)
@@ -106,6 +133,10 @@ def run(args) -> int:
             raise CliError(f"{args.out} holds a sweep of another spec; use a new --out")
     from sfm_learn.cli.common import progress_for
 
+    damaged: list = []
+    read_rows(args.out, damaged)
+    for name, why in damaged:
+        print(f"damaged row {name}: {why} (its job runs again)")
     n_jobs = len(plan(spec))
     with progress_for(args, n_jobs, f"sweep {spec['name']}", unit="job") as bar:
         bar.update(n_jobs - len(pending(spec, args.out)))   # finished in an earlier run

@@ -40,6 +40,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -79,9 +80,19 @@ def row_name(learner: str, seed: int, budget: int) -> str:
 
 
 # ---------------------------------------------------------------------- spec
+MAX_SPEC_BYTES = 1_000_000
+"""A sweep spec is a page of settings: larger files are refused before they are parsed."""
+
+
 def load_spec(path: str) -> dict:
     """Read and check a spec file (JSON, or YAML when the name ends in .yml/.yaml)."""
     path = os.fspath(path)
+    if not os.path.exists(path):
+        raise SpecError(f"cannot read sweep spec {path}: no such file")
+    if not os.path.isfile(path):  # a FIFO or a device would block or never end
+        raise SpecError(f"sweep spec {path} is not a regular file")
+    if os.path.getsize(path) > MAX_SPEC_BYTES:
+        raise SpecError(f"sweep spec {path} is larger than {MAX_SPEC_BYTES:,} bytes")
     try:
         with open(path, encoding="utf-8") as f:
             text = f.read()
@@ -89,21 +100,24 @@ def load_spec(path: str) -> dict:
         raise SpecError(f"cannot read sweep spec {path}: {e.strerror}") from None
     except UnicodeDecodeError:
         raise SpecError(f"sweep spec {path} is not UTF-8 text") from None
-    if path.endswith((".yml", ".yaml")):
-        try:
-            import yaml
-        except ImportError:
-            raise SpecError("a YAML sweep spec needs PyYAML: pip install pyyaml") from None
-        try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise SpecError(f"sweep spec {path} is not valid YAML: "
-                            f"{str(e).splitlines()[0]}") from None
-    else:
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise SpecError(f"sweep spec {path} is not valid JSON: {e}") from None
+    try:
+        if path.endswith((".yml", ".yaml")):
+            try:
+                import yaml
+            except ImportError:
+                raise SpecError("a YAML sweep spec needs PyYAML: pip install pyyaml") from None
+            try:
+                doc = yaml.safe_load(text)
+            except yaml.YAMLError as e:
+                raise SpecError(f"sweep spec {path} is not valid YAML: "
+                                f"{str(e).splitlines()[0]}") from None
+        else:
+            try:
+                doc = json.loads(text)
+            except json.JSONDecodeError as e:
+                raise SpecError(f"sweep spec {path} is not valid JSON: {e}") from None
+    except RecursionError:
+        raise SpecError(f"sweep spec {path} is nested too deeply") from None
     spec = check_spec(doc)
     # a PPO learner's hyperparameter file is named relative to the spec file
     for lr in spec["learners"].values():
@@ -114,13 +128,23 @@ def load_spec(path: str) -> dict:
     return spec
 
 
+#: Learner names: rows are named after them (no path parts, no hidden files, no "__").
+LEARNER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
+MKV_IDS = ("MKV-v0", "MKVJam-v0", "MKV-v1", "MKVJam-v1")
+
+
+def _is_int(v) -> bool:
+    """A whole finite number (JSON/YAML may give 3.0; never inf, nan or a bool)."""
+    return (not isinstance(v, bool) and isinstance(v, (int, float))
+            and (isinstance(v, int) or (math.isfinite(v) and v == int(v))))
+
+
 def _int_list(value, what, lo=0, hi=10**12) -> list[int]:
     if not isinstance(value, list) or not value:
         raise SpecError(f"{what} must be a non-empty list of integers")
     out = []
     for v in value:
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) \
-                or not lo <= int(v) <= hi:
+        if not _is_int(v) or not lo <= int(v) <= hi:
             raise SpecError(f"{what} must hold integers in [{lo}, {hi}], got {v!r}")
         out.append(int(v))
     if len(set(out)) != len(out):
@@ -132,6 +156,9 @@ def _env_list(value, what) -> list[str]:
     envs = [value] if isinstance(value, str) else value
     if not isinstance(envs, list) or not envs or not all(isinstance(e, str) and e for e in envs):
         raise SpecError(f"{what} must be an env id or a non-empty list of env ids")
+    for e in envs:
+        if e not in MKV_IDS:
+            raise SpecError(f"{what}: {e!r} is not an MK-V env id ({', '.join(MKV_IDS)})")
     return list(envs)
 
 
@@ -146,9 +173,12 @@ def check_spec(doc) -> dict:
     for key in ("env", "learners", "seeds", "budgets"):
         if key not in doc:
             raise SpecError(f"sweep spec lacks {key!r}")
-    spec = {"name": str(doc.get("name", "sweep")), "env": _env_list(doc["env"], "env")}
-    spec["teacher_env"] = doc.get("teacher_env", spec["env"][0])
-    if not isinstance(spec["teacher_env"], str):
+    name = doc.get("name", "sweep")
+    if not isinstance(name, (str, int)) or isinstance(name, bool) or len(str(name)) > 200:
+        raise SpecError("name must be a short string")
+    spec = {"name": str(name), "env": _env_list(doc["env"], "env")}
+    spec["teacher_env"] = _env_list(doc.get("teacher_env", spec["env"][0]), "teacher_env")[0]
+    if not isinstance(doc.get("teacher_env", ""), str):
         raise SpecError("teacher_env must be an env id")
     ev = doc.get("eval", {})
     if not isinstance(ev, dict) or set(ev) - {"episodes", "seed"}:
@@ -165,8 +195,11 @@ def check_spec(doc) -> dict:
     learners = {}
     for name, opts in doc["learners"].items():
         opts = dict(opts or {}) if isinstance(opts, dict) or opts is None else None
-        if opts is None or not isinstance(name, str) or "__" in name or "/" in name:
-            raise SpecError(f"learner {name!r}: options must be a mapping, names without / or __")
+        if not isinstance(name, str) or not LEARNER_NAME.fullmatch(name) or "__" in name:
+            raise SpecError(f"learner {name!r}: names are letters, digits, '-' and '_' "
+                            "(starting with a letter or digit, no '__')")
+        if opts is None:
+            raise SpecError(f"learner {name!r}: options must be a mapping")
         kind = opts.pop("kind", name.split("-")[0])
         if kind not in KINDS:
             raise SpecError(f"learner {name!r}: unknown kind {kind!r}; known: {', '.join(KINDS)}")
@@ -175,8 +208,22 @@ def check_spec(doc) -> dict:
         if set(opts) - allowed:
             raise SpecError(f"learner {name!r} ({kind}): unknown option(s) "
                             f"{sorted(set(opts) - allowed)}; known: {sorted(allowed)}")
-        if "hyperparams" in opts and not isinstance(opts["hyperparams"], str):
+        if "hyperparams" in opts and not (isinstance(opts["hyperparams"], str)
+                                          and opts["hyperparams"]):
             raise SpecError(f"learner {name!r}: hyperparams must be a file name")
+        for key, hi in (("epochs", 100_000), ("rounds", 1_000)):
+            if key in opts and not (_is_int(opts[key]) and 1 <= opts[key] <= hi):
+                raise SpecError(f"learner {name!r}: {key} must be an integer in [1, {hi}], "
+                                f"got {opts[key]!r}")
+            if key in opts:
+                opts[key] = int(opts[key])
+        if "preset" in opts and opts["preset"] not in ("default", "paper"):
+            raise SpecError(f"learner {name!r}: preset must be 'default' or 'paper', "
+                            f"got {opts['preset']!r}")
+        if "env" in opts:
+            if not isinstance(opts["env"], str):
+                raise SpecError(f"learner {name!r}: env must be one env id")
+            opts["env"] = _env_list(opts["env"], f"{name}.env")[0]
         if "eval_env" in opts:
             opts["eval_env"] = _env_list(opts["eval_env"], f"{name}.eval_env")
         if kind == "ppo":
@@ -342,22 +389,56 @@ def write_row(out_dir: str, name: str, row: dict) -> None:
                       json.dumps(row, indent=1, sort_keys=True, allow_nan=False) + "\n")
 
 
-def read_rows(out_dir: str) -> list[dict]:
-    """Every row in ``out_dir/rows`` (unreadable files, and the hidden temporary files of a write
-    that a kill interrupted, are skipped)."""
+def row_problem(row) -> str | None:
+    """Why a row cannot be used (None for a good one): the fields the summary and resume read."""
+    if not isinstance(row, dict):
+        return "not a JSON object"
+    if not isinstance(row.get("learner"), str) or not _is_int(row.get("seed")) \
+            or not _is_int(row.get("budget")):
+        return "no learner, seed or budget"
+    if row.get("status") == "ok":
+        m = row.get("metrics")
+        if not isinstance(m, dict) or not all(
+                isinstance(v, dict) and all(x is None or (isinstance(x, (int, float))
+                                                         and not isinstance(x, bool)
+                                                         and math.isfinite(x))
+                                            for x in v.values())
+                for v in m.values()):
+            return "status ok without a mapping of finite metrics"
+        if "steps" in row and not _is_int(row["steps"]):
+            return "steps is not an integer"
+    elif row.get("status") != "error":
+        return f"status {row.get('status')!r} is neither 'ok' nor 'error'"
+    return None
+
+
+def read_rows(out_dir: str, damaged: list | None = None) -> list[dict]:
+    """Every usable row in ``out_dir/rows``. Rows that cannot be read or used are left out and,
+    when ``damaged`` is a list, reported in it as ``(file name, reason)``; the hidden temporary
+    files of a write that a kill interrupted are skipped silently."""
     d = os.path.join(out_dir, "rows")
     rows = []
     for name in sorted(os.listdir(d)) if os.path.isdir(d) else []:
         if not name.endswith(".json") or name.startswith("."):
             continue
-        try:
-            with open(os.path.join(d, name), encoding="utf-8") as f:
-                row = json.load(f)
-        except (OSError, ValueError):
+        path = os.path.join(d, name)
+        why = None
+        if not os.path.isfile(path):
+            why = "not a regular file"
+        else:
+            try:
+                with open(path, encoding="utf-8") as f:
+                    row = json.load(f)
+            except (OSError, ValueError, RecursionError) as e:
+                why = f"unreadable ({type(e).__name__})"
+            else:
+                why = row_problem(row)
+        if why is not None:
+            if damaged is not None:
+                damaged.append((name, why))
             continue
-        if isinstance(row, dict):
-            row["_file"] = name
-            rows.append(row)
+        row["_file"] = name
+        rows.append(row)
     return rows
 
 

@@ -16,8 +16,8 @@ SPEC = {
     "env": ["MKVJam-v1"],
     "eval": {"episodes": 2, "seed": 4_200_000},
     "seeds": [0, 1],
-    "learners": {"sfm": {}, "sfm-bad": {"preset": "no-such-preset"}},
-    "budgets": {"sfm": [200, 300], "sfm-bad": [200]},
+    "learners": {"sfm": {}, "dagger-bad": {"rounds": 50}},
+    "budgets": {"sfm": [200, 300], "dagger-bad": [50]},
 }
 VOLATILE = ("wall_s", "train_s", "policy", "_file")
 
@@ -61,7 +61,7 @@ def test_sweep_on_ray_gives_the_local_rows_and_reports_the_failing_job(tmp_path)
     rows = sweep.read_rows(str(on_ray))
     assert stable(rows) == stable(sweep.read_rows(str(local)))
     bad = [r for r in rows if r["status"] == "error"]
-    assert len(bad) == 2 and all("no-such-preset" in r["error"] for r in bad)
+    assert len(bad) == 2 and all("per round" in r["error"] for r in bad)
 
 
 def test_interrupted_ray_sweep_resumes_to_the_same_rows(tmp_path):

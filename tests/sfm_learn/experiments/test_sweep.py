@@ -73,16 +73,16 @@ def test_interrupted_sweep_resumes_to_the_same_rows(full, tmp_path):
 
 
 def test_failing_job_is_reported_and_the_others_finish(tmp_path, capsys):
-    spec = dict(SPEC, learners={"sfm": {}, "sfm-bad": {"preset": "no-such-preset"}},
-                budgets={"sfm": [200], "sfm-bad": [200]})
+    spec = dict(SPEC, learners={"sfm": {}, "dagger-bad": {"rounds": 50}},
+                budgets={"sfm": [200], "dagger-bad": [50]})
     d = tmp_path / "out"
     code = main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"])
     out, err = capsys.readouterr()
     assert code == 1
     assert "4 jobs: 0 already done, 2 ran, 2 failed" in out
     rows = {r["_file"]: r for r in sweep.read_rows(str(d))}
-    bad = rows[sweep.row_name("sfm-bad", 0, 200)]
-    assert bad["status"] == "error" and "no-such-preset" in bad["error"]
+    bad = rows[sweep.row_name("dagger-bad", 0, 50)]
+    assert bad["status"] == "error" and "per round" in bad["error"]
     assert rows[sweep.row_name("sfm", 1, 200)]["status"] == "ok"
     # a rerun retries only the failed jobs
     assert main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"]) == 1
