@@ -127,10 +127,14 @@ _PROGRESS_INTERVAL_S = 0.1
 _progress_queue = None  # set in each worker process by _init_worker
 
 
-def _init_worker(progress_queue) -> None:
+def _init_worker(progress_queue, main_pid: int | None = None) -> None:
     """Runs once in every worker process."""
     global _progress_queue
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
+    if main_pid is not None:
+        from sfm_common.workers import die_with
+
+        die_with(main_pid)  # a kill -9 of the main process ends us too
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")  # one process per core; no thread oversubscription
     _progress_queue = progress_queue
@@ -217,7 +221,8 @@ def _run_parallel(env_id, env_kwargs, specs, seed, units, workers, start_method,
             reported[0] += len(done)
 
     pool = futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                       initializer=_init_worker, initargs=(progress_q,))
+                                       initializer=_init_worker,
+                                       initargs=(progress_q, os.getpid()))
     results: dict[int, list[EpisodeRecord]] = {}
     try:
         pending = {pool.submit(_worker_unit, uid, env_id, env_kwargs, specs[p], seed,
