@@ -132,6 +132,9 @@ def _fit(args) -> str:
     from .sfm import fit_sfm
 
     _check_outputs([args.raw, args.known], args.out)
+    if args.known_samples is not None and args.method != "joint":
+        raise CalibrationError("--known-samples is for --method joint (it weights the known "
+                               "loads of the joint fit)")
     if args.chunk_rows:
         if args.bootstrap:
             raise CalibrationError("--chunk-rows is not supported with --bootstrap")

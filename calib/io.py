@@ -67,14 +67,29 @@ def _read_header(f, path: str) -> tuple[list[str], int]:
     skipped = 0  # physical lines up to and including the header
     for header_line in f:
         skipped += 1
-        if header_line.strip(" \t\r\n,"):
+        if header_line.strip(" \t\r\n"):  # blank lines before the header are skipped
             break
     else:
         raise CalibrationError(f"{path} is empty")
-    header = [h.strip() for h in next(csv.reader([header_line]))]
+    # a byte-order mark is not part of a name (the file's first one is gone with utf-8-sig)
+    header = [h.strip().strip("\ufeff").strip() for h in next(csv.reader([header_line]))]
+    if not header or any(not h for h in header):
+        raise CalibrationError(f"{path}: the header (line {skipped}) has empty column names; "
+                               "the first line must name every column")
+    if all(_is_number(h) for h in header):
+        raise CalibrationError(f"{path}: the first line ({header_line.strip()[:40]}) is numbers, "
+                               "not a header; the first line must name every column")
     if len(set(header)) != len(header):
         raise CalibrationError(f"{path}: duplicate column names in header")
     return header, skipped
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 class CSVSource(ChunkSource):
