@@ -63,8 +63,23 @@ def _minari():
     return minari
 
 
+MAX_ID_SEGMENTS = 8
+"""Namespace levels plus the name: Minari's own ids use two or three."""
+_VERSIONED = re.compile(r".*-v(?:0|[1-9][0-9]*)")
+
+
 def check_dataset_id(dataset_id) -> str:
-    """``dataset_id`` if it has the form NAMESPACE/NAME-vVERSION, else :class:`MinariError`."""
+    """``dataset_id`` if it has the form NAMESPACE/NAME-vVERSION, else :class:`MinariError`. A
+    namespace level may not itself look like a dataset (``mkv/teacher-v0/inner-v0`` would be
+    written inside dataset ``mkv/teacher-v0``'s folder, where Minari never looks)."""
+    if isinstance(dataset_id, str) and (len(dataset_id) > 300
+                                        or dataset_id.count("/") >= MAX_ID_SEGMENTS):
+        raise MinariError(f"bad Minari dataset id: at most {MAX_ID_SEGMENTS} levels and 300 "
+                          "characters")
+    if isinstance(dataset_id, str) and any(_VERSIONED.fullmatch(seg)
+                                           for seg in dataset_id.split("/")[:-1]):
+        raise MinariError(f"bad Minari dataset id {dataset_id!r}: a namespace level ends in "
+                          "-vN like a dataset name (a dataset inside another dataset's folder)")
     m = _ID.fullmatch(dataset_id) if isinstance(dataset_id, str) else None
     if m is None or len(m["ns"]) < 2:
         raise MinariError(f"bad Minari dataset id {dataset_id!r}: use NAMESPACE/NAME-vVERSION "
@@ -230,8 +245,13 @@ def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
             if key in episodes[0].infos:
                 arrays[key] = np.concatenate(
                     [np.asarray(ep.infos[key]) for ep in episodes]).astype(schema[key][0])
-        return ds.build(arrays, meta)
+        data = ds.build(arrays, meta)
     except (TypeError, ValueError, KeyError) as e:  # DatasetError is a ValueError
         text = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise MinariError(f"Minari dataset {dataset_id} does not hold a valid mkv dataset: "
                           f"{text}") from None
+    recorded = meta.get("content_sha256")
+    if recorded != data.metadata["content_sha256"]:  # verified, never recomputed to fit
+        raise MinariError(f"Minari dataset {dataset_id}: its arrays do not match the checksum "
+                          "recorded at export (content_sha256): the store was altered")
+    return data

@@ -197,3 +197,27 @@ def test_without_the_extra_the_error_says_how_to_install(store, monkeypatch):
         with pytest.raises(MinariError, match=r"needs the minari extra \(pip install "
                                               r"'mkv-sfm\[minari\]'\)"):
             call()
+
+
+def test_a_tampered_store_is_refused_not_rechecksummed(store):
+    """import verifies the content_sha256 recorded at export; it never recomputes it to fit."""
+    import h5py
+
+    data = record("MKV-v0", "teacher", 2, seed=0, env_kwargs={"max_episode_steps": 30})
+    export_minari(data, "mkv/tamper-v0")
+    files = [os.path.join(d, f) for d, _, fs in os.walk(store / "mkv" / "tamper-v0")
+             for f in fs if f.endswith(".hdf5")]
+    assert files
+    with h5py.File(files[0], "r+") as f:
+        rewards = f["episode_0"]["rewards"]
+        rewards[0] = rewards[0] + 1.0  # a plausible value: only the checksum can tell
+    with pytest.raises(MinariError, match="do not match the checksum"):
+        import_minari("mkv/tamper-v0")
+
+
+@pytest.mark.parametrize("bad", ["mkv/teacher-v0/inner-v0", "a/b-v3/c/name-v0",
+                                 "/".join(["ns"] * 2000) + "/name-v0", "x" * 400 + "/n-v0"])
+def test_nested_and_huge_ids_are_refused_in_one_line(bad):
+    with pytest.raises(MinariError) as e:
+        check_dataset_id(bad)
+    assert "\n" not in str(e.value)
