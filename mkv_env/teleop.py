@@ -174,7 +174,21 @@ def record_keyboard(env_id: str, episodes: int, seed: int = 0, env_kwargs: dict 
     from mkv_env.recorder import EpisodeRecorder, make_env, recording_metadata
 
     env = make_env(env_id, env_kwargs, render_mode="rgb_array")
-    pygame.display.init()
+    try:
+        pygame.display.init()
+    except pygame.error as e:
+        env.close()
+        raise TeleopError(f"mkv teleop cannot open a display ({str(e).strip() or 'SDL error'}); "
+                          "use a command script (script:PATH) for keyboard-less teleop") from None
+    driver = pygame.display.get_driver()
+    if driver in ("offscreen", "dummy") and os.environ.get("SDL_VIDEODRIVER") != driver:
+        # DISPLAY set, but no server answered: SDL fell back on its own
+        pygame.display.quit()
+        env.close()
+        where = os.environ.get("WAYLAND_DISPLAY") or os.environ.get("DISPLAY") or "?"
+        raise TeleopError(f"mkv teleop cannot open the display {where!r} (SDL fell back to its "
+                          f"{driver} driver: no keyboard, nothing shown); use a command script "
+                          "(script:PATH) for keyboard-less teleop")
     try:
         env.reset(seed=int(seed))
         first = env.render()

@@ -2,6 +2,7 @@
 recording loop (driven by scripted key events) and the one-line refusal without a display."""
 
 import os
+import subprocess
 import sys
 
 import gymnasium as gym
@@ -163,3 +164,20 @@ def test_teleop_refuses_headless_in_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "needs a display" in err
     assert "script:" in err and not os.path.exists(tmp_path / "run.npz")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="X11 DISPLAY semantics")
+def test_teleop_refuses_a_display_with_no_server_behind_it(tmp_path):
+    """DISPLAY set to a display nobody serves: SDL falls back to its offscreen driver, which
+    would record no-op steps labelled human:keyboard; teleop refuses instead (exit 2)."""
+    pytest.importorskip("pygame")
+    env = {k: v for k, v in os.environ.items() if k not in ("SDL_VIDEODRIVER", "WAYLAND_DISPLAY")}
+    env["DISPLAY"] = ":93"  # no X server here (CI has none at all)
+    out = tmp_path / "run.npz"
+    code = ("import sys; from sfm_learn.cli import main; "
+            f"sys.exit(main(['teleop', '--out', {str(out)!r}]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert "cannot open" in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists()
