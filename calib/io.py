@@ -251,6 +251,8 @@ def save_calibration(path: str, cal: Calibration, channels=None) -> None:
 
 
 def load_calibration(path: str) -> tuple[Calibration, list[str] | None]:
+    if os.path.exists(path) and not os.path.isfile(path):  # a FIFO or device would block
+        raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
     try:
         with open(path) as f:
             d = json.load(f)
@@ -260,6 +262,8 @@ def load_calibration(path: str) -> tuple[Calibration, list[str] | None]:
         raise CalibrationError(f"{path} is not valid JSON (line {e.lineno})") from None
     except (UnicodeDecodeError, ValueError):
         raise CalibrationError(f"{path} is not a text JSON file") from None
+    except RecursionError:
+        raise CalibrationError(f"{path} is nested too deeply to be a calibration") from None
     if not isinstance(d, dict):
         raise CalibrationError(f"{path} does not hold a calibration object")
     try:

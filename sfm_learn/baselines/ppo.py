@@ -96,6 +96,8 @@ def load_hyperparameters(env_id: str, path: str | None = None) -> dict:
     except ImportError:
         raise ValueError("reading a hyperparameter file needs PyYAML: pip install pyyaml") from None
     path = HYPERPARAMS_FILE if path is None else os.fspath(path)
+    if os.path.exists(path) and not os.path.isfile(path):  # a FIFO or device would block
+        raise ValueError(f"hyperparameter file {path} is not a regular file")
     try:
         with open(path, encoding="utf-8") as f:
             doc = yaml.safe_load(f)
@@ -104,6 +106,8 @@ def load_hyperparameters(env_id: str, path: str | None = None) -> dict:
     except (yaml.YAMLError, UnicodeDecodeError) as e:
         raise ValueError(f"hyperparameter file {path} is not valid YAML: "
                          f"{str(e).splitlines()[0]}") from None
+    except RecursionError:
+        raise ValueError(f"hyperparameter file {path} is nested too deeply") from None
     if not isinstance(doc, dict):
         raise ValueError(f"hyperparameter file {path} must map env ids to settings")
     entry = doc.get(env_id, doc.get("default", {}))

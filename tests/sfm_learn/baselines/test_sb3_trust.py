@@ -205,3 +205,20 @@ def test_a_fifo_as_any_policy_file_is_refused_at_once(tmp_path, prefix):
     r = _mkv("eval", "--env", "MKV-v0", "--policy", f"{prefix}:{fifo}", "--episodes", "1")
     assert r.returncode == 2 and "not a regular file" in r.stderr
     assert r.stderr.count("\n") == 1
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_fifos_as_hyperparameters_or_calibration_are_refused_at_once(tmp_path):
+    from calib.io import load_calibration
+    from calib.result import CalibrationError
+    from sfm_learn.baselines.ppo import load_hyperparameters
+
+    fifo = tmp_path / "f"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="not a regular file"):
+        load_hyperparameters("MKV-v1", str(fifo))
+    with pytest.raises(CalibrationError, match="not a regular file"):
+        load_calibration(str(fifo))
+    r = _mkv("train-ppo", "--env", "MKV-v1", "--hyperparams", str(fifo), "--timesteps", "64",
+             "--out", str(tmp_path / "p.zip"))
+    assert r.returncode == 2 and "not a regular file" in r.stderr
