@@ -6,7 +6,12 @@ Every case runs the command in this process and records: exit status 0 (accepted
 with one line), anything else; an exception escaping ``main`` (a traceback); stderr lines beyond
 one; and whether any input file changed or an output appeared on a refusal. Categories: random,
 truncated and damaged files (datasets, policies, CAL.json, CSV), out-of-range numbers, malformed
-``--env-kwargs``, and outputs colliding with inputs. The counts go into the issue notes.
+``--env-kwargs``, and outputs colliding with inputs; and the surfaces added since: sweep specs
+(random field values, infinities, deep nesting), sweep folders (damaged rows, ``--plot`` onto the
+sweep's files), FIFOs given as any file a command reads (a case that blocks for 20 s counts as a
+hang), ``sb3:`` zips and ``vecnormalize.pkl`` files carrying payloads that would create a marker
+file if unpickled (``code execution``), Minari ids, and CSV headers. The counts go into the issue
+notes.
 """
 
 from __future__ import annotations
@@ -19,9 +24,29 @@ import json
 import math
 import os
 import random
+import shutil
+import signal
 import sys
 import tempfile
 from collections import Counter
+
+
+class _Hang(Exception):
+    pass
+
+
+def _alarm(signum, frame):
+    raise _Hang()
+
+
+class Payload:
+    """Unpickling this creates the file ``path`` (stands for any code a payload would run)."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
 
 
 def snapshot(d):
@@ -31,11 +56,17 @@ def snapshot(d):
 
 def run(main, argv):
     err = io.StringIO()
+    signal.signal(signal.SIGALRM, _alarm)
+    signal.alarm(20)
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             code = main([str(a) for a in argv])
+    except _Hang:
+        return "hang", " ".join(map(str, argv))
     except BaseException as e:  # noqa: BLE001  (what we count)
         return "traceback", f"{type(e).__name__}: {e}"
+    finally:
+        signal.alarm(0)
     text = err.getvalue()
     if code not in (0, 2, 130):
         return f"exit {code}", text
@@ -51,6 +82,7 @@ def main_() -> int:
     args = ap.parse_args()
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
     os.environ.setdefault("MPLBACKEND", "Agg")
+    os.environ["MINARI_DATASETS_PATH"] = tempfile.mkdtemp(prefix="mkv-fuzz-minari-")
     from calib.cli import main as calib
     from calib.io import write_csv
     from calib.simulate import paper_trial
@@ -67,7 +99,23 @@ def main_() -> int:
     write_csv(os.path.join(d, "raw.csv"), [f"g{i}" for i in range(8)], paper_trial(2, rng=0).Z)
     assert calib(["fit", os.path.join(d, "raw.csv"), "--dof", "3", "--magnitude", "9",
                   "--out", os.path.join(d, "cal.json")]) == 0
-    originals = {n: open(os.path.join(d, n), "rb").read() for n in os.listdir(d)}
+    import base64
+    import pickle
+    import zipfile
+
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+
+    PPO("MlpPolicy", gym.make("MKV-v0"), n_steps=32, batch_size=32, device="cpu",
+        policy_kwargs={"net_arch": [8]}).save(os.path.join(d, "ppo.zip"))
+    with open(os.path.join(d, "spec.json"), "w") as f:
+        json.dump({"name": "fz", "env": ["MKVJam-v1"], "eval": {"episodes": 1, "seed": 9},
+                   "seeds": [0], "learners": {"sfm": {}}, "budgets": {"sfm": [60]}}, f)
+    sweep_dir = os.path.join(d, "sweepdir")
+    assert mkv(["sweep", os.path.join(d, "spec.json"), "--out", sweep_dir, "--quiet"]) == 0
+    marker = os.path.join(d, "PWNED")
+    originals = {n: open(os.path.join(d, n), "rb").read() for n in os.listdir(d)
+                 if os.path.isfile(os.path.join(d, n))}
     odd = ["-1", "0", "nan", "inf", "1e20", "99999999999999999999999", "abc", "", "2.5",
            "-0", "1e-300", "0x10"]
     odd_json = [-1, 0, math.nan, math.inf, 1e300, "x", None, [1], {}, True, -1e-9]
@@ -89,7 +137,90 @@ def main_() -> int:
     def case():
         """(main, argv, inputs) for one random bad-input case."""
         p = lambda n: os.path.join(d, n)  # noqa: E731
-        cat = rng.choice(["file", "number", "kwargs", "collision", "csv", "caljson"])
+        cat = rng.choice(["file", "number", "kwargs", "collision", "csv", "caljson", "sweep",
+                          "sweepdir", "fifo", "payload", "minari", "header"])
+        if cat == "sweep":
+            spec = json.loads(originals["spec.json"])
+            field = rng.choice(["name", "env", "teacher_env", "eval", "seeds", "learners",
+                                "budgets"])
+            spec[field] = rng.choice(odd_json + [[math.inf], {"..": {}}, {"bc": {"epochs": -1}},
+                                                 {"sfm": [math.inf]}, ["CartPole-v1"]])
+            text = json.dumps(spec) if rng.random() < 0.8 else "[" * 100_000
+            name = "s.yml" if rng.random() < 0.3 else "s.json"
+            with open(p(name), "w") as f:
+                f.write(text.replace("Infinity", ".inf") if name.endswith(".yml") else text)
+            return cat, (mkv, ["sweep", p(name), "--out", p("sout")])
+        if cat == "sweepdir":
+            dd = p("sw2")
+            shutil.rmtree(dd, ignore_errors=True)
+            shutil.copytree(sweep_dir, dd)
+            rows = os.path.join(dd, "rows")
+            row = os.path.join(rows, sorted(os.listdir(rows))[0])
+            bad = rng.choice([b'{"metrics": "abc", "status": "ok"}', b"[1]", b"{",
+                              b'{"learner": "sfm", "seed": 0, "budget": 60, "status": "ok"}'])
+            with open(os.path.join(rows, "sfm__s7__b60.json"), "wb") as f:
+                f.write(bad)
+            plot = rng.choice([os.path.join(dd, "spec.json"), row, p("spec.json"),
+                               p("c.png")])
+            return cat, (mkv, ["sweep", "--summary", dd, "--plot", plot])
+        if cat == "fifo":
+            fifo = p("fifo")
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(fifo)
+            os.mkfifo(fifo)
+            return cat, rng.choice([
+                (mkv, ["eval", "--env", "MKV-v0", "--policy", f"sb3:PPO:{fifo}", "--episodes",
+                       "1"]),
+                (mkv, ["eval", "--env", "MKV-v0", "--policy", f"script:{fifo}", "--episodes",
+                       "1"]),
+                (mkv, ["sweep", fifo, "--out", p("sout")]),
+                (mkv, ["train-ppo", "--env", "MKV-v1", "--hyperparams", fifo, "--timesteps",
+                       "64", "--out", p("o.zip")]),
+                (calib, ["apply", fifo, p("raw.csv"), "--out", p("o.csv")]),
+                (calib, ["fit", fifo, "--dof", "3", "--out", p("o.json")]),
+            ])
+        if cat == "payload":
+            payload = base64.b64encode(pickle.dumps(Payload(marker))).decode()
+            run_dir = p("run")
+            shutil.rmtree(run_dir, ignore_errors=True)
+            os.makedirs(os.path.join(run_dir, "ppo"))
+            zpath = os.path.join(run_dir, "ppo.zip")
+            where = rng.choice(["data", "beside", "zoo", "other"])
+            with zipfile.ZipFile(p("ppo.zip")) as zin, zipfile.ZipFile(zpath, "w") as zout:
+                for item in zin.infolist():
+                    raw = zin.read(item.filename)
+                    if item.filename == "data" and where == "data":
+                        doc = json.loads(raw)
+                        key = rng.choice(["extra", "policy_class", "observation_space",
+                                          "action_space", "policy_kwargs", "lr_schedule"])
+                        entry = dict(doc.get(key) or {}) if isinstance(doc.get(key), dict) \
+                            else {}
+                        entry[":serialized:"] = payload
+                        doc[key] = entry
+                        raw = json.dumps(doc).encode()
+                    zout.writestr(item, raw)
+            pkl = {"beside": os.path.join(run_dir, "vecnormalize.pkl"),
+                   "zoo": os.path.join(run_dir, "ppo", "vecnormalize.pkl"),
+                   "other": os.path.join(run_dir, "other", "vecnormalize.pkl")}.get(where)
+            if pkl is not None:
+                os.makedirs(os.path.dirname(pkl), exist_ok=True)
+                with open(pkl, "wb") as f:
+                    pickle.dump(Payload(marker), f)
+            extra = rng.choice([[], ["--policy", "bogus"], ["--workers", "2"]])
+            return cat, (mkv, ["eval", "--env", "MKV-v0", "--policy", f"sb3:PPO:{zpath}",
+                               "--episodes", "1", *extra])
+        if cat == "minari":
+            ident = rng.choice(["mkv/teacher-v0/inner-v0", "/".join(["a"] * 2000) + "/n-v0",
+                                "", "..", "mkv/../x-v0", "x" * 500 + "/n-v0"])
+            return cat, (mkv, ["export", p("data.npz"), "--minari", ident])
+        if cat == "header":
+            head = rng.choice([",,,,,,,", "1,2,3,4,5,6,7,8", "\ufeff,a,b,c,d,e,f,g",
+                               "g0,g0,g2,g3,g4,g5,g6,g7", " , , , , , , , "])
+            body = open(p("raw.csv")).read().split("\n", 1)[1]
+            with open(p("h.csv"), "w", encoding="utf-8") as f:
+                f.write(head + "\n" + body)
+            return cat, (calib, ["fit", p("h.csv"), "--dof", "3", "--magnitude", "9", "--out",
+                                 p("o.json")])
         if cat == "file":
             name = rng.choice(["data.npz", "policy.npz"])
             with open(p("bad_" + name), "wb") as f:
@@ -174,6 +305,7 @@ def main_() -> int:
                 f.write(damaged("cal.json"))
         return cat, (calib, ["apply", p("bad.json"), p("raw.csv"), "--out", p("o.csv")])
 
+    p_sout = os.path.join(d, "sout")
     counts, by_cat, problems = Counter(), Counter(), []
     for _ in range(args.cases):
         for n, b in originals.items():
@@ -182,9 +314,14 @@ def main_() -> int:
         for n in ("o.npz", "o.zip", "o.json", "o.csv"):
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(os.path.join(d, n))
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(marker)
+        shutil.rmtree(os.path.join(d, "sout"), ignore_errors=True)
         cat, (main, argv) = case()
         before = {n: hashlib.sha256(originals[n]).hexdigest() for n in originals}
         outcome, text = run(main, argv)
+        if os.path.exists(marker):
+            outcome = "code execution"
         after = {n: hashlib.sha256(open(os.path.join(d, n), "rb").read()).hexdigest()
                  for n in originals}
         if after != before:
@@ -192,7 +329,9 @@ def main_() -> int:
         if outcome == "refused" and any(os.path.exists(os.path.join(d, n))
                                         for n in ("o.npz", "o.zip", "o.json", "o.csv")):
             outcome = "partial output"
-        if outcome == "accepted" and cat in ("file", "collision", "caljson"):
+        if outcome == "accepted" and cat in ("file", "collision", "caljson", "fifo", "minari",
+                                             "header") or (
+                outcome == "accepted" and cat == "sweep" and os.path.isdir(p_sout)):
             outcome = "accepted (check)"
         counts[outcome] += 1
         by_cat[(cat, outcome)] += 1
@@ -204,7 +343,7 @@ def main_() -> int:
     for p_ in problems[:30]:
         print("PROBLEM", *p_, sep="\n   ")
     return 1 if any(o in counts for o in ("traceback", "input destroyed", "partial output",
-                                          "multi-line error")) else 0
+                                          "multi-line error", "hang", "code execution")) else 0
 
 
 if __name__ == "__main__":
