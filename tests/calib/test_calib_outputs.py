@@ -98,7 +98,8 @@ def test_csv_fast_path_and_the_line_of_a_bad_row(tmp_path, capsys):
     ('a,b\n"1,2\n3,4\n', "line 2: 1 fields, header has 2"),  # where the bad row starts
     ("a,b\n1," + "1" * 200_000 + "\nx,2\n", "line 2: field larger than field limit"),
     ("a,a\n1,2\n", "duplicate column names"),
-    ("\n , \n", "is empty"),
+    ("\n\n", "is empty"),
+    ("\n , \n", "line 2: the header has no column names"),  # refused, not skipped
 ])
 def test_csv_errors_name_the_file_line(tmp_path, text, message):
     from calib.result import CalibrationError
