@@ -226,3 +226,14 @@ def test_joint_options_without_method_joint_are_refused(tmp_path, capsys, good, 
                      "9.81", "--out", tmp_path / "c.json"], capsys)
     refused(code, err, option[0], "--method joint")
     assert not (tmp_path / "c.json").exists()
+
+
+def test_library_readers_refuse_a_fifo_at_once(tmp_path, deadline):
+    from calib.io import load_calibration
+    from calib.magnetometer import load_furbrain, load_xyz
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for load in (read_csv, lambda p: CSVSource(p), load_calibration, load_furbrain, load_xyz):
+        with pytest.raises(CalibrationError, match="not a regular file"):
+            load(str(fifo))
