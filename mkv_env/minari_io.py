@@ -48,6 +48,12 @@ _SEGMENT = r"[A-Za-z0-9][A-Za-z0-9_-]*"
 # version without leading zeros (Minari parses v00 as the same version 0 as v0).
 _ID = re.compile(rf"(?P<ns>{_SEGMENT}(?:/{_SEGMENT})*)/{_SEGMENT}-v(?:0|[1-9][0-9]*)")
 _TMP_PREFIX = ".mkv-export-"
+#: Folders a namespace may nest (Minari's own ``D4RL/door/human-v2`` uses two) and the longest id:
+#: an id is a relative path in the store, and a deep one only makes paths no file system takes.
+MAX_NAMESPACE_DEPTH = 4
+MAX_ID_LENGTH = 200
+# a NAME-vVERSION segment: a dataset's own folder, never a namespace folder
+_DATASET_SEGMENT = re.compile(r".*-v[0-9]+")
 
 
 class MinariError(ValueError):
@@ -65,12 +71,29 @@ def _minari():
 
 def check_dataset_id(dataset_id) -> str:
     """``dataset_id`` if it has the form NAMESPACE/NAME-vVERSION, else :class:`MinariError`."""
-    m = _ID.fullmatch(dataset_id) if isinstance(dataset_id, str) else None
+    ok = isinstance(dataset_id, str) and len(dataset_id) <= MAX_ID_LENGTH
+    m = _ID.fullmatch(dataset_id) if ok else None
     if m is None or len(m["ns"]) < 2:
-        raise MinariError(f"bad Minari dataset id {dataset_id!r}: use NAMESPACE/NAME-vVERSION "
-                          "(ASCII letters, digits, _ and -; a namespace of 2 characters or "
-                          "more), e.g. mkv/teacher-v0")
+        raise MinariError(f"bad Minari dataset id {_shown(dataset_id)}: use "
+                          "NAMESPACE/NAME-vVERSION (ASCII letters, digits, _ and -; a namespace "
+                          f"of 2 characters or more; at most {MAX_ID_LENGTH} characters), e.g. "
+                          "mkv/teacher-v0")
+    folders = m["ns"].split("/")
+    if len(folders) > MAX_NAMESPACE_DEPTH:
+        raise MinariError(f"bad Minari dataset id {_shown(dataset_id)}: a namespace of "
+                          f"{len(folders)} folders; at most {MAX_NAMESPACE_DEPTH}")
+    nested = next((f for f in folders if _DATASET_SEGMENT.fullmatch(f)), None)
+    if nested is not None:
+        raise MinariError(f"bad Minari dataset id {_shown(dataset_id)}: its namespace folder "
+                          f"{nested!r} has the form of a dataset (NAME-vVERSION); a dataset "
+                          "inside another's folder is invisible to Minari")
     return dataset_id
+
+
+def _shown(dataset_id) -> str:
+    """repr of an id for a message, cut to 80 characters."""
+    text = repr(dataset_id)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _store_root(data_path) -> str:
@@ -230,7 +253,13 @@ def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
             if key in episodes[0].infos:
                 arrays[key] = np.concatenate(
                     [np.asarray(ep.infos[key]) for ep in episodes]).astype(schema[key][0])
+        # verified, not recomputed: the arrays must be those the export recorded
+        if meta.get("content_sha256") != ds.content_sha256(arrays):
+            raise MinariError(f"Minari dataset {dataset_id}: its contents do not match the "
+                              "content_sha256 recorded by mkv export (altered since?)")
         return ds.build(arrays, meta)
+    except MinariError:
+        raise
     except (TypeError, ValueError, KeyError) as e:  # DatasetError is a ValueError
         text = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise MinariError(f"Minari dataset {dataset_id} does not hold a valid mkv dataset: "
