@@ -205,6 +205,32 @@ def _move_into_store(tmp: str, root: str, dataset_id: str) -> None:
                 shutil.copyfile(os.path.join(here, name), dest)
 
 
+def _check_regular_files(root: str, dataset_id: str) -> None:
+    """:class:`MinariError` (one line) if the dataset's folder, or a namespace file on the way to
+    it, holds anything but regular files and folders: Minari and h5py would block forever on a
+    FIFO put in place of ``metadata.json`` or ``main_data.hdf5``, or read a device."""
+    import stat
+
+    def check(path: str) -> None:
+        try:
+            mode = os.stat(path).st_mode
+        except OSError as e:
+            raise MinariError(f"cannot read Minari dataset {dataset_id}: {path}: "
+                              f"{e.strerror}") from None
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            raise MinariError(f"Minari dataset {dataset_id}: {path} is not a regular file (a "
+                              "FIFO, socket or device)")
+
+    parts = dataset_id.split("/")
+    for depth in range(1, len(parts)):
+        meta = os.path.join(root, *parts[:depth], "namespace_metadata.json")
+        if os.path.lexists(meta):
+            check(meta)
+    for here, dirs, files in os.walk(os.path.join(root, dataset_id)):
+        for name in (*files, *dirs):
+            check(os.path.join(here, name))
+
+
 def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
     """The mkv :class:`~mkv_env.dataset.Dataset` of a local Minari dataset written by
     :func:`export_minari` (validated like any dataset file). Reads only; never downloads."""
@@ -214,6 +240,7 @@ def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
     if not _is_dataset(root, dataset_id):
         raise MinariError(f"no local Minari dataset {dataset_id} in {root} (nothing is "
                           "downloaded)")
+    _check_regular_files(root, dataset_id)
     try:
         with _minari_store(root):
             dataset = minari.load_dataset(dataset_id, download=False)

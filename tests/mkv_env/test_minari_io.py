@@ -306,3 +306,27 @@ def test_tampered_arrays_under_the_old_checksum_are_refused(store):
     with pytest.raises(MinariError, match="do not match the content_sha256") as e:
         import_minari("mkv/edit-v0")
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("member", ["data/main_data.hdf5", "data/metadata.json",
+                                    "../namespace_metadata.json"])
+def test_a_fifo_in_the_store_is_refused_at_once(store, member):
+    import signal
+
+    data = record("MKV-v0", "random", 1, seed=0, env_kwargs={"max_episode_steps": 5})
+    export_minari(data, "mkv/pipe-v0")
+    path = os.path.normpath(store / "mkv" / "pipe-v0" / member)
+    os.remove(path)
+    os.mkfifo(path)
+
+    def blocked(*_):
+        raise TimeoutError("import_minari waited on a FIFO")
+    old = signal.signal(signal.SIGALRM, blocked)
+    signal.alarm(20)
+    try:
+        with pytest.raises(MinariError, match="is not a regular file") as e:
+            import_minari("mkv/pipe-v0")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    assert "\n" not in str(e.value) and path in str(e.value)
