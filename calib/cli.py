@@ -132,9 +132,13 @@ def _fit(args) -> str:
     from .sfm import fit_sfm
 
     _check_outputs([args.raw, args.known], args.out)
-    if args.known_samples is not None and args.method != "joint":
-        raise CalibrationError("--known-samples is for --method joint (it weights the known "
-                               "loads of the joint fit)")
+    if args.method != "joint" or args.dof == 6:
+        given = [flag for flag, v in (("--known-sigma", args.known_sigma),
+                                      ("--magnitude-sigma", args.magnitude_sigma),
+                                      ("--known-samples", args.known_samples)) if v is not None]
+        if given:
+            raise CalibrationError(f"{given[0]} is an option of --method joint (with --dof 2 or "
+                                   "3); without it nothing would use it")
     if args.chunk_rows:
         if args.bootstrap:
             raise CalibrationError("--chunk-rows is not supported with --bootstrap")

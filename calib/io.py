@@ -7,6 +7,7 @@ import csv
 import itertools
 import json
 import os
+import stat
 import warnings
 from array import array
 
@@ -26,6 +27,30 @@ def load_columns(dof: int) -> list[str]:
     return list(LOAD_COLUMNS[: {2: 2, 3: 3, 6: 6}[dof]])
 
 
+def open_regular(path, **text_options):
+    """``open(path, "r", **text_options)``, refusing (one-line :class:`CalibrationError`) what
+    is not a regular file: a directory, device, socket, or a FIFO, which would block the command
+    until someone writes to it. The file is opened non-blocking and checked with ``fstat`` on the
+    open descriptor, so nothing can be swapped in between the check and the read. A missing or
+    unreadable file raises ``OSError`` as ``open`` does."""
+    path = os.fspath(path)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
+        if getattr(os, "O_NONBLOCK", 0):
+            os.set_blocking(fd, True)
+        return open(fd, **text_options)
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _open_csv(path):
+    # utf-8-sig: a byte-order mark (CSV saved by Excel) is not part of the first name
+    return open_regular(path, newline="", encoding="utf-8-sig")
+
+
 def read_csv(path: str) -> tuple[list[str], np.ndarray]:
     """Header names and float data (n, k). Unparseable cells are an error; 'nan'/'inf' parse.
 
@@ -34,11 +59,8 @@ def read_csv(path: str) -> tuple[list[str], np.ndarray]:
     first bad line (its line number in the file) or to accept what Python's ``csv``/``float``
     accept and numpy does not (quoted numbers, ``1_000``).
     """
-    if os.path.exists(path) and not os.path.isfile(path):
-        raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
     try:
-        # utf-8-sig: a byte-order mark (CSV saved by Excel) is not part of the first name
-        with open(path, newline="", encoding="utf-8-sig") as f:
+        with _open_csv(path) as f:
             header, skipped = _read_header(f, path)
             try:
                 with warnings.catch_warnings():
@@ -62,26 +84,51 @@ def read_csv(path: str) -> tuple[list[str], np.ndarray]:
 
 
 def _read_header(f, path: str) -> tuple[list[str], int]:
-    """The header names of an open CSV and the physical lines up to and including it."""
+    """The header names of an open CSV and the physical lines up to and including it.
+
+    The first line that is not blank is the header: one name per column, every name non-empty,
+    printable, not a number (a file whose first line holds numbers has no header; its first
+    reading would be taken for channel names) and used once. Surrounding spaces and a leading
+    byte-order mark are not part of a name. Anything else is a one-line
+    :class:`CalibrationError`."""
     header_line = ""
     skipped = 0  # physical lines up to and including the header
     for header_line in f:
         skipped += 1
-        if header_line.strip(" \t\r\n"):  # blank lines before the header are skipped
+        if header_line.strip(" \t\r\n\ufeff"):
             break
     else:
         raise CalibrationError(f"{path} is empty")
-    # a byte-order mark is not part of a name (the file's first one is gone with utf-8-sig)
-    header = [h.strip().strip("\ufeff").strip() for h in next(csv.reader([header_line]))]
-    if not header or any(not h for h in header):
-        raise CalibrationError(f"{path}: the header (line {skipped}) has empty column names; "
-                               "the first line must name every column")
-    if all(_is_number(h) for h in header):
-        raise CalibrationError(f"{path}: the first line ({header_line.strip()[:40]}) is numbers, "
-                               "not a header; the first line must name every column")
-    if len(set(header)) != len(header):
-        raise CalibrationError(f"{path}: duplicate column names in header")
+    header = [h.strip().lstrip("\ufeff").strip()
+              for h in next(csv.reader([header_line.lstrip(" \t\ufeff")]))]
+    check_header(header, f"{path} line {skipped}")
     return header, skipped
+
+
+def check_header(names, where: str) -> None:
+    """One-line :class:`CalibrationError` unless ``names`` are a header of non-empty, printable,
+    non-numeric, unique column names (``where`` starts the message)."""
+    hint = "the first line must name every column, e.g. g0,g1,g2"
+    empty = [i + 1 for i, h in enumerate(names) if not h]
+    if len(empty) == len(names):
+        raise CalibrationError(f"{where}: the header has no column names; {hint}")
+    if empty:
+        raise CalibrationError(f"{where}: header column {empty[0]} has no name; {hint}")
+    numbers = [h for h in names if _is_number(h)]
+    if numbers:
+        what = ("holds numbers, not column names" if len(numbers) == len(names)
+                else f"has a number {numbers[0][:40]!r} for a column name")
+        raise CalibrationError(f"{where}: no header: the first line {what}; {hint}")
+    odd = next((h for h in names if not h.isprintable()), None)
+    if odd is not None:
+        raise CalibrationError(f"{where}: column name {odd[:40]!r} holds an invisible or control "
+                               "character")
+    seen: set[str] = set()
+    for h in names:
+        if h in seen:
+            raise CalibrationError(f"{where}: duplicate column names in the header "
+                                   f"({h[:40]!r} twice)")
+        seen.add(h)
 
 
 def _is_number(text: str) -> bool:
@@ -104,8 +151,6 @@ class CSVSource(ChunkSource):
         self._passes = 0
         if int(chunk_rows) < 1:
             raise CalibrationError(f"chunk_rows must be positive, got {chunk_rows}")
-        if os.path.exists(path) and not os.path.isfile(path):
-            raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
         self.path = path
         self.chunk_rows = int(chunk_rows)
         with self._open() as f:
@@ -114,7 +159,7 @@ class CSVSource(ChunkSource):
 
     def _open(self):
         try:
-            return open(self.path, newline="", encoding="utf-8-sig")
+            return _open_csv(self.path)
         except OSError as e:
             raise CalibrationError(f"cannot read {self.path}: {e.strerror}") from None
 
@@ -204,7 +249,7 @@ def _read_rows_slowly(path: str, k: int, skipped: int) -> np.ndarray:
     file line number of the first bad row. Values go to a flat ``array('d')`` (8 bytes each), so
     a large file read this way costs its data, not a list of Python rows."""
     values = array("d")
-    with open(path, newline="", encoding="utf-8-sig") as f:
+    with _open_csv(path) as f:
         for _ in range(skipped):
             next(f)
         reader = csv.reader(f)
@@ -251,10 +296,12 @@ def save_calibration(path: str, cal: Calibration, channels=None) -> None:
 
 
 def load_calibration(path: str) -> tuple[Calibration, list[str] | None]:
-    if os.path.exists(path) and not os.path.isfile(path):  # a FIFO or device would block
-        raise CalibrationError(f"{path} is not a regular file (a directory, FIFO or device)")
     try:
-        with open(path) as f:
+        f = open_regular(path, encoding="utf-8")
+    except OSError as e:
+        raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
+    try:
+        with f:
             d = json.load(f)
     except OSError as e:
         raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
@@ -262,8 +309,6 @@ def load_calibration(path: str) -> tuple[Calibration, list[str] | None]:
         raise CalibrationError(f"{path} is not valid JSON (line {e.lineno})") from None
     except (UnicodeDecodeError, ValueError):
         raise CalibrationError(f"{path} is not a text JSON file") from None
-    except RecursionError:
-        raise CalibrationError(f"{path} is nested too deeply to be a calibration") from None
     if not isinstance(d, dict):
         raise CalibrationError(f"{path} does not hold a calibration object")
     try:

@@ -31,7 +31,9 @@ def load_furbrain(path) -> tuple[np.ndarray, np.ndarray]:
     The files hold flat float lists padded with NaN (and not a multiple of 3 long); the leading
     finite triples are the shots, same device orientation per index.
     """
-    with open(path) as f:
+    from .io import open_regular
+
+    with open_regular(path, encoding="utf-8") as f:
         d = json.load(f)
     try:
         shots = d["shots"]
@@ -49,7 +51,10 @@ def load_furbrain(path) -> tuple[np.ndarray, np.ndarray]:
 
 def load_xyz(path) -> np.ndarray:
     """Whitespace-separated ``x y z`` rows (bazhin/mag_out.txt) as (n, 3)."""
-    return np.loadtxt(path, ndmin=2)[:, :3]
+    from .io import open_regular
+
+    with open_regular(path, encoding="utf-8") as f:
+        return np.loadtxt(f, ndmin=2)[:, :3]
 
 
 def calibrate_vector_sensor(V: np.ndarray, quiet: bool = True) -> Calibration:

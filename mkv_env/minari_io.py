@@ -48,6 +48,12 @@ _SEGMENT = r"[A-Za-z0-9][A-Za-z0-9_-]*"
 # version without leading zeros (Minari parses v00 as the same version 0 as v0).
 _ID = re.compile(rf"(?P<ns>{_SEGMENT}(?:/{_SEGMENT})*)/{_SEGMENT}-v(?:0|[1-9][0-9]*)")
 _TMP_PREFIX = ".mkv-export-"
+#: Folders a namespace may nest (Minari's own ``D4RL/door/human-v2`` uses two) and the longest id:
+#: an id is a relative path in the store, and a deep one only makes paths no file system takes.
+MAX_NAMESPACE_DEPTH = 4
+MAX_ID_LENGTH = 200
+# a NAME-vVERSION segment: a dataset's own folder, never a namespace folder
+_DATASET_SEGMENT = re.compile(r".*-v[0-9]+")
 
 
 class MinariError(ValueError):
@@ -63,29 +69,31 @@ def _minari():
     return minari
 
 
-MAX_ID_SEGMENTS = 8
-"""Namespace levels plus the name: Minari's own ids use two or three."""
-_VERSIONED = re.compile(r".*-v(?:0|[1-9][0-9]*)")
-
-
 def check_dataset_id(dataset_id) -> str:
-    """``dataset_id`` if it has the form NAMESPACE/NAME-vVERSION, else :class:`MinariError`. A
-    namespace level may not itself look like a dataset (``mkv/teacher-v0/inner-v0`` would be
-    written inside dataset ``mkv/teacher-v0``'s folder, where Minari never looks)."""
-    if isinstance(dataset_id, str) and (len(dataset_id) > 300
-                                        or dataset_id.count("/") >= MAX_ID_SEGMENTS):
-        raise MinariError(f"bad Minari dataset id: at most {MAX_ID_SEGMENTS} levels and 300 "
-                          "characters")
-    if isinstance(dataset_id, str) and any(_VERSIONED.fullmatch(seg)
-                                           for seg in dataset_id.split("/")[:-1]):
-        raise MinariError(f"bad Minari dataset id {dataset_id!r}: a namespace level ends in "
-                          "-vN like a dataset name (a dataset inside another dataset's folder)")
-    m = _ID.fullmatch(dataset_id) if isinstance(dataset_id, str) else None
+    """``dataset_id`` if it has the form NAMESPACE/NAME-vVERSION, else :class:`MinariError`."""
+    ok = isinstance(dataset_id, str) and len(dataset_id) <= MAX_ID_LENGTH
+    m = _ID.fullmatch(dataset_id) if ok else None
     if m is None or len(m["ns"]) < 2:
-        raise MinariError(f"bad Minari dataset id {dataset_id!r}: use NAMESPACE/NAME-vVERSION "
-                          "(ASCII letters, digits, _ and -; a namespace of 2 characters or "
-                          "more), e.g. mkv/teacher-v0")
+        raise MinariError(f"bad Minari dataset id {_shown(dataset_id)}: use "
+                          "NAMESPACE/NAME-vVERSION (ASCII letters, digits, _ and -; a namespace "
+                          f"of 2 characters or more; at most {MAX_ID_LENGTH} characters), e.g. "
+                          "mkv/teacher-v0")
+    folders = m["ns"].split("/")
+    if len(folders) > MAX_NAMESPACE_DEPTH:
+        raise MinariError(f"bad Minari dataset id {_shown(dataset_id)}: a namespace of "
+                          f"{len(folders)} folders; at most {MAX_NAMESPACE_DEPTH}")
+    nested = next((f for f in folders if _DATASET_SEGMENT.fullmatch(f)), None)
+    if nested is not None:
+        raise MinariError(f"bad Minari dataset id {_shown(dataset_id)}: its namespace folder "
+                          f"{nested!r} has the form of a dataset (NAME-vVERSION); a dataset "
+                          "inside another's folder is invisible to Minari")
     return dataset_id
+
+
+def _shown(dataset_id) -> str:
+    """repr of an id for a message, cut to 80 characters."""
+    text = repr(dataset_id)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _store_root(data_path) -> str:
@@ -197,6 +205,32 @@ def _move_into_store(tmp: str, root: str, dataset_id: str) -> None:
                 shutil.copyfile(os.path.join(here, name), dest)
 
 
+def _check_regular_files(root: str, dataset_id: str) -> None:
+    """:class:`MinariError` (one line) if the dataset's folder, or a namespace file on the way to
+    it, holds anything but regular files and folders: Minari and h5py would block forever on a
+    FIFO put in place of ``metadata.json`` or ``main_data.hdf5``, or read a device."""
+    import stat
+
+    def check(path: str) -> None:
+        try:
+            mode = os.stat(path).st_mode
+        except OSError as e:
+            raise MinariError(f"cannot read Minari dataset {dataset_id}: {path}: "
+                              f"{e.strerror}") from None
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            raise MinariError(f"Minari dataset {dataset_id}: {path} is not a regular file (a "
+                              "FIFO, socket or device)")
+
+    parts = dataset_id.split("/")
+    for depth in range(1, len(parts)):
+        meta = os.path.join(root, *parts[:depth], "namespace_metadata.json")
+        if os.path.lexists(meta):
+            check(meta)
+    for here, dirs, files in os.walk(os.path.join(root, dataset_id)):
+        for name in (*files, *dirs):
+            check(os.path.join(here, name))
+
+
 def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
     """The mkv :class:`~mkv_env.dataset.Dataset` of a local Minari dataset written by
     :func:`export_minari` (validated like any dataset file). Reads only; never downloads."""
@@ -206,6 +240,7 @@ def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
     if not _is_dataset(root, dataset_id):
         raise MinariError(f"no local Minari dataset {dataset_id} in {root} (nothing is "
                           "downloaded)")
+    _check_regular_files(root, dataset_id)
     try:
         with _minari_store(root):
             dataset = minari.load_dataset(dataset_id, download=False)
@@ -245,13 +280,14 @@ def import_minari(dataset_id: str, *, data_path=None) -> ds.Dataset:
             if key in episodes[0].infos:
                 arrays[key] = np.concatenate(
                     [np.asarray(ep.infos[key]) for ep in episodes]).astype(schema[key][0])
-        data = ds.build(arrays, meta)
+        # verified, not recomputed: the arrays must be those the export recorded
+        if meta.get("content_sha256") != ds.content_sha256(arrays):
+            raise MinariError(f"Minari dataset {dataset_id}: its contents do not match the "
+                              "content_sha256 recorded by mkv export (altered since?)")
+        return ds.build(arrays, meta)
+    except MinariError:
+        raise
     except (TypeError, ValueError, KeyError) as e:  # DatasetError is a ValueError
         text = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise MinariError(f"Minari dataset {dataset_id} does not hold a valid mkv dataset: "
                           f"{text}") from None
-    recorded = meta.get("content_sha256")
-    if recorded != data.metadata["content_sha256"]:  # verified, never recomputed to fit
-        raise MinariError(f"Minari dataset {dataset_id}: its arrays do not match the checksum "
-                          "recorded at export (content_sha256): the store was altered")
-    return data

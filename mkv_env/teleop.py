@@ -14,7 +14,8 @@ run like ``mkv record`` does for a policy (the paper's teleoperated demonstratio
 Keys: up = drive forward, down = reverse, left / right = steer; combinations drive and steer at
 once; opposite arrows cancel (up + down = drive off); no key = both motors off (:data:`NOOP`,
 the ``noop`` to give :func:`gymnasium.utils.play.play`, whose own default 0 is no MK-V action).
-Escape (or closing the window) ends the run. Needs a display; headless machines drive the robot
+Escape (or closing the window) ends the run. Needs a display that a server answers for (SDL's
+headless fallback is refused, not recorded as keyboard steps); headless machines drive the robot
 with command scripts (``script:PATH``) instead.
 
 The only modules that import pygame are this one and :mod:`mkv_env.render` (both draw).
@@ -25,6 +26,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from itertools import combinations
 
 import numpy as np
@@ -68,6 +70,57 @@ def _no_display_reason() -> str | None:
                                                  or os.environ.get("WAYLAND_DISPLAY")):
         return "neither DISPLAY nor WAYLAND_DISPLAY is set"
     return None
+
+
+#: SDL video drivers that draw into memory only: no window a person could see or type into.
+_HEADLESS_DRIVERS = ("dummy", "offscreen")
+
+
+def _display_name() -> str:
+    """The display variables as set, for a message: ``DISPLAY=:1``, ``WAYLAND_DISPLAY=w-0``."""
+    shown = [f"{k}={os.environ[k]}" for k in ("DISPLAY", "WAYLAND_DISPLAY") if os.environ.get(k)]
+    return " ".join(shown) or "the default display"
+
+
+@contextmanager
+def _quiet_stderr():
+    """Silence file descriptor 2 for the duration: SDL and libwayland print their own
+    multi-line complaints while probing video drivers (the refusal says what matters)."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _init_display(pygame) -> None:
+    """``pygame.display.init()``, refused in one line (:class:`TeleopError`) unless SDL opened a
+    real video driver. With DISPLAY or WAYLAND_DISPLAY naming a display that has no server, SDL
+    falls back to its ``offscreen`` driver: a window nobody sees and a keyboard nobody can press,
+    which would record no-op steps labelled ``human:keyboard``. A headless driver is accepted only
+    when SDL_VIDEODRIVER names it (the scripted path of the tests; :func:`record_keyboard` itself
+    refuses that variable before getting here)."""
+    with _quiet_stderr():
+        try:
+            pygame.display.init()
+        except pygame.error as e:
+            reason = str(e).splitlines()[0] if str(e) else "SDL error"
+            raise TeleopError(f"mkv teleop cannot open {_display_name()} ({reason}); use a "
+                              "command script (script:PATH) for keyboard-less teleop") from None
+    driver = pygame.display.get_driver()
+    if driver in _HEADLESS_DRIVERS and driver != os.environ.get("SDL_VIDEODRIVER", ""):
+        pygame.display.quit()
+        raise TeleopError(f"mkv teleop cannot open {_display_name()}: no display server answers "
+                          f"(SDL fell back to its {driver} driver); use a command script "
+                          "(script:PATH) for keyboard-less teleop")
 
 
 def has_display() -> bool:
@@ -175,25 +228,20 @@ def record_keyboard(env_id: str, episodes: int, seed: int = 0, env_kwargs: dict 
 
     env = make_env(env_id, env_kwargs, render_mode="rgb_array")
     try:
-        pygame.display.init()
-    except pygame.error as e:
+        _init_display(pygame)
+    except BaseException:
         env.close()
-        raise TeleopError(f"mkv teleop cannot open a display ({str(e).strip() or 'SDL error'}); "
-                          "use a command script (script:PATH) for keyboard-less teleop") from None
-    driver = pygame.display.get_driver()
-    if driver in ("offscreen", "dummy") and os.environ.get("SDL_VIDEODRIVER") != driver:
-        # DISPLAY set, but no server answered: SDL fell back on its own
-        pygame.display.quit()
-        env.close()
-        where = os.environ.get("WAYLAND_DISPLAY") or os.environ.get("DISPLAY") or "?"
-        raise TeleopError(f"mkv teleop cannot open the display {where!r} (SDL fell back to its "
-                          f"{driver} driver: no keyboard, nothing shown); use a command script "
-                          "(script:PATH) for keyboard-less teleop")
+        raise
     try:
         env.reset(seed=int(seed))
         first = env.render()
         size = (int(first.shape[1] * zoom), int(first.shape[0] * zoom))
-        screen = pygame.display.set_mode(size)
+        try:
+            screen = pygame.display.set_mode(size)
+        except pygame.error as e:
+            reason = str(e).splitlines()[0] if str(e) else "SDL error"
+            raise TeleopError(f"mkv teleop cannot open a window on {_display_name()} "
+                              f"({reason})") from None
         pygame.display.set_caption(f"mkv teleop {env_id}: arrows drive and steer, Esc ends")
         clock = pygame.time.Clock()
         pressed: set[int] = set()

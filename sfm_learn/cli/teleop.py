@@ -4,8 +4,9 @@
 
     mkv teleop [--env MKV-v0] [--episodes 1] [--seed 0] [--fps 10] [--zoom 1] --out RUN.npz
 
-Up drives forward, down reverses, left/right steer, Escape ends. Needs a display; without one it
-refuses in one line (headless teleop: ``mkv record --policy script:COMMANDS.txt``).
+Up drives forward, down reverses, left/right steer, Escape ends. Needs a display; without one,
+or when DISPLAY/WAYLAND_DISPLAY names one that no server answers for, it refuses in one line
+(headless teleop: ``mkv record --policy script:COMMANDS.txt``).
 """
 
 from __future__ import annotations

@@ -155,7 +155,7 @@ def test_cli_known_samples(tmp_path, capsys):
     centered = [a if a != "joint" else "centered" for a in args]
     assert main(centered + ["--known-samples", "100"]) == 2  # never silently ignored
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--known-samples is for --method joint" in err
+    assert err.count("\n") == 1 and "--known-samples is an option of --method joint" in err
 
 
 def test_choose_known_poses_picks_the_most_spread():

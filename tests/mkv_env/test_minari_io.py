@@ -8,6 +8,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pytest.importorskip("minari", reason="the minari extra is not installed "
                                       "(pip install 'mkv-sfm[minari]')")
@@ -199,25 +201,132 @@ def test_without_the_extra_the_error_says_how_to_install(store, monkeypatch):
             call()
 
 
-def test_a_tampered_store_is_refused_not_rechecksummed(store):
-    """import verifies the content_sha256 recorded at export; it never recomputes it to fit."""
+# ------------------------------------------------------------------ nested ids, checksums
+@pytest.mark.parametrize("bad", ["mkv/teacher-v0/inner-v0", "mkv/a-v12/b/x-v0", "mkv/v-v0/x-v1",
+                                 "/".join(["ab"] * 2000) + "/x-v0",
+                                 "/".join(["ab"] * 5) + "/x-v0", "mkv/" + "x" * 300 + "-v0"])
+def test_nested_and_huge_ids_are_refused_in_one_line(store, bad):
+    data = record("MKV-v0", "random", 1, seed=0, env_kwargs={"max_episode_steps": 5})
+    for call in (lambda: export_minari(data, bad), lambda: import_minari(bad),
+                 lambda: check_dataset_id(bad)):
+        with pytest.raises(MinariError, match="bad Minari dataset id") as e:
+            call()
+        assert "\n" not in str(e.value) and len(str(e.value)) < 400
+    assert not store.exists()
+
+
+def test_a_dataset_is_never_written_inside_another(store):
+    data = record("MKV-v0", "random", 1, seed=0, env_kwargs={"max_episode_steps": 5})
+    export_minari(data, "mkv/teacher-v0")
+    before = _listing(store)
+    with pytest.raises(MinariError, match="has the form of a dataset"):
+        export_minari(data, "mkv/teacher-v0/inner-v0")
+    assert _listing(store) == before
+    assert sorted(minari.list_local_datasets()) == ["mkv/teacher-v0"]
+
+
+_SEG = st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_-]{0,6}", fullmatch=True)
+
+
+@settings(max_examples=200, deadline=None)
+@given(ns=st.lists(_SEG, min_size=1, max_size=7), name=_SEG,
+       version=st.integers(0, 10**6))
+def test_generated_ids_accepted_only_as_flat_minari_ids(ns, name, version):
+    """Every accepted id is a Minari id (parse and generate give it back), no namespace folder
+    of it has a dataset's NAME-vN form, and its namespace is at most 4 folders deep; every
+    refusal is one line."""
+    import re
+
+    dataset_id = "/".join(ns) + f"/{name}-v{version}"
+    try:
+        assert check_dataset_id(dataset_id) == dataset_id
+    except MinariError as e:
+        assert "\n" not in str(e)
+        nested = any(re.fullmatch(r".*-v[0-9]+", f) for f in ns)
+        assert nested or len(ns) > 4 or len("/".join(ns)) < 2 or len(dataset_id) > 200, e
+        return
+    assert gen_dataset_id(*parse_dataset_id(dataset_id)) == dataset_id
+    assert len(ns) <= 4 and not any(re.fullmatch(r".*-v[0-9]+", f) for f in ns)
+
+
+def _rewrite_mkv_metadata(store, dataset_id, edit):
+    import json
+
+    with _store_env(store):
+        ds_ = minari.load_dataset(dataset_id, download=False)
+        meta = json.loads(ds_.storage.metadata["mkv_metadata"])
+        edit(meta)
+        ds_.storage.update_metadata({"mkv_metadata": json.dumps(meta, sort_keys=True)})
+
+
+class _store_env:
+    def __init__(self, store):
+        self.store = str(store)
+
+    def __enter__(self):
+        self.old = os.environ.get("MINARI_DATASETS_PATH")
+        os.environ["MINARI_DATASETS_PATH"] = self.store
+
+    def __exit__(self, *exc):
+        if self.old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = self.old
+
+
+def test_a_tampered_checksum_is_refused_not_recomputed(store):
+    data = record("MKVJam-v0", "teacher", 2, seed=0, env_kwargs={"max_episode_steps": 12})
+    export_minari(data, "mkv/sum-v0")
+    assert import_minari("mkv/sum-v0").equals(data)  # the honest one still imports
+
+    def tamper(meta):
+        meta["content_sha256"] = "0" * 64
+    _rewrite_mkv_metadata(store, "mkv/sum-v0", tamper)
+    with pytest.raises(MinariError, match="do not match the content_sha256") as e:
+        import_minari("mkv/sum-v0")
+    assert "\n" not in str(e.value)
+
+    def drop(meta):
+        del meta["content_sha256"]
+    _rewrite_mkv_metadata(store, "mkv/sum-v0", drop)
+    with pytest.raises(MinariError, match="do not match the content_sha256"):
+        import_minari("mkv/sum-v0")
+
+
+def test_tampered_arrays_under_the_old_checksum_are_refused(store):
     import h5py
 
-    data = record("MKV-v0", "teacher", 2, seed=0, env_kwargs={"max_episode_steps": 30})
-    export_minari(data, "mkv/tamper-v0")
-    files = [os.path.join(d, f) for d, _, fs in os.walk(store / "mkv" / "tamper-v0")
-             for f in fs if f.endswith(".hdf5")]
-    assert files
-    with h5py.File(files[0], "r+") as f:
+    data = record("MKVJam-v0", "teacher", 2, seed=0, env_kwargs={"max_episode_steps": 12})
+    export_minari(data, "mkv/edit-v0")
+    [path] = [os.path.join(d, f) for d, _, files in os.walk(store / "mkv" / "edit-v0")
+              for f in files if f.endswith(".hdf5")]
+    with h5py.File(path, "r+") as f:
         rewards = f["episode_0"]["rewards"]
-        rewards[0] = rewards[0] + 1.0  # a plausible value: only the checksum can tell
-    with pytest.raises(MinariError, match="do not match the checksum"):
-        import_minari("mkv/tamper-v0")
-
-
-@pytest.mark.parametrize("bad", ["mkv/teacher-v0/inner-v0", "a/b-v3/c/name-v0",
-                                 "/".join(["ns"] * 2000) + "/name-v0", "x" * 400 + "/n-v0"])
-def test_nested_and_huge_ids_are_refused_in_one_line(bad):
-    with pytest.raises(MinariError) as e:
-        check_dataset_id(bad)
+        rewards[0] = rewards[0] + 1.0  # a plausible, finite, schema-valid edit
+    with pytest.raises(MinariError, match="do not match the content_sha256") as e:
+        import_minari("mkv/edit-v0")
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("member", ["data/main_data.hdf5", "data/metadata.json",
+                                    "../namespace_metadata.json"])
+def test_a_fifo_in_the_store_is_refused_at_once(store, member):
+    import signal
+
+    data = record("MKV-v0", "random", 1, seed=0, env_kwargs={"max_episode_steps": 5})
+    export_minari(data, "mkv/pipe-v0")
+    path = os.path.normpath(store / "mkv" / "pipe-v0" / member)
+    os.remove(path)
+    os.mkfifo(path)
+
+    def blocked(*_):
+        raise TimeoutError("import_minari waited on a FIFO")
+    old = signal.signal(signal.SIGALRM, blocked)
+    signal.alarm(20)
+    try:
+        with pytest.raises(MinariError, match="is not a regular file") as e:
+            import_minari("mkv/pipe-v0")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    assert "\n" not in str(e.value) and path in str(e.value)

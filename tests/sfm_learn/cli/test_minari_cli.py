@@ -69,6 +69,11 @@ def test_data_path_option_and_overwrite(store, npz, tmp_path, capsys):
     (["export", "{npz}", "--minari", "bad"], "bad Minari dataset id 'bad'"),
     (["export", "{npz}", "--minari", "a/x-v0"], "bad Minari dataset id"),
     (["export", "{npz}", "--minari", "mkv/exists-v0"], "exists"),
+    (["export", "{npz}", "--minari", "mkv/exists-v0/inner-v0"], "has the form of a dataset"),
+    (["export", "{npz}", "--minari", "/".join(["ab"] * 2000) + "/x-v0"],
+     "bad Minari dataset id"),
+    (["import-minari", "mkv/exists-v0/inner-v0", "--out", "{tmp}/x.npz"],
+     "has the form of a dataset"),
     (["export", "{tmp}/none.npz", "--minari", "mkv/x-v0"], "does not exist"),
     (["export", "{npz}"], "--minari"),
     (["import-minari", "mkv/none-v0", "--out", "{tmp}/x.npz"], "no local Minari dataset"),
@@ -100,3 +105,20 @@ def test_without_the_extra_the_commands_say_how_to_install(store, npz, tmp_path,
         assert code == 2 and err.count("\n") == 1, err
         assert "needs the minari extra (pip install 'mkv-sfm[minari]')" in err
     assert not (tmp_path / "x.npz").exists() and not store.exists()
+
+
+def test_import_refuses_a_tampered_checksum(store, npz, tmp_path, capsys):
+    import json
+
+    import minari
+
+    path, data = npz
+    assert run(capsys, "export", path, "--minari", "mkv/sum-v0")[0] == 0
+    dataset = minari.load_dataset("mkv/sum-v0", download=False)
+    meta = json.loads(dataset.storage.metadata["mkv_metadata"])
+    meta["content_sha256"] = "f" * 64
+    dataset.storage.update_metadata({"mkv_metadata": json.dumps(meta, sort_keys=True)})
+    out = tmp_path / "back.npz"
+    code, _, err = run(capsys, "import-minari", "mkv/sum-v0", "--out", out)
+    assert code == 2 and err.count("\n") == 1 and "content_sha256" in err, err
+    assert err.startswith("mkv import-minari: error: ") and not out.exists()
