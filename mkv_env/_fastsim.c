@@ -568,6 +568,20 @@ done:
     return result;
 }
 
+/* Function addresses (ints) from ``args`` into ``out``; -1 with a Python error set. */
+static int get_pointers(PyObject *const *args, int n, void **out)
+{
+    for (int i = 0; i < n; i++) {
+        out[i] = PyLong_AsVoidPtr(args[i]);
+        if (out[i] == NULL) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "null function pointer");
+            return -1;
+        }
+    }
+    return 0;
+}
+
 /* bind(get_velocity, get_angular_velocity, get_angle, set_force, set_torque, space_step, hypot)
  * The first six are Chipmunk function addresses (ints), the last math.hypot. */
 static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -577,14 +591,8 @@ static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs
         PyErr_SetString(PyExc_TypeError, "bind() takes 7 arguments");
         return NULL;
     }
-    for (int i = 0; i < 6; i++) {
-        p[i] = PyLong_AsVoidPtr(args[i]);
-        if (p[i] == NULL) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_ValueError, "null function pointer");
-            return NULL;
-        }
-    }
+    if (get_pointers(args, 6, p) < 0)
+        return NULL;
     if (!PyCallable_Check(args[6])) {
         PyErr_SetString(PyExc_TypeError, "hypot must be callable");
         return NULL;
@@ -788,6 +796,21 @@ static inline int is_clear(const Slot *s, double x, double y, double radius)
     return cp_pq(s->space, p, radius, f, &info) == NULL;
 }
 
+/* World.floor_friction_scale: the friction multiplier of the first patch (x0, y0, x1, y1, scale)
+ * under the drive wheel, xd ahead of the centre along the heading; 1 on bare floor. */
+static double floor_scale(double xd, void *body, const double *patches, Py_ssize_t n)
+{
+    cpVect pos = cp_get_p(body);
+    double th = cp_get_a(body);
+    double x = pos.x + xd * cos(th), y = pos.y + xd * sin(th);
+    for (Py_ssize_t k = 0; k < n; k++) {
+        const double *pt = patches + 5 * k;
+        if (pt[0] <= x && x <= pt[2] && pt[1] <= y && y <= pt[3])
+            return pt[4];
+    }
+    return 1.0;
+}
+
 /* SensorSuite.read on slot i's current state: the observation into row i of the obs buffer.
  * Returns 0 or an error code. */
 static int read_sensors(BatchObject *b, Py_ssize_t i)
@@ -840,21 +863,8 @@ static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
     if (s->body == NULL)
         return s->err = ERR_UNBOUND;
     /* World.step: the floor under the drive wheel, looked up once per period */
-    if (s->npatch) {
-        cpVect pos = cp_get_p(s->body);
-        double th = cp_get_a(s->body);
-        double xd = b->K[K_XD];
-        double x = pos.x + xd * cos(th), y = pos.y + xd * sin(th);
-        double scale = 1.0;
-        for (Py_ssize_t k = 0; k < s->npatch; k++) {
-            const double *pt = s->patches + 5 * k;
-            if (pt[0] <= x && x <= pt[2] && pt[1] <= y && y <= pt[3]) {
-                scale = pt[4];
-                break;
-            }
-        }
-        v[V_MU] = scale;
-    }
+    if (s->npatch)
+        v[V_MU] = floor_scale(b->K[K_XD], s->body, s->patches, s->npatch);
     advance_one(b->K, s->body, s->space, drive, steer, P[P_DT], (long)P[P_SUBSTEPS], v[V_MU], v,
                 1);
 
@@ -1663,14 +1673,8 @@ static PyObject *fs_bind_kernel(PyObject *self, PyObject *const *args, Py_ssize_
         PyErr_SetString(PyExc_TypeError, "bind_kernel() takes 4 arguments");
         return NULL;
     }
-    for (int i = 0; i < 4; i++) {
-        p[i] = PyLong_AsVoidPtr(args[i]);
-        if (p[i] == NULL) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_ValueError, "null function pointer");
-            return NULL;
-        }
-    }
+    if (get_pointers(args, 4, p) < 0)
+        return NULL;
     cp_get_p = (get_vect_fn)p[0];
     cp_pq = (pq_fn)p[1];
     cp_arb_shapes = (arb_shapes_fn)p[2];
@@ -1972,20 +1976,8 @@ static PyObject *fs_drive_until_jammed(PyObject *self, PyObject *const *args, Py
     long run = 0;
     cpVect p0 = cp_get_p(body);
     for (long t = 0; t < max_steps; t++) {
-        if (np_) {
-            cpVect pos = cp_get_p(body);
-            double th = cp_get_a(body);
-            double x = pos.x + K[K_XD] * cos(th), y = pos.y + K[K_XD] * sin(th);
-            double scale = 1.0;
-            for (Py_ssize_t k = 0; k < np_; k++) {
-                const double *q = pt + 5 * k;
-                if (q[0] <= x && x <= q[2] && q[1] <= y && y <= q[3]) {
-                    scale = q[4];
-                    break;
-                }
-            }
-            mu = scale;
-        }
+        if (np_)
+            mu = floor_scale(K[K_XD], body, pt, np_);
         advance_one(K, body, space, 1, steer, dt, substeps, mu, st, 1);
         cpVect p = cp_get_p(body);
         run = py_hypot(p.x - p0.x, p.y - p0.y) < limit ? run + 1 : 0;
@@ -2064,14 +2056,8 @@ static PyObject *fs_bind_shapes(PyObject *self, PyObject *const *args, Py_ssize_
         PyErr_SetString(PyExc_TypeError, "bind_shapes() takes 13 arguments");
         return NULL;
     }
-    for (int i = 0; i < 13; i++) {
-        p[i] = PyLong_AsVoidPtr(args[i]);
-        if (p[i] == NULL) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_ValueError, "null function pointer");
-            return NULL;
-        }
-    }
+    if (get_pointers(args, 13, p) < 0)
+        return NULL;
     cp_seg_new = (seg_new_fn)p[0];
     cp_poly_new = (poly_new_fn)p[1];
     cp_circle_new = (circle_new_fn)p[2];
