@@ -1319,6 +1319,18 @@ static PyObject *batch_load(BatchObject *b, PyObject *const *args, Py_ssize_t na
     Py_RETURN_NONE;
 }
 
+/* set_params(params): new parameter values (the env's reward weights and thresholds). */
+static PyObject *batch_set_params(BatchObject *b, PyObject *P)
+{
+    if (b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: a step is running");
+        return NULL;
+    }
+    if (get_doubles(P, b->P, P_LEN, "params") < 0)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
 /* set_noise(i, block (256 x 10 float64)): a new block of noise rows, read from row 0 */
 static PyObject *batch_set_noise(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -1631,6 +1643,8 @@ static PyMethodDef batch_methods[] = {
      "bind(i, body_ptr, space_ptr, counts, patches): slot i steps this world."},
     {"load", (PyCFunction)(void (*)(void))batch_load, METH_FASTCALL,
      "load(i, values, row, cells): slot i's state (see mkv_env.kernel)."},
+    {"set_params", (PyCFunction)batch_set_params, METH_O,
+     "set_params(params): the env's reward weights and thresholds, anew."},
     {"set_noise", (PyCFunction)(void (*)(void))batch_set_noise, METH_FASTCALL,
      "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
     {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},

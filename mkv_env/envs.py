@@ -115,7 +115,9 @@ class MKVEnv(gym.Env):
     * ``render_mode``: ``"rgb_array"`` or ``"human"`` (pygame, imported lazily).
     * ``kernel``: ``"c"`` (default where the extension is built: the whole step after the action
       is decoded runs compiled, :mod:`mkv_env.kernel`) or ``"python"`` (the reference
-      implementation, everything in Python). Both give the same bits.
+      implementation, everything in Python). Both give the same bits. (Reward weights and
+      thresholds changed on a live env take effect at its next reset with ``"c"``, at once with
+      ``"python"``.)
 
     ## Version History
     * v0: initial release.

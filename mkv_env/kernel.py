@@ -219,7 +219,12 @@ _TRACK_INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events")
 
 
 def push(env, batch, slot: int) -> None:
-    """Copy ``env``'s Python state (world, wheels, sensors, tracker, reward state) into a slot."""
+    """Copy ``env``'s Python state (world, wheels, sensors, tracker, reward state) into a slot,
+    and its parameters (reward weights, thresholds) into the batch when they changed since."""
+    p = params(env)
+    if p != getattr(env, "_kernel_params", None):
+        batch.set_params(p)
+        env._kernel_params = p
     world = env.world
     robot = world.robot
     st, t, s = robot._state, env._tracker, env._sensors

@@ -319,3 +319,17 @@ def test_threads_without_the_compiled_kernel_are_refused():
     with pytest.raises(ValueError, match="num_threads > 1 needs the compiled step kernel"):
         gym.make_vec("MKV-v0", num_envs=2, vectorization_mode="vector_entry_point",
                      kernel="python", num_threads=2)
+
+
+@needs_c
+def test_reward_weights_changed_on_a_live_env_apply_from_the_next_reset():
+    ref, got = _make("MKV-v0", "python"), _make("MKV-v0", "c")
+    for env in (ref, got):
+        env.reset(seed=3)
+        env.unwrapped.progress_reward = -7.0
+        env.unwrapped.stuck_penalty = 2.5
+        env.reset(seed=4)
+    rng = np.random.default_rng(2)
+    for a in rng.integers(0, 3, size=(80, 2)):
+        r1, r2 = ref.step(a), got.step(a)
+        assert _bits(r1[1]) == _bits(r2[1])
