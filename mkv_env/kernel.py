@@ -36,7 +36,6 @@ from mkv_env import robot as _robot
 from mkv_env.params import SENSOR_NAMES
 
 _fastsim = _robot._fastsim
-_ffi, _cp = _robot._ffi, _robot._cp
 
 #: True when the compiled step kernel can run (built extension and pymunk's cffi layer, and its
 #: copy of ``math.hypot`` matches this interpreter's: :func:`_pick_hypot`).
