@@ -620,6 +620,7 @@ static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs
  * own Chipmunk space; a robot's result does not depend on which thread ran it). */
 
 #include <pthread.h>
+#include <unistd.h>
 #include <sched.h>
 #include <stdatomic.h>
 
@@ -720,6 +721,7 @@ struct BatchObject {
     const uint8_t *active;
     /* threads */
     int nthreads, started;
+    long owner_pid; /* the process whose threads these are (a forked child has none) */
     Worker *workers;
     pthread_mutex_t mu;
     pthread_cond_t cv;
@@ -1009,8 +1011,19 @@ static void *worker_main(void *arg)
 
 static int start_workers(BatchObject *b)
 {
+    if (b->started && b->owner_pid != (long)getpid()) {
+        /* a fork: this process has none of the parent's threads; start its own */
+        free(b->workers);
+        b->workers = NULL;
+        pthread_mutex_init(&b->mu, NULL);
+        pthread_cond_init(&b->cv, NULL);
+        b->started = 0;
+        b->gen = 0;
+        b->stop = 0;
+    }
     if (b->nthreads <= 1 || b->started)
         return 0;
+    b->owner_pid = (long)getpid();
     b->workers = calloc((size_t)b->nthreads, sizeof(Worker));
     if (b->workers == NULL) {
         PyErr_NoMemory();
@@ -1090,6 +1103,8 @@ static int get_doubles(PyObject *obj, double *dst, Py_ssize_t want, const char *
 
 static void batch_dealloc(BatchObject *b)
 {
+    if (b->started && b->owner_pid != (long)getpid()) /* a forked copy: no threads to stop */
+        b->started = 0;
     if (b->running) { /* a started step: let it end before the memory goes */
         finish_job(b);
         release_job(b);

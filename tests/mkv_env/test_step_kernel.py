@@ -5,6 +5,7 @@ mode, one and several threads); and the recorded fingerprints of every id are un
 
 import importlib.util
 import math
+import os
 import pickle
 import struct
 import warnings
@@ -333,3 +334,29 @@ def test_reward_weights_changed_on_a_live_env_apply_from_the_next_reset():
     for a in rng.integers(0, 3, size=(80, 2)):
         r1, r2 = ref.step(a), got.step(a)
         assert _bits(r1[1]) == _bits(r2[1])
+
+
+@needs_c
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_process_steps_a_threaded_vector_env_with_threads_of_its_own():
+    """After a fork the child has none of the parent's worker threads: it starts its own
+    instead of waiting for ones that do not exist; both processes get the same results."""
+    import multiprocessing as mp
+
+    venv = gym.make_vec("MKV-v1", num_envs=4, vectorization_mode="vector_entry_point",
+                        num_threads=2)
+    venv.reset(seed=0)
+    acts = np.random.default_rng(0).integers(0, 3, size=(30, 4, 2))
+    venv.step(acts[0])  # the parent's threads exist now
+
+    def run(q):
+        q.put([venv.step(a)[0].tobytes() for a in acts[1:]])
+
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    child = ctx.Process(target=run, args=(q,))
+    child.start()
+    got = q.get(timeout=60)
+    child.join(timeout=60)
+    assert child.exitcode == 0
+    assert got == [venv.step(a)[0].tobytes() for a in acts[1:]]
