@@ -38,17 +38,21 @@ from sfm_learn.cli.common import (
     spec_path,
 )
 
+#: The largest ``--workers`` with ``--backend ray``: Ray tasks in flight on a cluster, whose CPUs
+#: are not this machine's (the same bound as ``mkv sweep --workers``).
+MAX_RAY_WORKERS = 256
+
 
 def max_workers() -> int:
-    """The largest ``--workers`` accepted: 4 per CPU."""
+    """The largest ``--workers`` accepted for local worker processes: 4 per CPU."""
     return 4 * (os.cpu_count() or 1)
 
 
 def _workers(text: str) -> int:
     v = positive_int(text)
-    if v > max_workers():
+    if v > MAX_RAY_WORKERS:
         raise argparse.ArgumentTypeError(
-            f"expected at most {max_workers()} (4 per CPU), got {text!r}")
+            f"expected at most {MAX_RAY_WORKERS} (Ray tasks in flight), got {text!r}")
     return v
 
 
@@ -62,8 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, default=0, metavar="S",
                    help="episode i uses env seed S+i (default 0)")
     p.add_argument("--workers", type=_workers, default=1, metavar="N",
-                   help="worker processes (default 1: run in this process); the numbers do "
-                        "not depend on it")
+                   help="worker processes (default 1: run in this process; at most 4 per CPU) "
+                        "or, with --backend ray, Ray tasks in flight (at most "
+                        f"{MAX_RAY_WORKERS}); the numbers do not depend on it")
     p.add_argument("--backend", choices=("local", "ray"), default="local",
                    help="local: processes on this machine (default); ray: the same work units "
                         "as Ray tasks (the scale extra); identical numbers")
@@ -111,6 +116,10 @@ def run(args) -> int:
         _check_plot(args.plot)
         check_writable(args.plot, "plot")
     check_env_and_policies(args.env, args.env_kwargs, specs)
+    if args.backend == "local" and args.workers > max_workers():
+        raise CliError(f"--workers: expected at most {max_workers()} (4 per CPU) for local "
+                       f"worker processes, got {args.workers}; a Ray cluster takes more "
+                       "(--backend ray --address HOST:PORT)")
     if args.address is not None and args.backend != "ray":
         raise CliError("--address is for --backend ray")
     if args.address is not None and not args.address.strip():

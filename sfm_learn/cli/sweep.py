@@ -122,6 +122,13 @@ def run(args) -> int:
         raise CliError(one_line(e)) from None
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise CliError(f"--out {args.out} exists and is not a directory")
+    if args.backend == "ray":  # reach the cluster before anything is written into --out
+        from sfm_learn.evaluation.ray_eval import init_ray
+
+        try:
+            init_ray(args.address, args.workers)
+        except ValueError as e:
+            raise CliError(one_line(e)) from None
     old = os.path.join(args.out, "spec.json")
     if os.path.isfile(old):
         try:

@@ -30,6 +30,8 @@ def init_ray(address: str | None, workers: int):
     """Connect to the cluster at ``address``, or start a local Ray with ``workers`` CPUs (no
     dashboard, worker logs not forwarded). Reuses a running session. ValueError (one line) when
     the cluster cannot be reached."""
+    if address:
+        use_cluster_token()  # before Ray is imported: it reads the mode then
     ray = import_ray()
     if ray.is_initialized():
         return ray
@@ -45,8 +47,21 @@ def init_ray(address: str | None, workers: int):
     except Exception as e:  # noqa: BLE001  (ConnectionError, RuntimeError, ...: one line)
         text = (str(e).strip().splitlines() or [type(e).__name__])[0]
         where = f"the Ray cluster at {address}" if address else "a local Ray"
-        raise ValueError(f"cannot start or reach {where}: {text}") from None
+        hint = ("; if the cluster uses token authentication (Ray's default for `ray start`), "
+                "put its token in ~/.ray/auth_token or RAY_AUTH_TOKEN" if address else "")
+        raise ValueError(f"cannot start or reach {where}: {text}{hint}") from None
     return ray
+
+
+def use_cluster_token() -> None:
+    """Connect with token authentication when a token is at hand (``RAY_AUTH_TOKEN`` or the
+    ``~/.ray/auth_token`` that ``ray start`` writes) and the user has not chosen a mode: clusters
+    started by ``ray start --head`` (Ray >= 2.5x) refuse a driver without it."""
+    if "RAY_AUTH_MODE" in os.environ:
+        return
+    token_file = os.path.join(os.path.expanduser("~"), ".ray", "auth_token")
+    if os.environ.get("RAY_AUTH_TOKEN") or os.path.isfile(token_file):
+        os.environ["RAY_AUTH_MODE"] = "token"
 
 
 def check_reachable(address: str, timeout_s: float = 5.0) -> None:

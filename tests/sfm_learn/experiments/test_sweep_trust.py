@@ -168,3 +168,44 @@ def test_address_rules_are_the_same_as_eval(tmp_path, capsys):
                  "--address", ""]) == 2
     assert "--address is empty" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_sweep_refused_for_its_ray_address_writes_nothing(tmp_path, capsys):
+    pytest.importorskip("ray")
+    spec = tmp_path / "s.json"
+    spec.write_text(json.dumps(BASE))
+    out = tmp_path / "o"
+    assert main(["sweep", str(spec), "--out", str(out), "--backend", "ray",
+                 "--address", "127.0.0.1:9"]) == 2
+    assert "cannot reach" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_eval_workers_beyond_local_cpus_are_for_ray(capsys):
+    from sfm_learn.cli.eval import MAX_RAY_WORKERS, max_workers
+
+    assert main(["eval", "--env", "MKV-v0", "--policy", "random", "--episodes", "1",
+                 "--workers", str(max_workers() + 1)]) == 2
+    err = capsys.readouterr().err
+    assert "4 per CPU" in err and "--backend ray" in err and err.count("\n") == 1
+    assert main(["eval", "--env", "MKV-v0", "--policy", "random", "--episodes", "1",
+                 "--workers", str(MAX_RAY_WORKERS + 1), "--backend", "ray"]) == 2
+
+
+def test_a_cluster_token_at_hand_switches_on_token_auth(monkeypatch, tmp_path):
+    """Clusters started by `ray start --head` want token auth; with the token in
+    ~/.ray/auth_token (or RAY_AUTH_TOKEN) the driver uses it, unless the user chose a mode."""
+    from sfm_learn.evaluation.ray_eval import use_cluster_token
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    monkeypatch.delenv("RAY_AUTH_TOKEN", raising=False)
+    use_cluster_token()
+    assert "RAY_AUTH_MODE" not in os.environ  # no token: nothing changes
+    (tmp_path / ".ray").mkdir()
+    (tmp_path / ".ray" / "auth_token").write_text("t")
+    use_cluster_token()
+    assert os.environ["RAY_AUTH_MODE"] == "token"
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    use_cluster_token()
+    assert os.environ["RAY_AUTH_MODE"] == "disabled"  # the user's choice stands
