@@ -180,7 +180,8 @@ class CSVSource(ChunkSource):
 
         self._passes += 1
         if self.progress:
-            bar = progress_bar(os.path.getsize(self.path), f"pass {self._passes}", unit="B")
+            bar = progress_bar(os.path.getsize(self.path), f"pass {self._passes}", unit="B",
+                               unit_scale=True)
         else:
             bar = NullBar()
         with bar, self._open() as f:
@@ -196,6 +197,8 @@ class CSVSource(ChunkSource):
             while True:
                 lines = list(itertools.islice(f, self.chunk_rows))
                 if not lines:
+                    if bar.total:
+                        bar.update(bar.total - bar.n)  # the end of the file: a full bar
                     return
                 try:
                     with warnings.catch_warnings():
@@ -210,13 +213,23 @@ class CSVSource(ChunkSource):
                 if data is None or data.shape[1] != k:
                     data, extra = _parse_lines(lines, f, k, path, line)
                 line += len(lines) + extra
-                bar.update(sum(len(x) for x in lines))
+                _advance(bar, f)
                 yield start, data
                 start += len(data)
         except OSError as e:
             raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
         except UnicodeDecodeError:
             raise CalibrationError(f"{path} is not a text CSV file") from None
+
+
+def _advance(bar, f) -> None:
+    """Move a bytes bar to the file's read position (bytes of the file, not characters)."""
+    try:
+        pos = f.buffer.tell()
+    except (AttributeError, OSError, ValueError):
+        return
+    if pos > bar.n:
+        bar.update(pos - bar.n)
 
 
 def _parse_lines(lines, f, k: int, path: str, line0: int) -> tuple[np.ndarray, int]:

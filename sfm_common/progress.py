@@ -39,7 +39,7 @@ class NullBar:
 
 
 def progress(total: int | None, desc: str = "", *, unit: str = "it", enabled: bool | None = None,
-             stream=None):
+             stream=None, unit_scale: bool = False):
     """A progress bar over ``total`` units (``None``: unknown total).
 
     Args:
@@ -49,6 +49,7 @@ def progress(total: int | None, desc: str = "", *, unit: str = "it", enabled: bo
         enabled: ``True`` draws, ``False`` never draws, ``None`` (default) draws only when
             ``stream`` is a terminal.
         stream: where the bar goes (default ``sys.stderr``).
+        unit_scale: show counts and rates with k/M/G prefixes (for bytes: ``unit="B"``).
 
     Returns:
         a ``tqdm`` bar, or a :class:`NullBar` when disabled or tqdm is not installed; both are
@@ -64,4 +65,5 @@ def progress(total: int | None, desc: str = "", *, unit: str = "it", enabled: bo
     except ImportError:
         return NullBar(total)
     return tqdm(total=total, desc=desc or None, unit=unit, file=stream, dynamic_ncols=True,
-                mininterval=0.1, leave=True)
+                mininterval=0.1, leave=True, unit_scale=unit_scale,
+                unit_divisor=1024 if unit_scale and unit == "B" else 1000)

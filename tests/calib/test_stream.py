@@ -2,6 +2,7 @@
 subsamples are chosen by the global row index; one-line errors and the CLI's --chunk-rows."""
 
 import json
+import os
 import warnings
 
 import numpy as np
@@ -316,3 +317,26 @@ def test_csv_passes_show_a_progress_bar_on_a_terminal(tmp_path, data, monkeypatc
         plain = fit_bias(CSVSource(str(path), 5_000), 3)
     assert "pass 1" in err.getvalue() and "pass 2" in err.getvalue()
     assert np.array_equal(shown.C, plain.C) and np.array_equal(shown.offset, plain.offset)
+
+
+def test_chunked_progress_counts_file_bytes_and_ends_full(tmp_path, monkeypatch):
+    """The --chunk-rows bar is in bytes of the file (header included, multi-byte text counted as
+    bytes) and is full at the end of each pass."""
+    import sfm_common.progress as prog
+    from calib.io import CSVSource
+
+    bars = []
+
+    def fake(total, desc="", **kw):
+        bars.append((prog.NullBar(total), kw))
+        return bars[-1][0]
+
+    monkeypatch.setattr(prog, "progress", fake)
+    rows = "\n".join(f"{i},{2 * i},{3 * i}" for i in range(5000))
+    p = tmp_path / "u.csv"
+    p.write_text("\ufeffgé1,gé2,gé3\n" + rows + "\n", encoding="utf-8")
+    src = CSVSource(str(p), 700, progress=True)
+    assert sum(len(b) for _, b in src.blocks()) == 5000
+    bar, kw = bars[-1]
+    assert bar.total == os.path.getsize(p) and bar.n == bar.total
+    assert kw.get("unit") == "B" and kw.get("unit_scale") is True
