@@ -147,13 +147,18 @@ class MKVEnv(gym.Env):
         collision_penalty: float = 0.05,
         kernel: str | None = None,
     ):
+        custom = _python_overrides(type(self))
         if kernel is None:
-            kernel = _kernel.default_kernel()
+            # a subclass that scores or ends steps its own way runs its own Python
+            kernel = "python" if custom else _kernel.default_kernel()
         _check(kernel in ("c", "python"),
                f"kernel must be 'c', 'python' or None, got {kernel!r}")
         _check(kernel == "python" or _kernel.AVAILABLE,
                "kernel='c' needs the compiled extension mkv_env._fastsim, which is not built "
                "(no C compiler at install time); use kernel='python'")
+        _check(kernel == "python" or not custom,
+               f"kernel='c' runs the rewards of the MK-V ids only; {type(self).__name__} "
+               f"overrides {', '.join(custom)}: use kernel='python' (the default for it)")
         _check(render_mode is None or render_mode in self.metadata["render_modes"],
                f"render_mode must be one of {self.metadata['render_modes']} or None, "
                f"got {render_mode!r}")
@@ -708,6 +713,21 @@ def _place(world: World, pose) -> None:
     world.space.reindex_shapes_for_body(body)
 
 
+#: The step-time methods whose code the compiled kernel carries for the four MK-V classes; a
+#: subclass that overrides one of them is stepped by its own Python (kernel "python").
+_KERNEL_METHODS = ("step", "_after_physics", "_reward", "_terminated", "_info", "_kernel_info",
+                   "_potential", "_pose", "_decode")
+
+
+def _python_overrides(cls) -> list[str]:
+    """The step-time methods ``cls`` defines differently from the MK-V class it derives from
+    (empty for the four registered classes and for subclasses that only change arguments)."""
+    base = next((c for c in cls.__mro__ if c in _KERNEL_CLASSES), None)
+    if base is None:
+        return list(_KERNEL_METHODS)
+    return [m for m in _KERNEL_METHODS if getattr(cls, m, None) is not getattr(base, m, None)]
+
+
 def _num(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
         and math.isfinite(v)
@@ -715,3 +735,7 @@ def _num(v) -> bool:
 
 def _int(v) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+#: The classes whose step the compiled kernel implements (their _KERNEL_KIND).
+_KERNEL_CLASSES = (MKVEnv, MKVJamEnv, MKVEnvV1, MKVJamEnvV1)

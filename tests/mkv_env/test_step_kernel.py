@@ -360,3 +360,26 @@ def test_a_forked_process_steps_a_threaded_vector_env_with_threads_of_its_own():
     child.join(timeout=60)
     assert child.exitcode == 0
     assert got == [venv.step(a)[0].tobytes() for a in acts[1:]]
+
+
+def test_a_subclass_with_its_own_reward_runs_its_own_python():
+    """The compiled kernel carries the four MK-V classes' rewards only: a subclass overriding
+    _reward (or any step-time method) gets kernel='python' by default and refuses 'c'; one that
+    only changes arguments keeps the compiled kernel."""
+    from mkv_env.envs import MKVEnv, MKVJamEnvV1
+
+    class Bonus(MKVEnv):
+        def _reward(self, progress, stuck, collision, escaped):
+            return 1.0
+
+    class Quieter(MKVJamEnvV1):
+        def __init__(self, **kw):
+            super().__init__(time_penalty=0.0, **kw)
+
+    env = Bonus()
+    assert env.kernel == "python"
+    env.reset(seed=0)
+    assert env.step(np.array([2, 1]))[1] == 1.0
+    with pytest.raises(ValueError, match="overrides _reward"):
+        Bonus(kernel="c")
+    assert Quieter().kernel == kernel_mod.default_kernel()
