@@ -125,10 +125,11 @@ def run(args) -> int:
     if args.address is not None and not args.address.strip():
         raise CliError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
     if args.backend == "ray":
-        from sfm_learn.evaluation.ray_eval import init_ray
+        from sfm_learn.evaluation.ray_eval import check_workers_fit, init_ray
 
         try:
-            init_ray(args.address, args.workers)   # one-line error before any episode runs
+            ray = init_ray(args.address, args.workers)  # one-line error before any episode
+            check_workers_fit(ray, args.workers)
         except ValueError as e:
             raise CliError(str(e)) from None
 

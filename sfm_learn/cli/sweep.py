@@ -123,10 +123,10 @@ def run(args) -> int:
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise CliError(f"--out {args.out} exists and is not a directory")
     if args.backend == "ray":  # reach the cluster before anything is written into --out
-        from sfm_learn.evaluation.ray_eval import init_ray
+        from sfm_learn.evaluation.ray_eval import check_workers_fit, init_ray
 
         try:
-            init_ray(args.address, args.workers)
+            check_workers_fit(init_ray(args.address, args.workers), args.workers)
         except ValueError as e:
             raise CliError(one_line(e)) from None
     old = os.path.join(args.out, "spec.json")

@@ -53,6 +53,14 @@ def init_ray(address: str | None, workers: int):
     return ray
 
 
+def check_workers_fit(ray, workers: int) -> None:
+    """ValueError (one line) when more than 4 tasks per CPU of the cluster would be in flight."""
+    cpus = int(ray.cluster_resources().get("CPU", 0))
+    if workers > max(1, 4 * cpus):
+        raise ValueError(f"--workers {workers} is more than 4 per CPU of the Ray cluster "
+                         f"({cpus} CPUs)")
+
+
 def use_cluster_token() -> None:
     """Connect with token authentication when a token is at hand (``RAY_AUTH_TOKEN`` or the
     ``~/.ray/auth_token`` that ``ray start`` writes) and the user has not chosen a mode: clusters
