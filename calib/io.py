@@ -147,8 +147,9 @@ class CSVSource(ChunkSource):
 
     def __init__(self, path: str, chunk_rows: int = 1 << 17, progress: bool = False) -> None:
         super().__init__()
-        self.progress = bool(progress)  # a bar per pass (bytes read), drawn on a terminal only
+        self.progress = bool(progress)  # a bar per pass (rows read), drawn on a terminal only
         self._passes = 0
+        self._rows: int | None = None  # data rows, known once a pass has read the whole file
         if int(chunk_rows) < 1:
             raise CalibrationError(f"chunk_rows must be positive, got {chunk_rows}")
         self.path = path
@@ -179,9 +180,8 @@ class CSVSource(ChunkSource):
         from sfm_common.progress import progress as progress_bar
 
         self._passes += 1
-        if self.progress:
-            bar = progress_bar(os.path.getsize(self.path), f"pass {self._passes}", unit="B",
-                               unit_scale=True)
+        if self.progress:  # rows; the total is known from the second pass on
+            bar = progress_bar(self._rows, f"pass {self._passes}", unit="row", unit_scale=True)
         else:
             bar = NullBar()
         with bar, self._open() as f:
@@ -197,8 +197,7 @@ class CSVSource(ChunkSource):
             while True:
                 lines = list(itertools.islice(f, self.chunk_rows))
                 if not lines:
-                    if bar.total:
-                        bar.update(bar.total - bar.n)  # the end of the file: a full bar
+                    self._rows = start
                     return
                 try:
                     with warnings.catch_warnings():
@@ -213,23 +212,13 @@ class CSVSource(ChunkSource):
                 if data is None or data.shape[1] != k:
                     data, extra = _parse_lines(lines, f, k, path, line)
                 line += len(lines) + extra
-                _advance(bar, f)
+                bar.update(len(data))
                 yield start, data
                 start += len(data)
         except OSError as e:
             raise CalibrationError(f"cannot read {path}: {e.strerror}") from None
         except UnicodeDecodeError:
             raise CalibrationError(f"{path} is not a text CSV file") from None
-
-
-def _advance(bar, f) -> None:
-    """Move a bytes bar to the file's read position (bytes of the file, not characters)."""
-    try:
-        pos = f.buffer.tell()
-    except (AttributeError, OSError, ValueError):
-        return
-    if pos > bar.n:
-        bar.update(pos - bar.n)
 
 
 def _parse_lines(lines, f, k: int, path: str, line0: int) -> tuple[np.ndarray, int]:

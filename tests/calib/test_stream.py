@@ -2,7 +2,6 @@
 subsamples are chosen by the global row index; one-line errors and the CLI's --chunk-rows."""
 
 import json
-import os
 import warnings
 
 import numpy as np
@@ -319,9 +318,10 @@ def test_csv_passes_show_a_progress_bar_on_a_terminal(tmp_path, data, monkeypatc
     assert np.array_equal(shown.C, plain.C) and np.array_equal(shown.offset, plain.offset)
 
 
-def test_chunked_progress_counts_file_bytes_and_ends_full(tmp_path, monkeypatch):
-    """The --chunk-rows bar is in bytes of the file (header included, multi-byte text counted as
-    bytes) and is full at the end of each pass."""
+def test_chunked_progress_counts_rows_and_knows_the_total_from_the_second_pass(tmp_path,
+                                                                            monkeypatch):
+    """The --chunk-rows bar counts data rows (not bytes or characters); the first pass learns
+    their number, later passes show it as the total and end full."""
     import sfm_common.progress as prog
     from calib.io import CSVSource
 
@@ -334,9 +334,11 @@ def test_chunked_progress_counts_file_bytes_and_ends_full(tmp_path, monkeypatch)
     monkeypatch.setattr(prog, "progress", fake)
     rows = "\n".join(f"{i},{2 * i},{3 * i}" for i in range(5000))
     p = tmp_path / "u.csv"
-    p.write_text("\ufeffgé1,gé2,gé3\n" + rows + "\n", encoding="utf-8")
+    p.write_text("\ufeffg1,g2,g3\n" + rows + "\n", encoding="utf-8")
     src = CSVSource(str(p), 700, progress=True)
-    assert sum(len(b) for _, b in src.blocks()) == 5000
-    bar, kw = bars[-1]
-    assert bar.total == os.path.getsize(p) and bar.n == bar.total
-    assert kw.get("unit") == "B" and kw.get("unit_scale") is True
+    for _ in range(2):
+        assert sum(len(b) for _, b in src.blocks()) == 5000
+    (first, kw), (second, _) = bars[-2:]
+    assert first.total is None and first.n == 5000
+    assert second.total == second.n == 5000
+    assert kw.get("unit") == "row"
