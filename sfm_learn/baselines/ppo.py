@@ -113,6 +113,7 @@ def load_hyperparameters(env_id: str, path: str | None = None) -> dict:
     entry = doc.get(env_id, doc.get("default", {}))
     if not isinstance(entry, dict):
         raise ValueError(f"hyperparameter entry for {env_id} in {path} is not a mapping")
+    entry = _from_rl_zoo3(dict(entry), env_id, path)
     unknown = set(entry) - _HP_KEYS
     if unknown:
         raise ValueError(f"unknown hyperparameter(s) {sorted(unknown)} in {path}; "
@@ -141,6 +142,86 @@ def load_hyperparameters(env_id: str, path: str | None = None) -> dict:
     if hp["observation"] not in OBSERVATIONS:
         raise ValueError(f"observation of {env_id} in {path} must be one of {OBSERVATIONS}")
     return hp
+
+
+#: rl-zoo3 keys this trainer cannot honour, and why (a one-line refusal names them).
+_ZOO_REFUSED = {
+    "env_wrapper": "env wrappers are not applied by mkv train-ppo (its own wrappers: "
+                   "RescaleObservation and, with observation: features, FeatureObservation)",
+    "frame_stack": "frame stacking is not applied by mkv train-ppo",
+    "callback": "callbacks are not loaded from a hyperparameter file",
+    "vec_env_wrapper": "vec env wrappers are not applied by mkv train-ppo",
+    "policy_delay": "not a PPO setting", "train_freq": "not a PPO setting",
+}
+
+
+def _zoo_policy_kwargs(text, env_id: str, path: str) -> dict:
+    """rl-zoo3's ``policy_kwargs: "dict(net_arch=[64, 64], activation_fn=nn.Tanh)"`` read as
+    data (``ast``, nothing evaluated): net_arch (a list of widths) and a Tanh activation, the
+    tanh MLP this trainer builds; anything else is refused."""
+    import ast
+
+    where = f"policy_kwargs of {env_id} in {path}"
+    if isinstance(text, dict):
+        items = text
+    else:
+        try:
+            node = ast.parse(str(text), mode="eval").body
+        except SyntaxError:
+            raise ValueError(f"{where} is not dict(...)") from None
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id == "dict" and not node.args):
+            raise ValueError(f"{where} must be dict(key=value, ...)")
+        items = {}
+        for kw in node.keywords:
+            if kw.arg == "activation_fn":
+                items[kw.arg] = ast.unparse(kw.value)
+            else:
+                try:
+                    items[kw.arg] = ast.literal_eval(kw.value)
+                except ValueError:
+                    raise ValueError(f"{where}: {kw.arg} is not a plain value") from None
+    out = {}
+    for key, value in items.items():
+        if key == "net_arch":
+            if isinstance(value, dict) and value.get("pi") == value.get("vf"):
+                value = value.get("pi")
+            if isinstance(value, list) and value and isinstance(value[0], dict):
+                value = value[0].get("pi") if value[0].get("pi") == value[0].get("vf") else None
+            out["net_arch"] = value
+        elif key == "activation_fn":
+            if str(value).rsplit(".", 1)[-1] != "Tanh":
+                raise ValueError(f"{where}: activation_fn {value} is not supported (mkv "
+                                 "train-ppo builds a tanh MLP)")
+        elif key == "ortho_init" and value is True:
+            pass  # SB3's default
+        else:
+            raise ValueError(f"{where}: {key} is not supported by mkv train-ppo")
+    return out
+
+
+def _from_rl_zoo3(entry: dict, env_id: str, path: str) -> dict:
+    """An rl-zoo3 entry in this trainer's terms: ``policy: MlpPolicy`` and ``normalize: false``
+    accepted, ``policy_kwargs`` read as data, what cannot be honoured refused in one line."""
+    where = f"{env_id} in {path}"
+    if "policy" in entry:
+        if entry.pop("policy") != "MlpPolicy":
+            raise ValueError(f"policy of {where}: only MlpPolicy is supported")
+    if "normalize" in entry:
+        norm = entry.pop("normalize")
+        if norm not in (False, "false", "False", None):
+            raise ValueError(f"normalize of {where}: VecNormalize is not supported by mkv "
+                             "train-ppo, which rescales observations to [-1, 1] itself "
+                             "(RescaleObservation); use normalize: false")
+    if "policy_kwargs" in entry:
+        entry.update(_zoo_policy_kwargs(entry.pop("policy_kwargs"), env_id, path))
+    for key in list(entry):
+        if key in _ZOO_REFUSED:
+            raise ValueError(f"{key} of {where}: {_ZOO_REFUSED[key]}")
+        if isinstance(entry[key], str) and entry[key].startswith("lin_"):
+            raise ValueError(f"{key} of {where}: schedules ({entry[key]}) are not supported; "
+                             "give a number")
+    return entry
 
 
 # ---------------------------------------------------------------------- training
