@@ -2,7 +2,11 @@
 
 Bad input ends the command with exit status 2 and one line on stderr, ``calib: error: ...``.
 Calibration warnings (poor excitation, hyperboloid, mirror ambiguity) are printed as one line
-each, ``calib: warning: ...``, and do not change the exit status.
+each, ``calib: warning: ...``, and do not change the exit status. A fit that
+:func:`calib.reliability.assess` finds unreliable (not converged, implausible magnitude or known
+residuals, failed held-out check) ends with exit status 3 and one line, ``calib: unreliable:
+...``, and writes nothing, unless ``--allow-unreliable`` (then it is written, the reasons are
+warnings and in ``diagnostics["reliability"]``).
 """
 
 from __future__ import annotations
@@ -11,10 +15,16 @@ import argparse
 import sys
 import warnings
 
+import numpy as np
+
 from sfm_common.cli import OneLineParser, UsageError, int_in_range, one_line, positive_float
 from sfm_common.files import check_distinct, check_writable_target
 
 from .result import CalibrationError, CalibrationWarning
+
+
+class Unreliable(Exception):
+    """The fit ran but is unreliable (exit status 3)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -33,11 +43,20 @@ def _parser() -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--method",
-        choices=("paper", "centered", "joint"),
+        choices=("paper", "centered", "joint", "least_squares"),
         default="centered",
         help="bias route (default centered; paper needs p >= r+1 channels; joint fits the "
-        "magnitude rows and --known pairs together)",
+        "magnitude rows and --known pairs together; least_squares: every row of RAW.csv has "
+        "its load in Fx,Fy[,Fz][,Tx,Ty,Tz] columns)",
     )
+    f.add_argument("--cv", choices=("poses",),
+                   help="poses: leave-one-pose-out error over the known poses (joint, "
+                   "least_squares), in the summary and diagnostics['cv_poses']")
+    f.add_argument("--allow-unreliable", action="store_true",
+                   help="write a fit that the reliability checks reject (exit 0, warnings)")
+    f.add_argument("--holdout-factor", type=positive_float, metavar="F", default=None,
+                   help="held-out check: leave-one-pose-out rms may be at most F times the "
+                   "in-sample residual (default 20)")
     f.add_argument("--known-sigma", type=positive_float, metavar="S",
                    help="joint: accuracy of each known load component (load units)")
     f.add_argument("--magnitude-sigma", type=positive_float, metavar="S",
@@ -76,6 +95,16 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--drop-nonfinite", action="store_true")
     a.add_argument("--out", metavar="LOADS.csv", required=True)
 
+    e = sub.add_parser("evaluate", help="held-out load error of a calibration on test readings")
+    e.add_argument("cal", metavar="CAL.json")
+    e.add_argument("test", metavar="TEST.csv",
+                   help="readings; with load columns (Fx,Fy[,Fz]...) each row's load, "
+                   "else --known gives the loads of its poses")
+    e.add_argument("--known", metavar="KNOWN.csv",
+                   help="pose readings and loads: each static pose of TEST.csv takes the load "
+                   "of the known reading it lies nearest to")
+    e.add_argument("--drop-nonfinite", action="store_true")
+
     t = sub.add_parser("trials", help="the paper's Trials 1-4, Table 1 and figures")
     t.add_argument("--out", metavar="DIR", default="calib_trials")
     t.add_argument("--seeds", type=int_in_range(1, 100_000), default=200,
@@ -93,6 +122,8 @@ def main(argv=None) -> int:
             warnings.simplefilter("always", CalibrationWarning)
             if args.command == "fit":
                 msg = _fit(args)
+            elif args.command == "evaluate":
+                msg = _evaluate(args)
             elif args.command == "apply":
                 msg = _apply(args)
             else:
@@ -105,6 +136,9 @@ def main(argv=None) -> int:
     except UsageError as e:
         print(f"calib: error: {e.prog}: {one_line(e)}", file=sys.stderr)
         return 2
+    except Unreliable as e:
+        print(f"calib: unreliable: {one_line(e)}", file=sys.stderr)
+        return 3
     except (CalibrationError, ValueError) as e:
         print(f"calib: error: {one_line(e)}", file=sys.stderr)
         return 2
@@ -139,9 +173,18 @@ def _fit(args) -> str:
         if given:
             raise CalibrationError(f"{given[0]} is an option of --method joint (with --dof 2 or "
                                    "3); without it nothing would use it")
+    if args.method == "least_squares":
+        for flag, v in (("--known", args.known), ("--bias", args.bias or None),
+                        ("--magnitude", args.magnitude), ("--chunk-rows", args.chunk_rows),
+                        ("--bootstrap", args.bootstrap)):
+            if v:
+                raise CalibrationError(f"{flag} is not an option of --method least_squares "
+                                       "(RAW.csv holds every row's load)")
     if args.chunk_rows:
         if args.bootstrap:
             raise CalibrationError("--chunk-rows is not supported with --bootstrap")
+        if args.cv:
+            raise CalibrationError("--chunk-rows is not supported with --cv")
         from .io import CSVSource
 
         # each pass of the fit reads the file again (a bar per pass on a terminal)
@@ -149,7 +192,12 @@ def _fit(args) -> str:
         channels = Z.header
     else:
         channels, Z = read_csv(args.raw)
+    if args.cv and args.method not in ("joint", "least_squares"):
+        raise CalibrationError("--cv poses needs --method joint or least_squares (known loads "
+                               "at the poses)")
     known_Z = known_M = None
+    if args.method == "least_squares":
+        return _fit_least_squares(args, channels, Z)
     if args.known:
         kh, kd = read_csv(args.known)
         known_Z, known_M = split_known(kh, kd, channels, args.dof)
@@ -157,7 +205,7 @@ def _fit(args) -> str:
         if known_Z is None:
             raise CalibrationError("--dof 6 needs --known with at least 6 known loads (see docs)")
 
-        def fit(Z, drop=args.drop_nonfinite):
+        def fit(Z, drop=args.drop_nonfinite, cv=False):
             return fit_ft6(Z, known_Z, known_M, bias=args.bias, method=args.method,
                            drop_nonfinite=drop)
     elif args.method == "joint":
@@ -166,22 +214,22 @@ def _fit(args) -> str:
         if known_Z is None:
             raise CalibrationError("--method joint needs --known with at least 2 known loads")
 
-        def fit(Z, drop=args.drop_nonfinite):
+        def fit(Z, drop=args.drop_nonfinite, cv=False):
             return fit_joint(Z, known_Z, known_M, args.dof, magnitude=args.magnitude,
                              known_sigma=args.known_sigma,
                              magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop,
-                             known_samples=args.known_samples)
+                             known_samples=args.known_samples, cv=cv)
     elif args.bias:
 
-        def fit(Z, drop=args.drop_nonfinite):
+        def fit(Z, drop=args.drop_nonfinite, cv=False):
             return fit_bias(Z, args.dof, method=args.method, known_Z=known_Z, known_M=known_M,
                             magnitude=args.magnitude, drop_nonfinite=drop)
     else:
 
-        def fit(Z, drop=args.drop_nonfinite):
+        def fit(Z, drop=args.drop_nonfinite, cv=False):
             return fit_sfm(Z, args.dof, known_Z=known_Z, known_M=known_M,
                            magnitude=args.magnitude, drop_nonfinite=drop)
-    cal = fit(Z)
+    cal = fit(Z, cv=args.cv == "poses")
     if args.bootstrap:
         from sfm_common.progress import progress as progress_bar
 
@@ -194,7 +242,29 @@ def _fit(args) -> str:
             cal.diagnostics["bootstrap"] = bootstrap_intervals(
                 lambda z: fit(z, False), Zc, cal, args.bootstrap, seed=args.seed,
                 align=known_Z is None, progress=bar)
+    status = _reliability(args, cal, known_Z, known_M)
     save_calibration(args.out, cal, channels)
+    return _summary(args, cal, status)
+
+
+def _reliability(args, cal, known_Z, known_M) -> str:
+    """Assess the fit (calib.reliability), record it in its diagnostics; raise Unreliable
+    unless --allow-unreliable. Returns the summary's reliability words."""
+    from .reliability import HOLDOUT_FACTOR, assess
+    from .result import warn
+
+    problems = assess(cal, known_Z, known_M, args.known_sigma,
+                      holdout_factor=args.holdout_factor or HOLDOUT_FACTOR)
+    cal.diagnostics["reliability"] = {"reliable": not problems, "problems": problems}
+    if problems and not args.allow_unreliable:
+        raise Unreliable("; ".join(problems) + "; nothing written (--allow-unreliable writes "
+                         "it anyway)")
+    for p in problems:
+        warn(f"unreliable: {p}")
+    return "UNRELIABLE (written: --allow-unreliable)" if problems else "reliable"
+
+
+def _summary(args, cal, status) -> str:
     d = cal.diagnostics
     dropped = d.get("n_dropped_nonfinite", 0)
     cov = d.get("coverage") or {}
@@ -206,7 +276,39 @@ def _fit(args) -> str:
         + (f", offset stderr <= {d['offset_stderr_max_rel_span']:.2%} of span"
            if "offset_stderr_max_rel_span" in d else "")
         + (f", bootstrap {args.bootstrap}" if args.bootstrap else "")
+        + (f", {d['joint']['n_poses']} poses found" if d.get("joint", {}).get("route") == "poses"
+           else "")
+        + (f", leave-one-pose-out rms {d['cv_poses']['rms']:.4g} over "
+           f"{d['cv_poses']['folds']} pose(s)" if "cv_poses" in d else "")
+        + f"; {status}"
     )
+
+
+def _fit_least_squares(args, channels, Z) -> str:
+    from ._validate import check_matrix
+    from .io import LOAD_COLUMNS, load_columns, save_calibration
+    from .least_squares import fit_least_squares, leave_one_pose_out_ls
+    from .rig import find_poses
+
+    cols = load_columns(args.dof)
+    missing = [c for c in cols if c not in channels]
+    if missing:
+        raise CalibrationError(f"{args.raw} lacks load column(s) {missing} (--method "
+                               "least_squares needs every row's load)")
+    idx = [channels.index(c) for c in cols]
+    sens = [i for i, c in enumerate(channels) if c not in LOAD_COLUMNS]
+    data, _ = check_matrix(Z, args.raw, args.drop_nonfinite)
+    Zs, Ms = data[:, sens], data[:, idx]
+    cal = fit_least_squares(Zs, Ms, bias=True)
+    if args.cv:
+        labels = find_poses(Zs)
+        if labels is None:
+            raise CalibrationError(f"--cv poses: {args.raw} is not a static-pose log (no poses "
+                                   "found)")
+        cal.diagnostics["cv_poses"] = leave_one_pose_out_ls(Zs, Ms, labels)
+    status = _reliability(args, cal, None, None)
+    save_calibration(args.out, cal, [channels[i] for i in sens])
+    return _summary(args, cal, status)
 
 
 def _apply(args) -> str:
@@ -230,6 +332,56 @@ def _apply(args) -> str:
     write_csv(args.out, load_columns(cal.dof), loads)
     note = f" (dropped {dropped} non-finite row(s))" if dropped else ""
     return f"wrote {args.out}: {len(loads)} rows of {','.join(load_columns(cal.dof))}{note}"
+
+
+def _evaluate(args) -> str:
+    from ._validate import check_matrix
+    from .io import LOAD_COLUMNS, load_calibration, load_columns, read_csv
+    from .rig import match_poses
+
+    cal, cal_channels = load_calibration(args.cal)
+    header, data = read_csv(args.test)
+    cols = load_columns(cal.dof)
+    channels = cal_channels or [c for c in header if c not in LOAD_COLUMNS]
+    missing = [c for c in channels if c not in header]
+    if missing:
+        raise CalibrationError(f"{args.test} lacks calibrated channel(s) {missing}")
+    if len(channels) != cal.n_channels:
+        raise CalibrationError(f"{args.test} has {len(channels)} channel columns, the "
+                               f"calibration expects {cal.n_channels}")
+    data, dropped = check_matrix(data, args.test, args.drop_nonfinite)
+    Z = data[:, [header.index(c) for c in channels]]
+    has_loads = all(c in header for c in cols)
+    note = ""
+    if has_loads and not args.known:
+        M = data[:, [header.index(c) for c in cols]]
+    elif args.known:
+        if has_loads:
+            raise CalibrationError(f"{args.test} has load columns and --known was given: "
+                                   "use one source of loads")
+        kh, kd = read_csv(args.known)
+        miss = [c for c in channels + cols if c not in kh]
+        if miss:
+            raise CalibrationError(f"{args.known} lacks column(s) {miss}")
+        Zk, _ = check_matrix(kd[:, [kh.index(c) for c in channels]], args.known)
+        Mk = kd[:, [kh.index(c) for c in cols]]
+        rows, which, n_poses = match_poses(Z, Zk)
+        if not len(rows):
+            raise CalibrationError(f"no pose of {args.test} lies clearly nearest to a known "
+                                   f"reading of {args.known}")
+        Z, M = Z[rows], Mk[which]
+        note = (f" in {n_poses} pose(s) matched to known readings"
+                f"{f', {len(data) - len(rows)} row(s) unmatched' if len(rows) < len(data) else ''}")
+    else:
+        raise CalibrationError(f"{args.test} has no load columns {cols}: give --known KNOWN.csv")
+    err = cal.apply(Z) - M
+    per_axis = np.sqrt(np.mean(err**2, axis=0))
+    total = float(np.sqrt(np.mean(err**2)))
+    mag = float(np.sqrt(np.mean(np.sum(M**2, axis=1))))
+    axes = ", ".join(f"{c} {v:.4g}" for c, v in zip(cols, per_axis, strict=True))
+    drop = f", dropped {dropped} non-finite row(s)" if dropped else ""
+    return (f"{args.test}: {len(Z)} row(s){note}{drop}; held-out load rms {total:.4g} "
+            f"({total / mag:.2%} of the load rms {mag:.4g}); per axis: {axes}")
 
 
 def _trials(args) -> str:

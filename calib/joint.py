@@ -54,8 +54,17 @@ def fit_joint(
     magnitude_sigma: float | None = None,
     drop_nonfinite: bool = False,
     known_samples: int | None = None,
+    poses="auto",
+    cv: bool = False,
 ):
     """Fit C, offset (and the load magnitude) to motion rows and known pairs together.
+
+    Static-pose logs (a rig: a few hundred readings in each of a dozen poses) go to the
+    pose-level fit of :mod:`calib.rig` when ``poses`` is ``"auto"`` (poses found by
+    :func:`calib.rig.find_poses`) or an array of pose labels per row; the Sampson-distance fit
+    below is then one of its starts. ``poses=None`` always uses the Sampson-distance fit (as do
+    streamed sources). ``cv=True`` adds ``diagnostics["cv_poses"]``: the leave-one-pose-out
+    error over the known poses (:func:`leave_one_pose_out`).
 
     Parameters
     ----------
@@ -73,6 +82,111 @@ def fit_joint(
     ``joint`` (sigmas, fitted magnitude, residual rms of both kinds, solver status) and standard
     errors from the weighted Jacobian.
     """
+    motion = _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigma,
+                         drop_nonfinite, known_samples)
+    from .stream import is_streamed
+
+    if poses is None or poses is False or is_streamed(Z):
+        return motion
+    from .rig import find_poses, fit_rig
+
+    Za, _ = check_matrix(Z, "Z", drop_nonfinite)
+    if isinstance(poses, str):
+        if poses != "auto":
+            raise CalibrationError(f"poses must be 'auto', None or labels per row, got {poses!r}")
+        labels = find_poses(Za)
+    else:
+        labels = np.asarray(poses)
+        if labels.shape != (len(Za),) or not np.issubdtype(labels.dtype, np.integer):
+            raise CalibrationError(f"pose labels must be {len(Za)} integers, got shape "
+                                   f"{labels.shape} of {labels.dtype}")
+    if labels is None:
+        return motion
+    Mk = np.atleast_2d(np.asarray(known_M, float))[:, : motion.C.shape[0]]
+
+    def fit(Zs, lab, Zk, Mk_):
+        m = _fit_motion(Zs, Zk, Mk_, dof, magnitude, known_sigma, magnitude_sigma, False,
+                        known_samples)
+        return fit_rig(Zs, lab, Zk, Mk_, dof, magnitude, known_samples,
+                       starts=_starts(Zs, Zk, Mk_, dof, magnitude, m), known_sigma=known_sigma)
+
+    import warnings as _w
+
+    with _w.catch_warnings():
+        _w.simplefilter("ignore")  # the starts' own warnings: the final fit reports its own
+        try:
+            cal = fit_rig(Za, labels, known_Z, Mk, dof, magnitude, known_samples,
+                          starts=_starts(Za, known_Z, Mk, dof, magnitude, motion),
+                          known_sigma=known_sigma)
+        except CalibrationError as e:
+            motion.diagnostics["joint"]["rig_fit_failed"] = str(e)
+            return motion
+        if cv:
+            cal.diagnostics["cv_poses"] = leave_one_pose_out(Za, labels, known_Z, Mk, fit)
+    m = motion.diagnostics
+    cal.diagnostics["joint"]["sampson_fit"] = {
+        k: m["joint"][k] for k in ("magnitude", "converged", "nfev", "known_residual_rms")}
+    for key in ("coverage", "rank_gap", "excitation_poor", "n_dropped_nonfinite"):
+        if key in m:
+            cal.diagnostics[key] = m[key]
+    return cal
+
+
+def _starts(Z, known_Z, known_M, dof, magnitude, motion):
+    starts = {"Sampson-distance joint fit": motion}
+    try:
+        starts["centered + alignment"] = fit_centered(Z, dof, known_Z=known_Z, known_M=known_M,
+                                                      magnitude=magnitude)
+    except CalibrationError:
+        pass
+    return starts
+
+
+def leave_one_pose_out(Z, labels, known_Z, known_M, fit) -> dict:
+    """Leave-one-pose-out error over the known poses: for each known reading that belongs to a
+    pose of ``labels``, refit with that pose left out entirely (its rows and its known load) by
+    ``fit(Z, labels, known_Z, known_M)`` and compare the refit's mean load over the pose's rows
+    with the known load. The honest estimate for a rig, where every sample of a pose shares its
+    errors (sample-level splits see them in training). Returns ``folds``, ``rms`` and
+    ``rms_per_axis`` (load units), ``errors`` (folds x r) and ``failed_folds``."""
+    from .rig import PoseData
+
+    Z = np.asarray(Z, float)
+    labels = np.asarray(labels)
+    Zk = np.atleast_2d(np.asarray(known_Z, float))
+    Mk = np.atleast_2d(np.asarray(known_M, float))
+    r = Mk.shape[1]
+    pd = PoseData(Z, labels, Zk, Mk, r)
+    ids = np.unique(labels[labels >= 0])
+    errors, failed = [], 0
+    for k, j in enumerate(pd.known_pose):
+        if j >= len(ids):
+            continue  # a known-only reading: no rows to hold out
+        hold = labels == ids[j]
+        keep = np.ones(len(Zk), bool)
+        keep[k] = False
+        if keep.sum() < 2:
+            failed += 1
+            continue
+        try:
+            cal = fit(Z[~hold], labels[~hold], Zk[keep], Mk[keep])
+        except (CalibrationError, np.linalg.LinAlgError):
+            failed += 1
+            continue
+        errors.append(cal.apply(Z[hold]).mean(axis=0) - Mk[k])
+    E = np.array(errors).reshape(-1, r)
+    return {
+        "folds": len(E),
+        "failed_folds": failed,
+        "rms": float(np.sqrt(np.mean(E**2))) if len(E) else float("nan"),
+        "rms_per_axis": np.sqrt(np.mean(E**2, axis=0)) if len(E) else np.full(r, np.nan),
+        "errors": E,
+    }
+
+
+def _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigma,
+                drop_nonfinite, known_samples):
+    """The Sampson-distance joint fit over the motion rows (module docstring)."""
     if known_Z is None or known_M is None:
         raise CalibrationError("method 'joint' needs known loads (--known)")
     dof, r, data = _prepare_source(Z, dof, drop_nonfinite, 0)
@@ -179,6 +293,7 @@ def fit_joint(
             "nfev": int(sol.nfev),
             "converged": bool(sol.status > 0),
             "start": "centered + alignment",
+            "route": "motion rows",
         }
     }
     C_unit = C / g

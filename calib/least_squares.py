@@ -120,3 +120,31 @@ class StatsView:
     def __init__(self, data, p):
         self.n, self.p = data.n, p
         self.min, self.max = data.min[:p], data.max[:p]
+
+
+def leave_one_pose_out_ls(Z, M, labels) -> dict:
+    """Leave-one-pose-out error of least squares (bias on) on a static-pose log: each pose of
+    ``labels`` (-1 rows unused) is left out in turn, the rest fitted, and the fit's mean load over
+    the pose's rows compared with the pose's mean known load. Same keys as
+    :func:`calib.joint.leave_one_pose_out`."""
+    Z = np.asarray(Z, float)
+    M = np.asarray(M, float)
+    labels = np.asarray(labels)
+    errors, failed = [], 0
+    for j in np.unique(labels[labels >= 0]):
+        hold = labels == j
+        try:
+            cal = fit_least_squares(Z[~hold & (labels >= 0)], M[~hold & (labels >= 0)],
+                                    bias=True)
+        except CalibrationError:
+            failed += 1
+            continue
+        errors.append(cal.apply(Z[hold]).mean(axis=0) - M[hold].mean(axis=0))
+    E = np.array(errors).reshape(-1, M.shape[1])
+    return {
+        "folds": len(E),
+        "failed_folds": failed,
+        "rms": float(np.sqrt(np.mean(E**2))) if len(E) else float("nan"),
+        "rms_per_axis": np.sqrt(np.mean(E**2, axis=0)) if len(E) else np.full(M.shape[1], np.nan),
+        "errors": E,
+    }

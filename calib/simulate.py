@@ -262,3 +262,152 @@ def paper_trial(
         noise_kind="uniform",
         offset=t["offset"],
     )
+
+
+@dataclass
+class RigData:
+    """A simulated static-pose calibration rig (:func:`simulate_rig`).
+
+    Attributes
+    ----------
+    Z : ndarray (n, p)        readings in time order (pose after pose)
+    pose : ndarray (n,)       the pose index of every reading
+    stated_loads : (P, r)     the loads the operator believes were applied (weighed mass times
+                              the rig's design direction): what a real rig's "known load" is
+    true_loads : (n, r)       the loads really applied (weighing error, mount misalignment)
+    directions : (P, r)       the rig's design directions (unit)
+    S : (r, p), offset : (p,) the linear part of the sensor and its offset at time 0
+    magnitude : float         the stated load magnitude
+    """
+
+    Z: np.ndarray
+    pose: np.ndarray
+    stated_loads: np.ndarray
+    true_loads: np.ndarray
+    directions: np.ndarray
+    S: np.ndarray
+    offset: np.ndarray
+    magnitude: float
+
+    def split(self, kind: str = "alternate"):
+        """Train and test row indices: half the samples of every pose each.
+
+        ``alternate``: even samples train, odd test; ``halves``: the first half of every pose
+        trains, the second tests (harder: drift and creep differ between them).
+        """
+        idx = np.arange(len(self.Z))
+        within = idx - np.searchsorted(self.pose, self.pose)  # sample number inside its pose
+        counts = np.bincount(self.pose)[self.pose]
+        if kind == "alternate":
+            train = within % 2 == 0
+        elif kind == "halves":
+            train = within < counts // 2
+        else:
+            raise CalibrationError(f"split kind must be 'alternate' or 'halves', got {kind!r}")
+        return idx[train], idx[~train]
+
+    def pose_means(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        """Mean reading of every pose over ``rows``, and the pose indices: (P, p), (P,)."""
+        rows = np.asarray(rows)
+        poses = np.unique(self.pose[rows])
+        means = np.array([self.Z[rows][self.pose[rows] == j].mean(axis=0) for j in poses])
+        return means, poses
+
+
+def _smooth_wander(n: int, rng) -> np.ndarray:
+    """A smooth temperature-like signal over n samples in about [-1, 1]: three random sinusoids
+    with periods of 0.3-2 log lengths."""
+    t = np.arange(n) / max(n, 1)
+    periods = rng.uniform(0.3, 2.0, 3)
+    phases = rng.uniform(0, 2 * np.pi, 3)
+    amps = rng.uniform(0.5, 1.0, 3)
+    w = sum(a * np.sin(2 * np.pi * t / T + ph)
+            for a, T, ph in zip(amps, periods, phases, strict=True))
+    return w / amps.sum()
+
+
+def simulate_rig(
+    rng=None,
+    poses: int = 12,
+    samples: int = 200,
+    p: int = 8,
+    magnitude: float = 10.0,
+    directions=None,
+    condition: tuple[float, float] = (1.0, 10.0),
+    counts_per_unit: float = 10.0,
+    noise: float = 0.002,
+    nonlinearity: float = 0.01,
+    drift: float = 0.005,
+    wander: float = 0.003,
+    creep: float = 0.01,
+    hysteresis: float = 0.003,
+    mass_error: float = 0.002,
+    misalignment_deg: float = 0.5,
+    outliers: float = 0.0,
+) -> RigData:
+    """A static-pose rig: a weighed mass held in ``poses`` orientations, ``samples`` readings each.
+
+    What a real printed or strain-gauge 3-axis sensor on such a rig adds to the linear model
+    (every level a fraction of each channel's full-scale signal ``fs_j = magnitude |S_j|``):
+
+    - ``noise``: per-sample Gaussian noise, each channel's level times a factor in [0.5, 2];
+    - ``nonlinearity``: each channel adds ``fs_j (a_j x^2 + b_j x^3)``, ``x`` its linear signal
+      over ``fs_j`` and ``a_j, b_j`` uniform in +-``nonlinearity``;
+    - ``drift``: offsets moving linearly over the log, up to ``drift`` at its end;
+    - ``wander``: a smooth temperature-like signal (shared) times per-channel coefficients;
+    - ``creep``: after each pose change the reading approaches its new value exponentially,
+      starting ``creep`` of the step short (time constant a fifth of a pose's samples);
+    - ``hysteresis``: a persistent ``hysteresis`` fraction of the last step stays behind;
+    - ``mass_error``: the true mass differs from the weighed one by this relative std;
+    - ``misalignment_deg``: each pose's true direction is off its design by this std (degrees);
+    - ``outliers``: this fraction of readings gets a spike of 20 noise levels on one channel.
+
+    Directions default to ``poses`` random directions over the sphere. Seeded, deterministic.
+    """
+    rng = np.random.default_rng(rng)
+    if poses < 2 or samples < 2 or p < 3:
+        raise CalibrationError("a rig needs >= 2 poses, >= 2 samples per pose and >= 3 channels")
+    U = (sample_directions(poses, 3, rng) if directions is None
+         else np.asarray(directions, float))
+    if U.shape != (poses, 3):
+        raise CalibrationError(f"directions must have shape ({poses}, 3), got {U.shape}")
+    U = U / np.linalg.norm(U, axis=1, keepdims=True)
+    S = random_shape(3, p, rng, condition=rng.uniform(*condition)) * counts_per_unit
+    fs = magnitude * np.linalg.norm(S, axis=0)  # full-scale signal per channel (counts)
+    z0 = rng.normal(size=p) * fs
+    true_mag = magnitude * (1 + mass_error * rng.normal())
+    # true directions: the design rotated by a small random angle per pose
+    true_U = np.empty_like(U)
+    for j in range(poses):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = np.radians(misalignment_deg) * rng.normal()
+        Kx = skew(axis)
+        R = np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+        true_U[j] = R @ U[j]
+    n = poses * samples
+    pose = np.repeat(np.arange(poses), samples)
+    F = true_mag * true_U[pose]
+    lin = F @ S
+    x = lin / fs
+    a = rng.uniform(-1, 1, p) * nonlinearity
+    b = rng.uniform(-1, 1, p) * nonlinearity
+    Z = z0 + lin + fs * (a * x**2 + b * x**3)
+    tfrac = np.arange(n) / max(n - 1, 1)
+    Z += np.outer(tfrac, rng.uniform(-1, 1, p) * drift * fs)
+    Z += np.outer(_smooth_wander(n, rng), rng.uniform(-1, 1, p) * wander * fs)
+    # creep and hysteresis from each pose change (the first pose comes from the unloaded state)
+    pose_lin = true_mag * true_U @ S
+    prev = np.vstack([np.zeros(p), pose_lin[:-1]])
+    step = pose_lin - prev
+    k = np.tile(np.arange(samples), poses)
+    tau = max(samples / 5, 1.0)
+    Z -= creep * step[pose] * np.exp(-k / tau)[:, None]
+    Z -= hysteresis * step[pose]
+    Z += rng.normal(size=(n, p)) * (noise * fs * np.exp(rng.uniform(np.log(0.5), np.log(2), p)))
+    if outliers > 0:
+        hit = rng.random(n) < outliers
+        ch = rng.integers(0, p, n)
+        Z[hit, ch[hit]] += 20 * noise * fs[ch[hit]] * rng.choice([-1, 1], hit.sum())
+    return RigData(Z=Z, pose=pose, stated_loads=magnitude * U, true_loads=F, directions=U,
+                   S=S, offset=z0, magnitude=float(magnitude))

@@ -60,7 +60,9 @@ def test_joint_beats_centered_and_paper_on_static_pose_rigs():
 
 def test_joint_reports_uncertainty_and_accepts_stated_sigmas():
     Z, _, Zk, Mk, _, _, _, _ = rig(3)
-    cal = fit_joint(Z, Zk, Mk, known_sigma=0.001, magnitude_sigma=0.01, magnitude=3.03)
+    # stated sigmas and first-order standard errors: the Sampson-distance route (poses=None)
+    cal = fit_joint(Z, Zk, Mk, known_sigma=0.001, magnitude_sigma=0.01, magnitude=3.03,
+                    poses=None)
     d = cal.diagnostics
     assert d["joint"]["known_sigma"] == 0.001 and not d["joint"]["magnitude_fitted"]
     assert d["offset_stderr"].shape == (8,) and d["C_stderr"].shape == (3, 8)
@@ -123,14 +125,14 @@ def test_joint_with_stated_pose_averaging_is_near_least_squares_all_known():
         for seed in range(16):
             Z, M, Zk, Mk, Zt, Ft, _, _ = rig(seed)
             ls = rms(fit_least_squares(Z, M, bias=True), Zt, Ft)
-            ratio.append(rms(fit_joint(Z, Zk, Mk, known_samples=100), Zt, Ft) / ls)
-    assert np.median(ratio) < 1.8, np.median(ratio)
+            ratio.append(rms(fit_joint(Z, Zk, Mk, known_samples=100, poses=None), Zt, Ft) / ls)
+    assert np.median(ratio) < 1.8, np.median(ratio)  # the Sampson-distance route (poses=None)
 
 
 def test_known_samples_sets_the_known_accuracy():
     Z, _, Zk, Mk, _, _, _, _ = rig(6)
-    a = fit_joint(Z, Zk, Mk, known_samples=100).diagnostics["joint"]
-    b = fit_joint(Z, Zk, Mk, known_samples=1).diagnostics["joint"]
+    a = fit_joint(Z, Zk, Mk, known_samples=100, poses=None).diagnostics["joint"]
+    b = fit_joint(Z, Zk, Mk, known_samples=1, poses=None).diagnostics["joint"]
     assert a["known_samples"] == 100 and b["known_samples"] == 1
     assert np.isclose(a["known_sigma"] * 10, b["known_sigma"], rtol=1e-9)
     with pytest.raises(CalibrationError, match="not both"):

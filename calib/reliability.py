@@ -1,0 +1,110 @@
+"""Is a fit reliable? The one place that decides; ``calib fit``'s exit status, its summary line
+and its ``unreliable`` lines all come from :func:`assess`.
+
+A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
+``--allow-unreliable``) when any of these holds:
+
+- **not converged**: its optimiser stopped without meeting its tolerances (the joint fit's
+  Levenberg-Marquardt, the paper route's refinement, the centered route's ellipsoid), or C or
+  the offset is not finite;
+- **implausible magnitude**: the known loads share one magnitude (within
+  :data:`SAME_MAGNITUDE`) as a rig's weighed mass does, and the fitted magnitude of the
+  motion rows differs from it by more than :data:`MAGNITUDE_TOLERANCE`;
+- **implausible known residuals**: the calibrated known readings miss the known loads by more
+  than the fit's own scatter allows, a chi-square test at probability :data:`CHI2_PROBABILITY`
+  (the scatter: a stated ``known_sigma``, else the pose-level magnitude scatter of a rig fit or
+  the known-load accuracy the joint fit used), and by more than :data:`PRACTICAL_FRACTION` of
+  the load (a significant but negligible misfit is no failure);
+- **known loads inconsistent with the readings** (rig fits): turned by the best rotation onto
+  the known loads, the pose loads the readings alone imply miss them by more than
+  :data:`KNOWN_INCONSISTENT` of the load (a load entered for the wrong pose, a wrong mass);
+- **held-out check failed**: the leave-one-pose-out error (``--cv poses``) exceeds
+  ``holdout_factor`` times the fit's in-sample pose-level residual, or half the load magnitude.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Chi-square tail probability below which known residuals are implausible.
+CHI2_PROBABILITY = 1e-6
+#: ... and only when their rms also exceeds this fraction of the known loads' magnitude.
+PRACTICAL_FRACTION = 0.02
+#: Rig fits: known loads further than this fraction of the load from a rotation of what the
+#: readings alone imply are inconsistent (simulated imperfect rigs: at most 8 %).
+KNOWN_INCONSISTENT = 0.10
+#: Known loads within this relative spread are one weighed mass.
+SAME_MAGNITUDE = 0.05
+#: A fitted magnitude further than this (relative) from that mass is implausible.
+MAGNITUDE_TOLERANCE = 0.2
+#: Default factor of the held-out check (leave-one-pose-out rms over in-sample residual rms).
+#: Measured on simulated rigs (scripts/calib_rig_study.py): 3-8 for good fits.
+HOLDOUT_FACTOR = 20.0
+#: The held-out rms may never exceed this fraction of the load magnitude.
+HOLDOUT_MAX_FRACTION = 0.5
+
+
+def _converged(d: dict):
+    """(converged, evaluations) of the fit's optimiser, or None when it has none."""
+    for key in ("joint", "refinement", "ellipsoid"):
+        sub = d.get(key)
+        if isinstance(sub, dict) and "converged" in sub:
+            return bool(sub["converged"]), sub.get("nfev", sub.get("iterations"))
+    return None
+
+
+def assess(cal, known_Z=None, known_M=None, known_sigma=None,
+           holdout_factor: float = HOLDOUT_FACTOR) -> list[str]:
+    """The reasons ``cal`` is unreliable (module docstring); an empty list when it is not."""
+    from scipy.stats import chi2
+
+    d = cal.diagnostics
+    out = []
+    if not (np.all(np.isfinite(cal.C)) and np.all(np.isfinite(cal.offset))):
+        out.append("the fit diverged: C or the offset is not finite")
+        return out
+    conv = _converged(d)
+    if conv is not None and not conv[0]:
+        out.append(f"the optimiser did not converge ({conv[1]} evaluations)")
+    if known_Z is None or known_M is None:
+        return out
+    r = cal.C.shape[0]
+    Zk = np.atleast_2d(np.asarray(known_Z, float))
+    Mk = np.atleast_2d(np.asarray(known_M, float))[:, :r]
+    mk = np.linalg.norm(Mk[:, :3], axis=1)
+    scale = float(np.median(mk)) if len(mk) else 0.0
+    joint = d.get("joint") if isinstance(d.get("joint"), dict) else None
+    if joint is not None and joint.get("magnitude_fitted") and scale > 0:
+        same = mk.max() <= (1 + SAME_MAGNITUDE) * mk.min()
+        g = float(joint["magnitude"])
+        if same and abs(g / scale - 1) > MAGNITUDE_TOLERANCE:
+            out.append(f"implausible magnitude: the fitted load magnitude {g:.4g} is not the "
+                       f"known loads' {scale:.4g}")
+    kc = (joint or {}).get("known_consistency")
+    if isinstance(kc, dict) and np.isfinite(kc.get("fraction", np.nan)) and (
+            kc["fraction"] > KNOWN_INCONSISTENT):
+        out.append(f"known loads inconsistent with the readings: the best rotation of the pose "
+                   f"loads the readings imply misses them by {kc['fraction']:.1%} of the load "
+                   f"(limit {KNOWN_INCONSISTENT:.0%}); a load given for the wrong pose?")
+    res = cal.apply(Zk) - Mk
+    rms = float(np.sqrt(np.mean(res**2)))
+    sigma = known_sigma
+    if sigma is None and joint is not None:
+        sigma = (joint.get("pose_magnitude_residual_rms") if joint.get("route") == "poses"
+                 else joint.get("known_sigma"))
+    if sigma is not None and np.isfinite(sigma) and sigma > 0 and scale > 0:
+        stat = float(np.sum((res / sigma) ** 2))
+        p = float(chi2.sf(stat, res.size))
+        if p < CHI2_PROBABILITY and rms > PRACTICAL_FRACTION * scale:
+            out.append(f"implausible known residuals: rms {rms:.4g} against an expected "
+                       f"{sigma:.4g} (chi-square {stat:.3g} on {res.size} dof, p = {p:.2g})")
+    cv = d.get("cv_poses")
+    if isinstance(cv, dict) and cv.get("folds", 0) > 0 and np.isfinite(cv.get("rms", np.nan)):
+        inside = max(float(d.get("residual_rms") or 0.0), rms,
+                     float((joint or {}).get("pose_magnitude_residual_rms") or 0.0))
+        if cv["rms"] > HOLDOUT_MAX_FRACTION * scale > 0 or (
+                inside > 0 and cv["rms"] > holdout_factor * inside):
+            out.append(f"held-out check failed: leave-one-pose-out rms {cv['rms']:.4g} over "
+                       f"{cv['folds']} pose(s), {cv['rms'] / max(inside, 1e-300):.3g}x the "
+                       f"in-sample {inside:.4g} (limit {holdout_factor:g}x)")
+    return out

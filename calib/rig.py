@@ -1,0 +1,450 @@
+"""Static-pose rigs: find the poses of a log, and the pose-level joint fit.
+
+A real calibration rig holds a weighed mass in a dozen static poses and logs a few hundred
+readings in each; a few poses get known loads (their mean reading and the applied load). What
+such data determine is a *forward* model of the pose means,
+
+    zbar_j = A m_j + o + e_j,        m_j = m_k (known poses),  m_j = g u_j (the others, |u_j| = 1),
+
+``A`` (p x r) and ``o`` (p) the sensor's linear response and offset, ``u_j`` the unknown pose
+directions (two angles each, nuisance parameters) and ``g`` the magnitude of the mass. With 12
+poses of 8 channels that is 96 numbers for 32 + 16 + 1 parameters: well determined, which the
+inverse model ``m = C z + d`` on the same data is not (27 parameters against the 12 known
+components and 8 magnitudes). :func:`fit_rig` fits it in two stages:
+
+1. **Pose loads.** The forward model by variable projection: for given loads, ``A`` and ``o`` are
+   weighted linear least squares per channel (closed form); Levenberg-Marquardt runs over the
+   directions and ``g`` only. Weights: first each pose mean's sampling error (within-pose scatter
+   over the square root of its count), then, once, each channel's pose-level residual variance
+   (feasible generalised least squares: a real sensor's misfit, nonlinearity, creep, hysteresis,
+   is far larger than its sampling noise and differs by channel). Several starts (an affine map
+   solved from the known poses, the Sampson-distance joint fit, the centered route aligned to
+   the known loads, perturbed restarts of the best); the lowest weighted cost is kept and every
+   start's cost is in the diagnostics.
+2. **Calibration.** Least squares on every row with its pose's load: the known loads where
+   known, ``g u_j`` elsewhere; exactly what least squares with every load known does, with the
+   estimated loads in place of the unknown ones. Fitting the rows (not the pose means) shrinks
+   ``C`` along noisy channel combinations the way the all-known fit does, and the affine map on
+   all p channels absorbs part of a sensor's nonlinearity through its redundant channels.
+
+Measured on :func:`calib.simulate.simulate_rig` rigs (``scripts/calib_rig_study.py``): within
+1.1-1.4x of least squares with every load known, where the Sampson-distance fit (``rig=False``)
+was 1.3-2x and up to 5x on nonlinear sensors. See docs/calib.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ._validate import check_matrix
+from .result import Calibration, CalibrationError
+
+#: A pose needs at least this many readings; shorter runs (transitions) are left out.
+MIN_POSE_SAMPLES = 3
+#: A jump between consecutive readings starts a new pose when its chi-square (in noise units)
+#: has a probability below this under noise alone; the threshold is then raised by half.
+JUMP_PROBABILITY = 1e-6
+#: Neighbouring runs whose adjoining readings differ by less than this (rms over channels, noise
+#: units) are one pose (a spike or a burst of noise split it).
+MERGE_NOISE_UNITS = 2.0
+#: At most this many rows are searched for spatial clusters when the log is not in pose order.
+MAX_CLUSTER_ROWS = 20_000
+
+
+def find_poses(Z) -> np.ndarray | None:
+    """The static pose of every row of ``Z`` (n, p), or None when ``Z`` is not a static-pose log.
+
+    Rows in pose order (a rig log) are split where consecutive readings jump by more than noise
+    explains (1.5 times the chi-square quantile of :data:`JUMP_PROBABILITY`; each channel's noise
+    from the median absolute difference of consecutive readings, so pose changes do not inflate
+    it), and neighbouring runs whose adjoining readings agree within :data:`MERGE_NOISE_UNITS`
+    are joined again (a spike split them). Logs not in pose
+    order are clustered in space instead (connected components of readings closer than six
+    typical nearest-neighbour distances). Runs shorter than :data:`MIN_POSE_SAMPLES` rows get
+    label -1. A log is a static-pose log when at least 3 poses hold at least 80 % of its rows
+    with a median of at least 5 rows per pose; otherwise (a continuous motion log) None.
+    """
+    Z = np.asarray(Z, float)
+    n, p = Z.shape
+    if n < 3 * MIN_POSE_SAMPLES:
+        return None
+    span = np.maximum(Z.max(axis=0) - Z.min(axis=0), 1e-300)
+    dZ = np.diff(Z, axis=0)
+    noise = 1.4826 * np.median(np.abs(dZ), axis=0) / np.sqrt(2)
+    noise = np.maximum(noise, 1e-6 * span)
+    jump = np.sqrt(np.mean((dZ / noise) ** 2, axis=1))
+    from scipy.stats import chi2
+
+    threshold = 1.5 * np.sqrt(2 * chi2.isf(JUMP_PROBABILITY, p) / p)
+    labels = _merge(Z / noise, _runs(np.flatnonzero(jump > threshold) + 1, n))
+    if _is_static(labels):
+        return labels
+    if n <= MAX_CLUSTER_ROWS:
+        labels = _clusters(Z / span)
+        if labels is not None and _is_static(labels):
+            return labels
+    return None
+
+
+def _runs(starts: np.ndarray, n: int) -> np.ndarray:
+    bounds = np.r_[0, starts, n]
+    labels = np.full(n, -1)
+    k = 0
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        if b - a >= MIN_POSE_SAMPLES:
+            labels[a:b] = k
+            k += 1
+    return labels
+
+
+def _merge(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Join neighbouring runs (in label order) when the last readings of one and the first of
+    the next (up to 5 each) agree within MERGE_NOISE_UNITS: a spike, not a pose change, split
+    them (comparing whole means would not do: creep moves a pose's readings)."""
+    k = labels.max() + 1
+    if k < 2:
+        return labels
+    new = np.zeros(k, int)
+    prev = X[labels == 0]
+    for j in range(1, k):
+        cur = X[labels == j]
+        gap = np.sqrt(np.mean((cur[:5].mean(axis=0) - prev[-5:].mean(axis=0)) ** 2))
+        new[j] = new[j - 1] + (0 if gap < MERGE_NOISE_UNITS else 1)
+        prev = cur
+    out = labels.copy()
+    out[labels >= 0] = new[labels[labels >= 0]]
+    return out
+
+
+def _clusters(X: np.ndarray) -> np.ndarray | None:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(X)
+    d, _ = tree.query(X, k=2)
+    radius = 6 * float(np.median(d[:, 1]))
+    if not radius > 0:
+        return None
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    n = len(X)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, lab = connected_components(graph, directed=False)
+    counts = np.bincount(lab)
+    keep = counts >= MIN_POSE_SAMPLES
+    remap = np.full(len(counts), -1)
+    remap[keep] = np.arange(keep.sum())
+    return remap[lab]
+
+
+def _is_static(labels: np.ndarray) -> bool:
+    good = labels >= 0
+    if not good.any():
+        return False
+    counts = np.bincount(labels[good])
+    return len(counts) >= 3 and good.mean() >= 0.8 and np.median(counts) >= 5
+
+
+def match_poses(Z, known_Z):
+    """Rows of ``Z`` that belong to a pose of a known reading: the poses of ``Z``
+    (:func:`find_poses`; every row its own pose when none are found) each take the known reading
+    nearest their mean in noise units, when it is clearly the nearest (under half the distance
+    to the next). Returns (rows, index of the known reading per row, number of poses matched)."""
+    Z = np.asarray(Z, float)
+    Zk = np.atleast_2d(np.asarray(known_Z, float))
+    labels = find_poses(Z)
+    if labels is None:
+        labels = np.arange(len(Z))
+    ids = np.unique(labels[labels >= 0])
+    means = np.array([Z[labels == j].mean(axis=0) for j in ids])
+    scale = np.maximum(np.std(np.vstack([means, Zk]), axis=0), 1e-300)
+    rows, which, matched = [], [], 0
+    for j, m in zip(ids, means, strict=True):
+        d = np.sqrt(np.mean(((Zk - m) / scale) ** 2, axis=1))
+        order = np.argsort(d)
+        if len(d) == 1 or d[order[0]] <= 0.5 * d[order[1]]:
+            idx = np.flatnonzero(labels == j)
+            rows.append(idx)
+            which.append(np.full(len(idx), order[0]))
+            matched += 1
+    if not rows:
+        return np.array([], int), np.array([], int), 0
+    return np.concatenate(rows), np.concatenate(which), matched
+
+
+# ------------------------------------------------------------------------------- the fit
+
+
+class PoseData:
+    """Pose means, counts and within-pose noise of a labelled log, with the known loads matched."""
+
+    def __init__(self, Z, labels, known_Z, known_M, r, known_samples=None):
+        Z = np.asarray(Z, float)
+        labels = np.asarray(labels)
+        good = labels >= 0
+        ids = np.unique(labels[good])
+        self.rows = Z[good]
+        lab = np.searchsorted(ids, labels[good])
+        self.row_pose = lab
+        P, p = len(ids), Z.shape[1]
+        self.counts = np.bincount(lab, minlength=P).astype(float)
+        self.means = np.zeros((P, p))
+        np.add.at(self.means, lab, self.rows)
+        self.means /= self.counts[:, None]
+        resid = self.rows - self.means[lab]
+        dof = max(len(self.rows) - P, 1)
+        self.sigma = np.maximum(np.sqrt((resid**2).sum(axis=0) / dof),
+                                1e-9 * np.maximum(np.ptp(Z, axis=0), 1e-300))
+        self.p, self.r = p, r
+        # known readings -> poses: the nearest pose mean in noise units when it is clearly the
+        # nearest (under a quarter of the distance to the next); else a known-only pose
+        Zk = np.atleast_2d(np.asarray(known_Z, float))
+        Mk = np.atleast_2d(np.asarray(known_M, float))[:, :r]
+        self.known_pose = np.full(len(Zk), -1)
+        extra_means, extra_counts = [], []
+        n_extra = float(known_samples) if known_samples else float(np.median(self.counts))
+        taken = set()
+        for k, zk in enumerate(Zk):
+            d = np.sqrt(np.mean(((self.means - zk) / self.sigma) ** 2, axis=1))
+            order = np.argsort(d)
+            j = int(order[0])
+            second = d[order[1]] if P > 1 else np.inf
+            if j not in taken and d[j] <= 0.25 * second:
+                self.known_pose[k] = j
+                taken.add(j)
+            else:
+                self.known_pose[k] = P + len(extra_means)
+                extra_means.append(zk)
+                extra_counts.append(n_extra)
+        if extra_means:
+            self.means = np.vstack([self.means, extra_means])
+            self.counts = np.r_[self.counts, extra_counts]
+        self.P = len(self.means)
+        self.known_M = Mk
+        self.unknown = np.setdiff1d(np.arange(self.P), self.known_pose)
+        self.n_extra = len(extra_means)
+
+
+def _tangents(U: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the plane normal to each row of U (m, 3) -> (m, 2, 3); in 2-D the
+    normal itself (m, 1, 2)."""
+    if U.shape[1] == 2:
+        return np.stack([-U[:, 1], U[:, 0]], axis=1)[:, None, :]
+    a = np.eye(3)[np.argmin(np.abs(U), axis=1)]
+    t1 = np.cross(U, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(U, t1)
+    return np.stack([t1, t2], axis=1)
+
+
+class ForwardModel:
+    """zbar_j = A m_j + o by variable projection over the unknown directions and g."""
+
+    def __init__(self, pd: PoseData, magnitude=None):
+        self.pd = pd
+        self.magnitude = magnitude
+        self.fit_g = magnitude is None
+
+    def loads(self, x, U0, T):
+        pd = self.pd
+        nt = T.shape[1]
+        M = np.zeros((pd.P, pd.r))
+        M[pd.known_pose] = pd.known_M
+        nu = len(pd.unknown)
+        V = U0 + np.einsum("ma,mad->md", x[: nt * nu].reshape(nu, nt), T)
+        g = x[-1] if self.fit_g else self.magnitude
+        M[pd.unknown] = g * V / np.linalg.norm(V, axis=1, keepdims=True)
+        return M
+
+    def linear(self, M, W):
+        """Weighted least squares per channel of the pose means on [M 1]; (B (r+1, p), resid)."""
+        pd = self.pd
+        X = np.column_stack([M, np.ones(pd.P)])
+        B = np.empty((X.shape[1], pd.p))
+        for c in range(pd.p):
+            B[:, c] = np.linalg.lstsq(X * W[:, c : c + 1], pd.means[:, c] * W[:, c],
+                                      rcond=None)[0]
+        return B, (pd.means - X @ B) * W
+
+    def solve(self, U0, g0, W, max_nfev=400):
+        """LM from unit directions U0 (of the unknown poses) and magnitude g0."""
+        T = _tangents(U0)
+        x0 = np.zeros(T.shape[1] * len(U0) + (1 if self.fit_g else 0))
+        if self.fit_g:
+            x0[-1] = g0
+
+        def fun(x):
+            return self.linear(self.loads(x, U0, T), W)[1].ravel()
+
+        sol = least_squares(fun, x0, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                            max_nfev=max_nfev * (len(x0) + 1))
+        M = self.loads(sol.x, U0, T)
+        U = M[self.pd.unknown]
+        g = float(sol.x[-1]) if self.fit_g else float(self.magnitude)
+        return {"U": U / np.linalg.norm(U, axis=1, keepdims=True), "g": g,
+                "cost": float(2 * sol.cost), "converged": bool(sol.status > 0),
+                "nfev": int(sol.nfev), "M": M}
+
+
+def _directions_from(cal_loads: np.ndarray) -> tuple[np.ndarray, float] | None:
+    L = np.asarray(cal_loads, float)
+    norms = np.linalg.norm(L, axis=1)
+    if not np.all(np.isfinite(L)) or np.any(norms <= 0):
+        return None
+    return L / norms[:, None], float(np.median(norms))
+
+
+def _known_consistency(pd: PoseData, final: dict, W) -> dict:
+    """How far the known loads are from what the readings alone say: the forward model refitted
+    with every pose's direction free (magnitude held at the fit's), turned onto the known loads
+    by the best rotation; the rms of what remains, in load units and as a fraction of the load.
+    Measured on simulated rigs (imperfect sensors, misaligned mounts): 0.3-8 % of the load; two
+    known loads swapped: mostly 3-55 %."""
+    import copy
+
+    free = copy.copy(pd)
+    free.known_pose = np.array([], int)
+    free.unknown = np.arange(pd.P)
+    free.known_M = np.zeros((0, pd.r))
+    M = final["M"]
+    out = ForwardModel(free, magnitude=final["g"]).solve(
+        M / np.linalg.norm(M, axis=1, keepdims=True), final["g"], W)
+    MA = out["M"][pd.known_pose]
+    if pd.r == 3 and len(MA) >= 2:
+        P_, _, Qt = np.linalg.svd(MA.T @ pd.known_M)
+        R = (P_ @ Qt).T
+    elif pd.r == 2 and len(MA) >= 1:
+        P_, _, Qt = np.linalg.svd(MA.T @ pd.known_M)
+        R = (P_ @ Qt).T
+    else:
+        return {"residual_rms": float("nan"), "fraction": float("nan")}
+    res = MA @ R.T - pd.known_M
+    rms = float(np.sqrt(np.mean(res**2)))
+    scale = float(np.median(np.linalg.norm(pd.known_M, axis=1)))
+    return {"residual_rms": rms, "fraction": rms / scale if scale > 0 else float("nan"),
+            "converged": out["converged"]}
+
+
+def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None = None,
+            known_samples: int | None = None, restarts: int = 2, seed: int = 0,
+            starts: dict | None = None, known_sigma: float | None = None) -> Calibration:
+    """The pose-level joint fit (module docstring): forward model for the unknown pose loads,
+    then least squares on every row with its pose's load.
+
+    ``labels``: the pose of every row (:func:`find_poses`; -1 rows are left out). ``starts``:
+    extra named calibrations (objects with ``apply``) whose loads at the pose means start the
+    directions. ``known_sigma`` (stated accuracy of the known loads) is recorded for the
+    reliability checks; the fit itself treats known loads as exact and weighs pose means by
+    their scatter (``known_samples`` only weighs known readings that match no pose).
+    Returns a Calibration with ``method="joint"`` and ``diagnostics["joint"]``.
+    """
+    from .least_squares import fit_least_squares
+
+    if dof not in (2, 3):
+        raise CalibrationError(f"the rig fit is for dof 2 or 3, got {dof}")
+    r = dof
+    Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
+    Mk = np.atleast_2d(np.asarray(known_M, float))
+    pd = PoseData(Z, labels, Zk, Mk, r, known_samples)
+    if len(pd.unknown) == 0:
+        raise CalibrationError("every pose has a known load: use least squares")
+    fm = ForwardModel(pd, magnitude)
+    W = np.sqrt(pd.counts)[:, None] / pd.sigma[None, :]
+    known_mag = np.linalg.norm(pd.known_M, axis=1)
+    g_default = float(magnitude) if magnitude is not None else float(np.median(known_mag))
+    candidates = []
+
+    def add_start(name, U, g):
+        if U is None or not np.all(np.isfinite(U)):
+            return
+        try:
+            res = fm.solve(U, g if np.isfinite(g) and g > 0 else g_default, W)
+        except (np.linalg.LinAlgError, ValueError):
+            return
+        res["start"] = name
+        candidates.append(res)
+
+    # 1. an affine forward map from the known poses alone (needs r + 1 affinely spanning loads)
+    X = np.column_stack([pd.known_M, np.ones(len(pd.known_M))])
+    if len(X) >= r + 1 and np.linalg.matrix_rank(X) == r + 1:
+        B = np.linalg.lstsq(X, pd.means[pd.known_pose], rcond=None)[0]
+        A, o = B[:r].T, B[r]
+        got = _directions_from((pd.means[pd.unknown] - o) @ np.linalg.pinv(A).T)
+        if got:
+            add_start("affine from known poses", got[0], g_default)
+    # 2.-3. calibrations handed in (Sampson-distance joint fit, centered + alignment)
+    for name, cal in (starts or {}).items():
+        got = _directions_from(cal.apply(pd.means[pd.unknown]))
+        if got:
+            add_start(name, got[0], got[1])
+    if not candidates:
+        raise CalibrationError("no start of the rig fit gave finite pose directions")
+    best = min(candidates, key=lambda c: c["cost"])
+    rng = np.random.default_rng(seed)
+    for i in range(restarts):  # perturbed restarts: every unknown direction turned ~20 degrees
+        U = best["U"] + rng.normal(scale=0.35, size=best["U"].shape)
+        add_start(f"perturbed restart {i + 1}", U / np.linalg.norm(U, axis=1, keepdims=True),
+                  best["g"])
+    best = min(candidates, key=lambda c: c["cost"])
+    # feasible GLS: each channel's pose-level residual variance (misfit + sampling), refit once
+    _, res = fm.linear(best["M"], W)
+    raw = res / W
+    n_par = (r + 1) + (2 * len(pd.unknown) + fm.fit_g) / pd.p
+    v = (raw**2).sum(axis=0) / max(pd.P - n_par, 1.0)
+    W2 = 1.0 / np.sqrt(v[None, :] + (pd.sigma**2)[None, :] / pd.counts[:, None])
+    final = fm.solve(best["U"], best["g"], W2)
+    if not final["converged"] and best["converged"]:
+        final = {**best, "converged": best["converged"]}
+    M_pose = final["M"]
+    consistency = _known_consistency(pd, final, W2)
+    # stage 2: least squares on every row with its pose's load (extra known-only poses as their
+    # reading repeated as often as they weigh)
+    rows, row_loads = pd.rows, M_pose[pd.row_pose]
+    real = len(pd.counts) - pd.n_extra
+    if pd.n_extra:
+        reps = np.maximum(np.round(pd.counts[real:]).astype(int), 1)
+        rows = np.vstack([rows, np.repeat(pd.means[real:], reps, axis=0)])
+        row_loads = np.vstack([row_loads, np.repeat(M_pose[real:], reps, axis=0)])
+    ls = fit_least_squares(rows, row_loads, bias=True)
+    C = ls.C
+    d = -C @ ls.offset
+    # the offset: the forward model's o moved within C's row space so that C (z - offset)
+    # reproduces the least-squares loads exactly (a physical offset, not the min-norm one)
+    B, _ = fm.linear(M_pose, W2)
+    o_fwd = B[r]
+    offset = o_fwd + np.linalg.pinv(C) @ (-d - C @ o_fwd)
+    L = (pd.means - offset) @ C.T
+    mags = np.linalg.norm(L[pd.unknown], axis=1)
+    g = final["g"]
+    known_res = L[pd.known_pose] - pd.known_M
+    diag = {
+        "n_samples": int(len(np.asarray(Z))),
+        "n_dropped_nonfinite": 0,
+        "singular_values": ls.diagnostics["singular_values"],
+        "condition_number_C": float(np.linalg.cond(C)),
+        "residual_rms": ls.diagnostics["residual_rms"],
+        "joint": {
+            "route": "poses",
+            "known_sigma": known_sigma,
+            "known_samples": known_samples,
+            "n_poses": int(pd.P),
+            "n_known": int(len(pd.known_M)),
+            "n_known_matched_to_poses": int(len(pd.known_M) - pd.n_extra),
+            "rows_left_out": int((np.asarray(labels) < 0).sum()),
+            "magnitude": g,
+            "magnitude_fitted": fm.fit_g,
+            "pose_magnitude_residual_rms": float(np.sqrt(np.mean((mags - g) ** 2))),
+            "known_residual_rms": float(np.sqrt(np.mean(known_res**2))),
+            "known_residuals": known_res,
+            "channel_noise": pd.sigma,
+            "channel_pose_residual_rms": np.sqrt(v),
+            "starts": [{"start": c["start"], "cost": c["cost"], "converged": c["converged"],
+                        "nfev": c["nfev"]} for c in candidates],
+            "chosen_start": best["start"],
+            "known_consistency": consistency,
+            "converged": bool(final["converged"]),
+            "nfev": int(final["nfev"]),
+        },
+    }
+    return Calibration(C=C, offset=offset, dof=dof, method="joint", diagnostics=diag)
