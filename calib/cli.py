@@ -105,6 +105,22 @@ def _parser() -> argparse.ArgumentParser:
                    "of the known reading it lies nearest to")
     e.add_argument("--drop-nonfinite", action="store_true")
 
+    pl = sub.add_parser("plan", help="which rig poses get the known loads, and the accuracy "
+                        "to expect (Cramer-Rao bound)")
+    pl.add_argument("poses", metavar="POSES.csv",
+                    help="candidate pose directions: columns Fx,Fy,Fz (or ux,uy,uz), one row "
+                    "per pose")
+    pl.add_argument("--known-loads", type=int_in_range(2, 199), default=4, metavar="K",
+                    help="how many poses get a known load (default 4)")
+    pl.add_argument("--samples", type=int_in_range(1, 10**7), default=100, metavar="N",
+                    help="readings per pose (default 100)")
+    pl.add_argument("--magnitude", type=positive_float, default=1.0,
+                    help="load magnitude (default 1)")
+    pl.add_argument("--noise", type=positive_float, metavar="S",
+                    help="per-reading noise (counts); with --sensitivity: absolute errors")
+    pl.add_argument("--sensitivity", type=positive_float, metavar="G",
+                    help="counts per load unit of the sensor (isotropic model)")
+
     t = sub.add_parser("trials", help="the paper's Trials 1-4, Table 1 and figures")
     t.add_argument("--out", metavar="DIR", default="calib_trials")
     t.add_argument("--seeds", type=int_in_range(1, 100_000), default=200,
@@ -124,6 +140,8 @@ def main(argv=None) -> int:
                 msg = _fit(args)
             elif args.command == "evaluate":
                 msg = _evaluate(args)
+            elif args.command == "plan":
+                msg = _plan(args)
             elif args.command == "apply":
                 msg = _apply(args)
             else:
@@ -382,6 +400,34 @@ def _evaluate(args) -> str:
     drop = f", dropped {dropped} non-finite row(s)" if dropped else ""
     return (f"{args.test}: {len(Z)} row(s){note}{drop}; held-out load rms {total:.4g} "
             f"({total / mag:.2%} of the load rms {mag:.4g}); per axis: {axes}")
+
+
+def _plan(args) -> str:
+    from .io import read_csv
+    from .plan import plan
+
+    header, data = read_csv(args.poses)
+    for cols in (["Fx", "Fy", "Fz"], ["ux", "uy", "uz"]):
+        if all(c in header for c in cols):
+            break
+    else:
+        raise CalibrationError(f"{args.poses} needs columns Fx,Fy,Fz or ux,uy,uz")
+    if (args.noise is None) != (args.sensitivity is None):
+        raise CalibrationError("give --noise and --sensitivity together (or neither)")
+    U = data[:, [header.index(c) for c in cols]]
+    if not np.all(np.isfinite(U)):
+        raise CalibrationError(f"{args.poses} has non-finite directions")
+    res = plan(U, args.known_loads, magnitude=args.magnitude, samples=args.samples,
+               noise=args.noise, sensitivity=args.sensitivity)
+    rows = ", ".join(str(int(i) + 1) for i in res["known"])
+    text = (f"{args.poses}: {res['poses']} poses, {res['k']} known loads: put them on pose rows "
+            f"{rows} (1 = first data row). Predicted (Cramer-Rao bound, isotropic sensor, "
+            f"{res['samples']} readings per pose): load error {res['ratio']:.2f}x least squares "
+            f"with every load known ({res['ratio_first']:.2f}x with the first {res['k']} rows)")
+    if "bound" in res:
+        text += (f"; rms load error >= {res['bound']:.3g} (all known: "
+                 f"{res['bound_all_known']:.3g}) in load units")
+    return text
 
 
 def _trials(args) -> str:

@@ -206,7 +206,13 @@ def _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigm
             raise CalibrationError(f"{name} must be a positive number, got {v!r}")
     if known_sigma is not None and known_samples is not None:
         raise CalibrationError("give known_sigma or known_samples, not both")
-    start = fit_centered(src, dof, known_Z=Zk, known_M=Mk, magnitude=magnitude)
+    import warnings as _w
+
+    with _w.catch_warnings():
+        # the start's warnings are not the result's: the final fit reports its own (one source
+        # for the summary line and the warnings)
+        _w.simplefilter("ignore")
+        start = fit_centered(src, dof, known_Z=Zk, known_M=Mk, magnitude=magnitude)
     mu = data.mean
     step = int(np.ceil(n / JOINT_MAX_ROWS))
     src.want(step)  # gathered during the Gram pass
