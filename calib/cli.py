@@ -52,6 +52,13 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--cv", choices=("poses",),
                    help="poses: leave-one-pose-out error over the known poses (joint, "
                    "least_squares), in the summary and diagnostics['cv_poses']")
+    f.add_argument("--model", choices=("affine", "quadratic", "auto"), default=None,
+                   help="least_squares and joint on static poses: affine, plus a square per "
+                   "channel, or auto (default: the lower leave-one-pose-out error of the "
+                   "identifiable ones)")
+    f.add_argument("--drift", choices=("none", "linear", "auto"), default=None,
+                   help="least_squares and joint on static poses: a load drift linear in the "
+                   "row order, fitted and then dropped (default auto, as --model)")
     f.add_argument("--allow-unreliable", action="store_true",
                    help="write a fit that the reliability checks reject (exit 0, warnings)")
     f.add_argument("--holdout-factor", type=positive_float, metavar="F", default=None,
@@ -210,6 +217,12 @@ def _fit(args) -> str:
         channels = Z.header
     else:
         channels, Z = read_csv(args.raw)
+    if args.method not in ("joint", "least_squares") or args.dof == 6:
+        for flag, v, plain in (("--model", args.model, "affine"),
+                               ("--drift", args.drift, "none")):
+            if v not in (None, plain):
+                raise CalibrationError(f"{flag} {v} is an option of --method least_squares or "
+                                       "joint (dof 2 or 3)")
     if args.cv and args.method not in ("joint", "least_squares"):
         raise CalibrationError("--cv poses needs --method joint or least_squares (known loads "
                                "at the poses)")
@@ -236,7 +249,8 @@ def _fit(args) -> str:
             return fit_joint(Z, known_Z, known_M, args.dof, magnitude=args.magnitude,
                              known_sigma=args.known_sigma,
                              magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop,
-                             known_samples=args.known_samples, cv=cv)
+                             known_samples=args.known_samples, cv=cv,
+                             model=args.model or "auto", drift=args.drift or "auto")
     elif args.bias:
 
         def fit(Z, drop=args.drop_nonfinite, cv=False):
@@ -287,15 +301,23 @@ def _summary(args, cal, status) -> str:
     dropped = d.get("n_dropped_nonfinite", 0)
     cov = d.get("coverage") or {}
     note = f", dropped {dropped} non-finite row(s)" if dropped else ""
+    parts = []
+    if "rank_gap" in d:
+        parts.append(f"rank gap {d['rank_gap']:.3g}")
+    if "isotropy" in cov:
+        parts.append(f"coverage isotropy {cov['isotropy']:.2f}")
+    if cal.method == "least_squares" and "residual_rms" in d:
+        parts.append(f"residual rms {d['residual_rms']:.4g}")
     return (
         f"wrote {args.out}: {cal.method}, dof {cal.dof}, {cal.n_channels} channels, "
-        f"{d.get('n_samples')} samples{note}; rank gap {d.get('rank_gap', float('nan')):.3g}, "
-        f"coverage isotropy {cov.get('isotropy', float('nan')):.2f}"
+        f"{d.get('n_samples')} samples{note}; " + ", ".join(parts)
         + (f", offset stderr <= {d['offset_stderr_max_rel_span']:.2%} of span"
            if "offset_stderr_max_rel_span" in d else "")
         + (f", bootstrap {args.bootstrap}" if args.bootstrap else "")
         + (f", {d['joint']['n_poses']} poses found" if d.get("joint", {}).get("route") == "poses"
            else "")
+        + (f", model {d['model_selection']['chosen']} (by leave-one-pose-out error)"
+           if "model_selection" in d else "")
         + (f", leave-one-pose-out rms {d['cv_poses']['rms']:.4g} over "
            f"{d['cv_poses']['folds']} pose(s)" if "cv_poses" in d else "")
         + f"; {status}"
@@ -305,7 +327,8 @@ def _summary(args, cal, status) -> str:
 def _fit_least_squares(args, channels, Z) -> str:
     from ._validate import check_matrix
     from .io import LOAD_COLUMNS, load_columns, save_calibration
-    from .least_squares import fit_least_squares, leave_one_pose_out_ls
+    from .least_squares import leave_one_pose_out_ls
+    from .models import choose, fit_model
     from .rig import find_poses
 
     cols = load_columns(args.dof)
@@ -317,13 +340,26 @@ def _fit_least_squares(args, channels, Z) -> str:
     sens = [i for i, c in enumerate(channels) if c not in LOAD_COLUMNS]
     data, _ = check_matrix(Z, args.raw, args.drop_nonfinite)
     Zs, Ms = data[:, sens], data[:, idx]
-    cal = fit_least_squares(Zs, Ms, bias=True)
+    labels = find_poses(Zs)
+    if args.cv and labels is None:
+        raise CalibrationError(f"--cv poses: {args.raw} is not a static-pose log (no poses "
+                               "found)")
+    model, drift = args.model or "auto", args.drift or "auto"
+    table = {}
+    if labels is None:  # every row its own load: identifiability by rows, no selection
+        model = "affine" if model == "auto" else model
+        drift = "none" if drift == "auto" else drift
+        model, drift, _ = choose(None, len(Zs), Zs.shape[1], model, drift)
+    else:
+        n_poses = int(labels.max()) + 1
+        model, drift, table = choose(
+            lambda m, d: leave_one_pose_out_ls(Zs, Ms, labels, m, d), n_poses, Zs.shape[1],
+            model, drift)
+    cal = fit_model(Zs, Ms, model, drift)
+    if table:
+        cal.diagnostics["model_selection"] = table
     if args.cv:
-        labels = find_poses(Zs)
-        if labels is None:
-            raise CalibrationError(f"--cv poses: {args.raw} is not a static-pose log (no poses "
-                                   "found)")
-        cal.diagnostics["cv_poses"] = leave_one_pose_out_ls(Zs, Ms, labels)
+        cal.diagnostics["cv_poses"] = leave_one_pose_out_ls(Zs, Ms, labels, model, drift)
     status = _reliability(args, cal, None, None)
     save_calibration(args.out, cal, [channels[i] for i in sens])
     return _summary(args, cal, status)

@@ -56,6 +56,8 @@ def fit_joint(
     known_samples: int | None = None,
     poses="auto",
     cv: bool = False,
+    model: str = "affine",
+    drift: str = "none",
 ):
     """Fit C, offset (and the load magnitude) to motion rows and known pairs together.
 
@@ -64,7 +66,10 @@ def fit_joint(
     :func:`calib.rig.find_poses`) or an array of pose labels per row; the Sampson-distance fit
     below is then one of its starts. ``poses=None`` always uses the Sampson-distance fit (as do
     streamed sources). ``cv=True`` adds ``diagnostics["cv_poses"]``: the leave-one-pose-out
-    error over the known poses (:func:`leave_one_pose_out`).
+    error over the known poses (:func:`leave_one_pose_out`). ``model`` (affine, quadratic, auto)
+    and ``drift`` (none, linear, auto) choose the rig fit's second stage
+    (:mod:`calib.models`); ``auto`` keeps the candidate with the lowest leave-one-pose-out error
+    (``diagnostics["model_selection"]``); other than affine/none they need a static-pose log.
 
     Parameters
     ----------
@@ -86,9 +91,17 @@ def fit_joint(
                          drop_nonfinite, known_samples)
     from .stream import is_streamed
 
+    for name, v, allowed in (("model", model, ("affine", "quadratic", "auto")),
+                             ("drift", drift, ("none", "linear", "auto"))):
+        if v not in allowed:
+            raise CalibrationError(f"{name} must be one of {allowed}, got {v!r}")
     if poses is None or poses is False or is_streamed(Z):
+        if model not in ("affine", "auto") or drift not in ("none", "auto"):
+            raise CalibrationError(f"model {model}/{drift} needs a static-pose log (the rig "
+                                   "fit); this one is fitted by the Sampson-distance route")
         return motion
-    from .rig import find_poses, fit_rig
+    from .models import choose
+    from .rig import find_poses, rig_calibration, rig_pose_loads
 
     Za, _ = check_matrix(Z, "Z", drop_nonfinite)
     if isinstance(poses, str):
@@ -101,28 +114,45 @@ def fit_joint(
             raise CalibrationError(f"pose labels must be {len(Za)} integers, got shape "
                                    f"{labels.shape} of {labels.dtype}")
     if labels is None:
+        if model not in ("affine", "auto") or drift not in ("none", "auto"):
+            raise CalibrationError(f"model {model}/{drift} needs a static-pose log; no static "
+                                   "poses were found in this one")
         return motion
     Mk = np.atleast_2d(np.asarray(known_M, float))[:, : motion.C.shape[0]]
+    t = np.linspace(0.0, 1.0, len(Za))
 
-    def fit(Zs, lab, Zk, Mk_):
-        m = _fit_motion(Zs, Zk, Mk_, dof, magnitude, known_sigma, magnitude_sigma, False,
-                        known_samples)
-        return fit_rig(Zs, lab, Zk, Mk_, dof, magnitude, known_samples,
-                       starts=_starts(Zs, Zk, Mk_, dof, magnitude, m), known_sigma=known_sigma)
+    def stage1(Zs, lab, Zk, Mk_, motion_fit=None):
+        m = motion_fit or _fit_motion(Zs, Zk, Mk_, dof, magnitude, known_sigma,
+                                      magnitude_sigma, False, known_samples)
+        return rig_pose_loads(Zs, lab, Zk, Mk_, dof, magnitude, known_samples,
+                              starts=_starts(Zs, Zk, Mk_, dof, magnitude, m),
+                              known_sigma=known_sigma)
 
     import warnings as _w
 
     with _w.catch_warnings():
         _w.simplefilter("ignore")  # the starts' own warnings: the final fit reports its own
         try:
-            cal = fit_rig(Za, labels, known_Z, Mk, dof, magnitude, known_samples,
-                          starts=_starts(Za, known_Z, Mk, dof, magnitude, motion),
-                          known_sigma=known_sigma)
+            s1 = stage1(Za, labels, known_Z, Mk, motion)
         except CalibrationError as e:
             motion.diagnostics["joint"]["rig_fit_failed"] = str(e)
+            if model not in ("affine", "auto") or drift not in ("none", "auto"):
+                raise CalibrationError(f"model {model}/{drift} needs the rig fit, which failed: "
+                                       f"{e}") from None
             return motion
+        auto = model == "auto" or drift == "auto"
+        folds = _folds(Za, labels, known_Z, Mk, stage1, t) if (cv or auto) else []
+
+        def cv_of(m, d):
+            return _fold_errors(folds, Za, m, d)
+
+        model, drift, table = choose(cv_of, s1["pd"].P - s1["pd"].n_extra, Za.shape[1],
+                                     model, drift)
+        cal = rig_calibration(s1, model, drift, t)
         if cv:
-            cal.diagnostics["cv_poses"] = leave_one_pose_out(Za, labels, known_Z, Mk, fit)
+            cal.diagnostics["cv_poses"] = cv_of(model, drift)
+        if table:
+            cal.diagnostics["model_selection"] = table
     m = motion.diagnostics
     cal.diagnostics["joint"]["sampson_fit"] = {
         k: m["joint"][k] for k in ("magnitude", "converged", "nfev", "known_residual_rms")}
@@ -142,23 +172,31 @@ def _starts(Z, known_Z, known_M, dof, magnitude, motion):
     return starts
 
 
-def leave_one_pose_out(Z, labels, known_Z, known_M, fit) -> dict:
+def leave_one_pose_out(Z, labels, known_Z, known_M, fit, t=None) -> dict:
     """Leave-one-pose-out error over the known poses: for each known reading that belongs to a
     pose of ``labels``, refit with that pose left out entirely (its rows and its known load) by
     ``fit(Z, labels, known_Z, known_M)`` and compare the refit's mean load over the pose's rows
     with the known load. The honest estimate for a rig, where every sample of a pose shares its
     errors (sample-level splits see them in training). Returns ``folds``, ``rms`` and
     ``rms_per_axis`` (load units), ``errors`` (folds x r) and ``failed_folds``."""
+    t = np.linspace(0.0, 1.0, len(Z)) if t is None else t
+    folds = _folds(Z, labels, known_Z, known_M, fit, t)
+    return _summarise([None if f is None else f[0].apply(np.asarray(Z)[f[1]]).mean(axis=0) - f[2]
+                       for f in folds], np.atleast_2d(known_M).shape[1])
+
+
+def _folds(Z, labels, known_Z, known_M, fit, t) -> list:
+    """For each known reading on a pose of ``labels``: (fit without that pose, its rows, its
+    known load), or None when the refit failed; ``fit(Z, labels, Zk, Mk)``."""
     from .rig import PoseData
 
     Z = np.asarray(Z, float)
     labels = np.asarray(labels)
     Zk = np.atleast_2d(np.asarray(known_Z, float))
     Mk = np.atleast_2d(np.asarray(known_M, float))
-    r = Mk.shape[1]
-    pd = PoseData(Z, labels, Zk, Mk, r)
+    pd = PoseData(Z, labels, Zk, Mk, Mk.shape[1])
     ids = np.unique(labels[labels >= 0])
-    errors, failed = [], 0
+    out = []
     for k, j in enumerate(pd.known_pose):
         if j >= len(ids):
             continue  # a known-only reading: no rows to hold out
@@ -166,18 +204,42 @@ def leave_one_pose_out(Z, labels, known_Z, known_M, fit) -> dict:
         keep = np.ones(len(Zk), bool)
         keep[k] = False
         if keep.sum() < 2:
-            failed += 1
+            out.append(None)
             continue
         try:
-            cal = fit(Z[~hold], labels[~hold], Zk[keep], Mk[keep])
+            res = fit(Z[~hold], labels[~hold], Zk[keep], Mk[keep])
         except (CalibrationError, np.linalg.LinAlgError):
-            failed += 1
+            out.append(None)
             continue
-        errors.append(cal.apply(Z[hold]).mean(axis=0) - Mk[k])
-    E = np.array(errors).reshape(-1, r)
+        out.append((res, np.flatnonzero(hold), Mk[k], t[~hold]))
+    return out
+
+
+def _fold_errors(folds, Z, model, drift) -> dict:
+    from .rig import rig_calibration
+
+    errs = []
+    for f in folds:
+        if f is None:
+            errs.append(None)
+            continue
+        s1, rows, mk, t_rest = f
+        try:
+            cal = rig_calibration(s1, model, drift, t_rest)
+        except CalibrationError:
+            errs.append(None)
+            continue
+        errs.append(cal.apply(Z[rows]).mean(axis=0) - mk)
+    r = folds[0][2].shape[0] if folds and folds[0] is not None else 3
+    return _summarise(errs, r)
+
+
+def _summarise(errors, r) -> dict:
+    good = [e for e in errors if e is not None]
+    E = np.array(good).reshape(-1, r)
     return {
         "folds": len(E),
-        "failed_folds": failed,
+        "failed_folds": len(errors) - len(good),
         "rms": float(np.sqrt(np.mean(E**2))) if len(E) else float("nan"),
         "rms_per_axis": np.sqrt(np.mean(E**2, axis=0)) if len(E) else np.full(r, np.nan),
         "errors": E,

@@ -53,6 +53,11 @@ class Calibration:
     dof: int
     method: str = "unknown"
     diagnostics: dict = field(default_factory=dict)
+    #: Optional quadratic channel terms (``--model quadratic``): Q (dof, p), and the centre and
+    #: scale (p,) of the channels they square: ``m = C (z - offset) + Q ((z - centre) / scale)^2``.
+    quadratic: np.ndarray | None = None
+    quadratic_center: np.ndarray | None = None
+    quadratic_scale: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.C = np.atleast_2d(np.asarray(self.C, dtype=float))
@@ -62,6 +67,16 @@ class Calibration:
                 f"C has {self.C.shape[1]} columns but offset has {self.offset.shape[0]} entries"
             )
         self.dof = int(self.dof)
+        if self.quadratic is not None:
+            self.quadratic = np.atleast_2d(np.asarray(self.quadratic, dtype=float))
+            self.quadratic_center = np.asarray(self.quadratic_center, float).reshape(-1)
+            self.quadratic_scale = np.asarray(self.quadratic_scale, float).reshape(-1)
+            p = self.C.shape[1]
+            if (self.quadratic.shape != self.C.shape or self.quadratic_center.shape != (p,)
+                    or self.quadratic_scale.shape != (p,) or np.any(self.quadratic_scale <= 0)):
+                raise CalibrationError(
+                    f"quadratic terms must be a {self.C.shape} matrix with {p} centres and "
+                    f"{p} positive scales")
 
     @property
     def n_channels(self) -> int:
@@ -84,16 +99,25 @@ class Calibration:
             raise CalibrationError(
                 f"data has {Z.shape[-1]} channels, calibration expects {self.n_channels}"
             )
-        return (Z - self.offset) @ self.C.T
+        out = (Z - self.offset) @ self.C.T
+        if self.quadratic is not None:
+            out = out + ((Z - self.quadratic_center) / self.quadratic_scale) ** 2 @ (
+                self.quadratic.T)
+        return out
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "C": self.C.tolist(),
             "offset": self.offset.tolist(),
             "dof": self.dof,
             "method": self.method,
-            "diagnostics": _jsonable(self.diagnostics),
         }
+        if self.quadratic is not None:
+            d.update(quadratic=self.quadratic.tolist(),
+                     quadratic_center=self.quadratic_center.tolist(),
+                     quadratic_scale=self.quadratic_scale.tolist())
+        d["diagnostics"] = _jsonable(self.diagnostics)
+        return d
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
@@ -118,8 +142,18 @@ class Calibration:
         diagnostics = d.get("diagnostics", {})
         if not isinstance(diagnostics, dict):
             raise CalibrationError("diagnostics must be a JSON object")
+        quad = {}
+        keys = ("quadratic", "quadratic_center", "quadratic_scale")
+        if any(k in d for k in keys):
+            if not all(k in d for k in keys):
+                raise CalibrationError(f"quadratic terms need all of {list(keys)}")
+            quad = {"quadratic": _finite_array(d["quadratic"], "quadratic", ndim=2),
+                    "quadratic_center": _finite_array(d["quadratic_center"], "quadratic_center",
+                                                      ndim=1),
+                    "quadratic_scale": _finite_array(d["quadratic_scale"], "quadratic_scale",
+                                                     ndim=1)}
         return cls(C=C, offset=offset, dof=dof, method=str(d.get("method", "unknown")),
-                   diagnostics=dict(diagnostics))
+                   diagnostics=dict(diagnostics), **quad)
 
 
 def _finite_array(value, name: str, ndim: int) -> np.ndarray:

@@ -328,7 +328,18 @@ def _known_consistency(pd: PoseData, final: dict, W) -> dict:
 
 def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None = None,
             known_samples: int | None = None, restarts: int = 2, seed: int = 0,
-            starts: dict | None = None, known_sigma: float | None = None) -> Calibration:
+            starts: dict | None = None, known_sigma: float | None = None,
+            model: str = "affine", drift: str = "none", t=None) -> Calibration:
+    """The pose-level joint fit (module docstring): :func:`rig_pose_loads` (stage 1) then
+    :func:`rig_calibration` (stage 2); see the former for the arguments."""
+    s1 = rig_pose_loads(Z, labels, known_Z, known_M, dof, magnitude, known_samples, restarts,
+                        seed, starts, known_sigma)
+    return rig_calibration(s1, model, drift, t)
+
+
+def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None = None,
+                   known_samples: int | None = None, restarts: int = 2, seed: int = 0,
+                   starts: dict | None = None, known_sigma: float | None = None) -> dict:
     """The pose-level joint fit (module docstring): forward model for the unknown pose loads,
     then least squares on every row with its pose's load.
 
@@ -337,10 +348,11 @@ def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None =
     directions. ``known_sigma`` (stated accuracy of the known loads) is recorded for the
     reliability checks; the fit itself treats known loads as exact and weighs pose means by
     their scatter (``known_samples`` only weighs known readings that match no pose).
-    Returns a Calibration with ``method="joint"`` and ``diagnostics["joint"]``.
+    Returns the stage-1 state for :func:`rig_calibration` (``model``/``drift``: the second
+    stage's model, :func:`calib.models.fit_model`; ``t`` each row's position in the log,
+    default the row order), which returns a Calibration with ``method="joint"`` and
+    ``diagnostics["joint"]``.
     """
-    from .least_squares import fit_least_squares
-
     if dof not in (2, 3):
         raise CalibrationError(f"the rig fit is for dof 2 or 3, got {dof}")
     r = dof
@@ -396,17 +408,35 @@ def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None =
     final = fm.solve(best["U"], best["g"], W2)
     if not final["converged"] and best["converged"]:
         final = {**best, "converged": best["converged"]}
+    return {"pd": pd, "fm": fm, "final": final, "best": best, "W2": W2, "v": v,
+            "candidates": candidates, "consistency": _known_consistency(pd, final, W2),
+            "labels": np.asarray(labels), "n": int(len(np.asarray(Z))), "dof": dof,
+            "known_sigma": known_sigma, "known_samples": known_samples}
+
+
+def rig_calibration(s1: dict, model: str = "affine", drift: str = "none", t=None) -> Calibration:
+    """Stage 2 of :func:`fit_rig` on a stage-1 result (:func:`rig_pose_loads`)."""
+    from .models import fit_model
+
+    pd, fm, final, best, W2, v = (s1[k] for k in ("pd", "fm", "final", "best", "W2", "v"))
+    candidates, consistency, labels, dof = (s1[k] for k in ("candidates", "consistency",
+                                                            "labels", "dof"))
+    known_sigma, known_samples = s1["known_sigma"], s1["known_samples"]
+    r = pd.r
     M_pose = final["M"]
-    consistency = _known_consistency(pd, final, W2)
     # stage 2: least squares on every row with its pose's load (extra known-only poses as their
     # reading repeated as often as they weigh)
     rows, row_loads = pd.rows, M_pose[pd.row_pose]
+    n_all = len(np.asarray(labels))
+    t_all = np.linspace(0.0, 1.0, n_all) if t is None else np.asarray(t, float).reshape(n_all)
+    t_rows = t_all[np.asarray(labels) >= 0]
     real = len(pd.counts) - pd.n_extra
     if pd.n_extra:
         reps = np.maximum(np.round(pd.counts[real:]).astype(int), 1)
         rows = np.vstack([rows, np.repeat(pd.means[real:], reps, axis=0)])
         row_loads = np.vstack([row_loads, np.repeat(M_pose[real:], reps, axis=0)])
-    ls = fit_least_squares(rows, row_loads, bias=True)
+        t_rows = np.r_[t_rows, np.full(reps.sum(), t_rows.mean())]
+    ls = fit_model(rows, row_loads, model, drift, t_rows)
     C = ls.C
     d = -C @ ls.offset
     # the offset: the forward model's o moved within C's row space so that C (z - offset)
@@ -414,12 +444,13 @@ def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None =
     B, _ = fm.linear(M_pose, W2)
     o_fwd = B[r]
     offset = o_fwd + np.linalg.pinv(C) @ (-d - C @ o_fwd)
-    L = (pd.means - offset) @ C.T
+    ls.offset = offset
+    L = ls.apply(pd.means)
     mags = np.linalg.norm(L[pd.unknown], axis=1)
     g = final["g"]
     known_res = L[pd.known_pose] - pd.known_M
     diag = {
-        "n_samples": int(len(np.asarray(Z))),
+        "n_samples": s1["n"],
         "n_dropped_nonfinite": 0,
         "singular_values": ls.diagnostics["singular_values"],
         "condition_number_C": float(np.linalg.cond(C)),
@@ -447,4 +478,8 @@ def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None =
             "nfev": int(final["nfev"]),
         },
     }
-    return Calibration(C=C, offset=offset, dof=dof, method="joint", diagnostics=diag)
+    diag["joint"].update(model=model, drift=drift,
+                         drift_per_log=ls.diagnostics.get("drift_per_log"))
+    return Calibration(C=C, offset=offset, dof=dof, method="joint", diagnostics=diag,
+                       quadratic=ls.quadratic, quadratic_center=ls.quadratic_center,
+                       quadratic_scale=ls.quadratic_scale)

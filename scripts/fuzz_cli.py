@@ -83,6 +83,8 @@ def main_() -> int:
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
     os.environ.setdefault("MPLBACKEND", "Agg")
     os.environ["MINARI_DATASETS_PATH"] = tempfile.mkdtemp(prefix="mkv-fuzz-minari-")
+    import numpy as np
+
     from calib.cli import main as calib
     from calib.io import write_csv
     from calib.simulate import paper_trial
@@ -99,6 +101,10 @@ def main_() -> int:
     write_csv(os.path.join(d, "raw.csv"), [f"g{i}" for i in range(8)], paper_trial(2, rng=0).Z)
     assert calib(["fit", os.path.join(d, "raw.csv"), "--dof", "3", "--magnitude", "9",
                   "--out", os.path.join(d, "cal.json")]) == 0
+    trial = paper_trial(2, rng=0)
+    write_csv(os.path.join(d, "loads.csv"), [f"g{i}" for i in range(8)] + ["Fx", "Fy", "Fz"],
+              np.hstack([trial.Z, trial.loads]))
+    write_csv(os.path.join(d, "poses.csv"), ["Fx", "Fy", "Fz"], trial.directions[:12])
     import base64
     import pickle
     import zipfile
@@ -248,6 +254,11 @@ def main_() -> int:
                 (mkv, ["fit", p("data.npz"), "--out", p("o.npz"), "--history", v]),
                 (mkv, ["fit", p("data.npz"), "--out", p("o.npz"), "--rank", v]),
                 (calib, ["trials", "--seeds", v, "--out", p("tr")]),
+                (calib, ["plan", p("poses.csv"), "--known-loads", v]),
+                (calib, ["plan", p("poses.csv"), "--samples", v, "--noise", v,
+                         "--sensitivity", "10"]),
+                (calib, ["fit", p("loads.csv"), "--dof", "3", "--method", "least_squares",
+                         "--cv", "poses", "--holdout-factor", v, "--out", p("o.json")]),
                 (calib, ["fit", p("raw.csv"), "--dof", "3", "--magnitude", v, "--out",
                          p("o.json")]),
             ])
@@ -282,6 +293,8 @@ def main_() -> int:
                        "--out", "/dev/null"]),
                 (calib, ["fit", p("raw.csv"), "--dof", "3", "--out", p("raw.csv")]),
                 (calib, ["apply", p("cal.json"), p("raw.csv"), "--out", p("cal.json")]),
+                (calib, ["fit", p("loads.csv"), "--dof", "3", "--method", "least_squares",
+                         "--out", p("loads.csv")]),
             ])
         if cat == "csv":
             z = paper_trial(2, rng=rng.randrange(100)).Z
@@ -294,6 +307,13 @@ def main_() -> int:
             return cat, rng.choice([
                 (calib, ["fit", p("bad.csv"), "--dof", "3", "--bias", "--out", p("o.json")]),
                 (calib, ["apply", p("cal.json"), p("bad.csv"), "--out", p("o.csv")]),
+                (calib, ["evaluate", p("cal.json"), p("bad.csv"), "--known", p("loads.csv")]),
+                (calib, ["evaluate", p("cal.json"), p("loads.csv"), "--known", p("bad.csv")]),
+                (calib, ["plan", p("bad.csv")]),
+                (calib, ["fit", p("bad.csv"), "--dof", "3", "--method", "least_squares",
+                         "--out", p("o.json")]),
+                (calib, ["fit", p("raw.csv"), "--dof", "3", "--bias", "--method", "joint",
+                         "--known", p("bad.csv"), "--cv", "poses", "--out", p("o.json")]),
             ])
         doc = json.loads(originals["cal.json"])
         doc[rng.choice(["C", "offset", "dof", "channels", "diagnostics"])] = rng.choice(
@@ -303,7 +323,9 @@ def main_() -> int:
         if rng.random() < 0.3:
             with open(p("bad.json"), "wb") as f:
                 f.write(damaged("cal.json"))
-        return cat, (calib, ["apply", p("bad.json"), p("raw.csv"), "--out", p("o.csv")])
+        return cat, rng.choice([
+            (calib, ["apply", p("bad.json"), p("raw.csv"), "--out", p("o.csv")]),
+            (calib, ["evaluate", p("bad.json"), p("loads.csv")])])
 
     p_sout = os.path.join(d, "sout")
     counts, by_cat, problems = Counter(), Counter(), []

@@ -282,3 +282,96 @@ def test_plan_recommends_the_spread_poses_and_predicts_below_the_naive_choice(tm
     assert main(["plan", path, "--known-loads", "12"]) == 2
     assert main(["plan", path, "--noise", "0.5"]) == 2
     assert capsys.readouterr().err.count("\n") == 2
+
+
+# ------------------------------------------------------------------------------ models
+
+
+def _quadratic_sensor(seed, poses=40, p=5, noise=0.0, bend=0.05):
+    rng = np.random.default_rng(seed)
+    from calib.simulate import sample_directions
+
+    S = rng.normal(size=(3, p)) * 10
+    z0 = rng.normal(size=p) * 30
+    U = sample_directions(poses, 3, rng)
+    F = 10 * np.repeat(U, 20, axis=0)
+    lin = F @ S
+    fs = np.abs(lin).max(axis=0)
+    Z = z0 + lin + bend * lin**2 / fs + rng.normal(size=lin.shape) * noise
+    return Z, F, np.repeat(np.arange(poses), 20)
+
+
+def test_quadratic_model_fits_a_bending_sensor_and_auto_picks_it():
+    from calib.least_squares import leave_one_pose_out_ls
+    from calib.models import choose, fit_model
+
+    Z, F, pose = _quadratic_sensor(0, noise=0.01)
+    aff = fit_model(Z, F, "affine")
+    quad = fit_model(Z, F, "quadratic")
+    assert quad.diagnostics["residual_rms"] < 0.1 * aff.diagnostics["residual_rms"]
+    # the calibration file carries the quadratic terms and applies them after a round trip
+    from calib.result import Calibration
+
+    back = Calibration.from_dict(json.loads(json.dumps(quad.to_dict())))
+    assert np.allclose(back.apply(Z), quad.apply(Z))
+    model, drift, table = choose(lambda m, d: leave_one_pose_out_ls(Z, F, pose, m, d), 40,
+                                 Z.shape[1], "auto", "none")
+    assert model == "quadratic", table
+    # a linear sensor: auto keeps the affine model
+    Zl, Fl, pl = _quadratic_sensor(1, noise=0.01, bend=0.0)
+    model, _, table = choose(lambda m, d: leave_one_pose_out_ls(Zl, Fl, pl, m, d), 40,
+                             Zl.shape[1], "auto", "none")
+    assert model == "affine", table
+
+
+def test_drift_term_removes_a_drifting_offset():
+    from calib.models import fit_model
+
+    # with p > 3 channels least squares already turns C away from a drift direction; with p = 3
+    # it cannot, and the drift biases C unless it is fitted
+    rig = simulate_rig(6, p=3, **dict(TARGET, nonlinearity=0.0, drift=0.05))
+    tr, te = rig.split("halves")  # drift differs between the halves
+    M = rig.stated_loads[rig.pose]
+    t = np.linspace(0, 1, len(rig.Z))
+    none = fit_model(rig.Z[tr], M[tr], "affine", "none", t[tr])
+    lin = fit_model(rig.Z[tr], M[tr], "affine", "linear", t[tr])
+    # the fitted drift is dropped: test readings are corrected to the log's mean position, so
+    # compare C alone against the truth (pinv of S) in load space
+    C_true = np.linalg.pinv(rig.S.T)
+    err = [np.linalg.norm((c.C - C_true) @ rig.S.T) for c in (none, lin)]
+    assert err[1] < 0.5 * err[0], err
+    assert np.linalg.norm(lin.diagnostics["drift_per_log"]) > 0
+
+
+def test_quadratic_terms_are_validated_in_a_calibration_file():
+    from calib.result import Calibration
+
+    Z, F, _ = _quadratic_sensor(2)
+    from calib.models import fit_model
+
+    d = fit_model(Z, F, "quadratic").to_dict()
+    for key, bad in (("quadratic", [[1.0, 2.0]]), ("quadratic_scale", [0.0] * 5),
+                     ("quadratic_center", [float("nan")] * 5)):
+        with pytest.raises(CalibrationError):
+            Calibration.from_dict(dict(d, **{key: bad}))
+    partial = dict(d)
+    del partial["quadratic_scale"]
+    with pytest.raises(CalibrationError, match="need all of"):
+        Calibration.from_dict(partial)
+
+
+def test_cli_models_unidentified_or_on_the_wrong_route_are_one_line_errors(rig_csv, capsys):
+    tmp, f = rig_csv
+    out = str(tmp / "x.json")
+    assert main(["fit", f["train"], "--dof", "3", "--bias", "--method", "joint", "--known",
+                 f["known"], "--model", "quadratic", "--out", out]) == 2
+    assert main(["fit", f["train"], "--dof", "3", "--bias", "--model", "quadratic",
+                 "--out", out]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and "needs at least 18 poses with 8 channels" in err[0]
+    assert "--model quadratic is an option of --method least_squares or joint" in err[1]
+    assert main(["fit", f["train"], "--dof", "3", "--bias", "--method", "joint", "--known",
+                 f["known"], "--out", out]) == 0
+    sel = json.loads((tmp / "x.json").read_text())["diagnostics"]["model_selection"]
+    assert sel["not_identified"] == ["quadratic/none", "quadratic/linear"]
+    assert set(sel["leave_one_pose_out_rms"]) == {"affine/none", "affine/linear"}
