@@ -274,6 +274,16 @@ def _fit(args) -> str:
             cal.diagnostics["bootstrap"] = bootstrap_intervals(
                 lambda z: fit(z, False), Zc, cal, args.bootstrap, seed=args.seed,
                 align=known_Z is None, progress=bar)
+    if known_Z is not None and args.dof != 6 and cal.diagnostics.get("joint", {}).get(
+            "route") != "poses" and not args.chunk_rows:
+        from .reliability import crosscheck
+
+        from ._validate import check_matrix
+
+        cc = crosscheck(cal, check_matrix(Z, args.raw, args.drop_nonfinite)[0], known_Z,
+                        known_M)
+        if cc is not None:
+            cal.diagnostics["crosscheck"] = cc
     status = _reliability(args, cal, known_Z, known_M)
     save_calibration(args.out, cal, channels)
     return _summary(args, cal, status)

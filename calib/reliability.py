@@ -18,6 +18,11 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
 - **known loads inconsistent with the readings** (rig fits): turned by the best rotation onto
   the known loads, the pose loads the readings alone imply miss them by more than
   :data:`KNOWN_INCONSISTENT` of the load (a load entered for the wrong pose, a wrong mass);
+- **disagrees with the pose fit** (any other route given known loads on a static-pose log):
+  its loads at the poses differ from those of the pose-level joint fit (:mod:`calib.rig`,
+  computed as a reference by :func:`crosscheck`) by more than :data:`CROSSCHECK_FACTOR` times
+  that fit's own pose-level residual (simulated rigs: fits within 2x of all-known least squares
+  measure at most 5, fits beyond 10x at least 15);
 - **held-out check failed**: the leave-one-pose-out error (``--cv poses``) exceeds
   ``holdout_factor`` times the fit's in-sample pose-level residual, or half the load magnitude.
 """
@@ -33,6 +38,9 @@ PRACTICAL_FRACTION = 0.02
 #: Rig fits: known loads further than this fraction of the load from a rotation of what the
 #: readings alone imply are inconsistent (simulated imperfect rigs: at most 8 %).
 KNOWN_INCONSISTENT = 0.10
+#: Other routes on static-pose logs: largest disagreement with the pose fit, in units of its
+#: own pose-level residual.
+CROSSCHECK_FACTOR = 10.0
 #: Known loads within this relative spread are one weighed mass.
 SAME_MAGNITUDE = 0.05
 #: A fitted magnitude further than this (relative) from that mass is implausible.
@@ -98,6 +106,12 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
         if p < CHI2_PROBABILITY and rms > PRACTICAL_FRACTION * scale:
             out.append(f"implausible known residuals: rms {rms:.4g} against an expected "
                        f"{sigma:.4g} (chi-square {stat:.3g} on {res.size} dof, p = {p:.2g})")
+    cc = d.get("crosscheck")
+    if isinstance(cc, dict) and np.isfinite(cc.get("ratio", np.nan)) and (
+            cc["ratio"] > CROSSCHECK_FACTOR):
+        out.append(f"disagrees with the pose-level joint fit: its loads at the {cc['poses']} "
+                   f"poses differ by rms {cc['disagreement_rms']:.4g}, {cc['ratio']:.3g}x that "
+                   f"fit's residual (limit {CROSSCHECK_FACTOR:g}x); use --method joint")
     cv = d.get("cv_poses")
     if isinstance(cv, dict) and cv.get("folds", 0) > 0 and np.isfinite(cv.get("rms", np.nan)):
         inside = max(float(d.get("residual_rms") or 0.0), rms,
@@ -108,3 +122,36 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                        f"{cv['folds']} pose(s), {cv['rms'] / max(inside, 1e-300):.3g}x the "
                        f"in-sample {inside:.4g} (limit {holdout_factor:g}x)")
     return out
+
+
+def crosscheck(cal, Z, known_Z, known_M) -> dict | None:
+    """Compare ``cal`` (a route other than the pose fit) with the pose-level joint fit on the
+    same static-pose log ``Z`` and known loads; None when ``Z`` has no static poses or the pose
+    fit fails. Returns ``poses``, ``disagreement_rms`` (load units, over the pose means),
+    ``reference_residual`` and their ``ratio``; stored as ``diagnostics["crosscheck"]``."""
+    import warnings
+
+    from .joint import fit_joint
+    from .result import CalibrationError
+    from .rig import find_poses
+
+    Z = np.asarray(Z, float)
+    labels = find_poses(Z)
+    if labels is None:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            ref = fit_joint(Z, known_Z, known_M, cal.C.shape[0], poses=labels)
+        except CalibrationError:
+            return None
+    j = ref.diagnostics.get("joint", {})
+    if j.get("route") != "poses":
+        return None
+    ids = np.unique(labels[labels >= 0])
+    means = np.array([Z[labels == i].mean(axis=0) for i in ids])
+    D = float(np.sqrt(np.mean((cal.apply(means) - ref.apply(means)) ** 2)))
+    scale = max(float(j["known_residual_rms"]), float(j["pose_magnitude_residual_rms"]),
+                1e-12 * float(j["magnitude"]))
+    return {"reference": "joint (poses)", "poses": len(ids), "disagreement_rms": D,
+            "reference_residual": scale, "ratio": D / scale}

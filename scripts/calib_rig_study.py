@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from calib.bias import fit_bias  # noqa: E402
 from calib.joint import choose_known_poses, fit_joint  # noqa: E402
 from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.reliability import assess  # noqa: E402
+from calib.reliability import assess, crosscheck  # noqa: E402
 from calib.result import CalibrationError  # noqa: E402
 from calib.simulate import simulate_rig  # noqa: E402
 
@@ -86,6 +86,10 @@ def one(job):
             except CalibrationError:
                 out[route] = (np.nan, True)
                 continue
+            if not route.startswith("joint (rig"):  # what calib fit adds on static poses
+                cc = crosscheck(cal, Ztr, Zk, Mk)
+                if cc is not None:
+                    cal.diagnostics["crosscheck"] = cc
             out[route] = (err(cal) / ls, bool(assess(cal, Zk, Mk)))
     return case, seed, ls, out
 

@@ -375,3 +375,27 @@ def test_cli_models_unidentified_or_on_the_wrong_route_are_one_line_errors(rig_c
     sel = json.loads((tmp / "x.json").read_text())["diagnostics"]["model_selection"]
     assert sel["not_identified"] == ["quadratic/none", "quadratic/linear"]
     assert set(sel["leave_one_pose_out_rms"]) == {"affine/none", "affine/linear"}
+
+
+def test_cli_a_route_far_from_the_pose_fit_exits_3(tmp_path, capsys):
+    # noise 1 % of span, seed 18: the paper route aligned to 4 known loads measures 44x the
+    # held-out error of all-known least squares (scripts/calib_rig_study.py); on a static-pose
+    # log calib fit cross-checks it against the pose-level joint fit and refuses it
+    rig = simulate_rig(18, noise=0.01)
+    tr, te = rig.split()
+    kn = choose_known_poses(rig.directions, 4)
+    means, _ = rig.pose_means(tr)
+    ch = [f"z{i}" for i in range(8)]
+    raw = _write(tmp_path / "raw.csv", ch, rig.Z[tr])
+    known = _write(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"],
+                   np.hstack([means[kn], rig.stated_loads[kn]]))
+    out = tmp_path / "cal.json"
+    args = ["fit", raw, "--dof", "3", "--bias", "--known", known, "--out", str(out)]
+    assert main(args + ["--method", "paper"]) == 3
+    err = capsys.readouterr().err
+    assert "calib: unreliable: disagrees with the pose-level joint fit" in err
+    assert not out.exists()
+    assert main(args + ["--method", "joint"]) == 0  # the pose fit itself passes
+    assert main(args + ["--method", "paper", "--allow-unreliable"]) == 0
+    cc = json.loads(out.read_text())["diagnostics"]["crosscheck"]
+    assert cc["poses"] == 12 and cc["ratio"] > 10
