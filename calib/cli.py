@@ -276,9 +276,8 @@ def _fit(args) -> str:
                 align=known_Z is None, progress=bar)
     if known_Z is not None and args.dof != 6 and cal.diagnostics.get("joint", {}).get(
             "route") != "poses" and not args.chunk_rows:
-        from .reliability import crosscheck
-
         from ._validate import check_matrix
+        from .reliability import crosscheck
 
         cc = crosscheck(cal, check_matrix(Z, args.raw, args.drop_nonfinite)[0], known_Z,
                         known_M)

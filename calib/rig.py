@@ -322,7 +322,14 @@ def _known_consistency(pd: PoseData, final: dict, W) -> dict:
     res = MA @ R.T - pd.known_M
     rms = float(np.sqrt(np.mean(res**2)))
     scale = float(np.median(np.linalg.norm(pd.known_M, axis=1)))
+    # the free fit's own misfit in load units: its pose-mean residuals through the pseudo-inverse
+    # of its A (what the readings cannot explain, even with every direction free)
+    B, raw = ForwardModel(free, magnitude=final["g"]).linear(out["M"], W)
+    misfit = (raw / W) @ np.linalg.pinv(B[:pd.r].T).T
+    spread = float(np.sqrt(np.mean(misfit**2)))
     return {"residual_rms": rms, "fraction": rms / scale if scale > 0 else float("nan"),
+            "free_fit_misfit_rms": spread,
+            "ratio": rms / spread if spread > 0 else float("inf"),
             "converged": out["converged"]}
 
 
