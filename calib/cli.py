@@ -59,6 +59,9 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--drift", choices=("none", "linear", "auto"), default=None,
                    help="least_squares and joint on static poses: a load drift linear in the "
                    "row order, fitted and then dropped (default auto, as --model)")
+    f.add_argument("--robust", action="store_true",
+                   help="joint and least_squares on static poses: leave out rows more than 5 "
+                   "robust standard deviations from their pose's median (spikes)")
     f.add_argument("--allow-unreliable", action="store_true",
                    help="write a fit that the reliability checks reject (exit 0, warnings)")
     f.add_argument("--holdout-factor", type=positive_float, metavar="F", default=None,
@@ -223,6 +226,8 @@ def _fit(args) -> str:
             if v not in (None, plain):
                 raise CalibrationError(f"{flag} {v} is an option of --method least_squares or "
                                        "joint (dof 2 or 3)")
+    if args.robust and args.method not in ("joint", "least_squares"):
+        raise CalibrationError("--robust is an option of --method joint or least_squares")
     if args.cv and args.method not in ("joint", "least_squares"):
         raise CalibrationError("--cv poses needs --method joint or least_squares (known loads "
                                "at the poses)")
@@ -250,7 +255,8 @@ def _fit(args) -> str:
                              known_sigma=args.known_sigma,
                              magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop,
                              known_samples=args.known_samples, cv=cv,
-                             model=args.model or "auto", drift=args.drift or "auto")
+                             model=args.model or "auto", drift=args.drift or "auto",
+                             robust=args.robust)
     elif args.bias:
 
         def fit(Z, drop=args.drop_nonfinite, cv=False):
@@ -350,6 +356,14 @@ def _fit_least_squares(args, channels, Z) -> str:
     data, _ = check_matrix(Z, args.raw, args.drop_nonfinite)
     Zs, Ms = data[:, sens], data[:, idx]
     labels = find_poses(Zs)
+    if args.robust:
+        if labels is None:
+            raise CalibrationError(f"--robust: {args.raw} is not a static-pose log (no poses "
+                                   "found)")
+        from .rig import reject_outliers
+
+        labels, _ = reject_outliers(Zs, labels)
+        Zs, Ms, labels = Zs[labels >= 0], Ms[labels >= 0], labels[labels >= 0]
     if args.cv and labels is None:
         raise CalibrationError(f"--cv poses: {args.raw} is not a static-pose log (no poses "
                                "found)")

@@ -58,6 +58,7 @@ def fit_joint(
     cv: bool = False,
     model: str = "affine",
     drift: str = "none",
+    robust: bool = False,
 ):
     """Fit C, offset (and the load magnitude) to motion rows and known pairs together.
 
@@ -70,6 +71,9 @@ def fit_joint(
     and ``drift`` (none, linear, auto) choose the rig fit's second stage
     (:mod:`calib.models`); ``auto`` keeps the candidate with the lowest leave-one-pose-out error
     (``diagnostics["model_selection"]``); other than affine/none they need a static-pose log.
+    ``robust=True`` (static-pose logs) leaves out rows more than 5 robust standard deviations
+    from their pose's median (:func:`calib.rig.reject_outliers`; the count is in the
+    diagnostics).
 
     Parameters
     ----------
@@ -120,6 +124,11 @@ def fit_joint(
         return motion
     Mk = np.atleast_2d(np.asarray(known_M, float))[:, : motion.C.shape[0]]
     t = np.linspace(0.0, 1.0, len(Za))
+    n_rejected = 0
+    if robust:
+        from .rig import reject_outliers
+
+        labels, n_rejected = reject_outliers(Za, labels)
 
     def stage1(Zs, lab, Zk, Mk_, motion_fit=None):
         m = motion_fit or _fit_motion(Zs, Zk, Mk_, dof, magnitude, known_sigma,
@@ -153,6 +162,7 @@ def fit_joint(
             cal.diagnostics["cv_poses"] = cv_of(model, drift)
         if table:
             cal.diagnostics["model_selection"] = table
+        cal.diagnostics["joint"]["outlier_rows_rejected"] = n_rejected if robust else None
     m = motion.diagnostics
     cal.diagnostics["joint"]["sampson_fit"] = {
         k: m["joint"][k] for k in ("magnitude", "converged", "nfev", "known_residual_rms")}

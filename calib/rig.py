@@ -146,6 +146,30 @@ def _is_static(labels: np.ndarray) -> bool:
     return len(counts) >= 3 and good.mean() >= 0.8 and np.median(counts) >= 5
 
 
+#: ``robust``: a row further than this many robust standard deviations (1.4826 MAD) from its
+#: pose's median on any channel is an outlier.
+OUTLIER_MADS = 5.0
+
+
+def reject_outliers(Z, labels) -> tuple[np.ndarray, int]:
+    """Labels with outlier rows set to -1 (left out of every stage of the fit): rows further
+    than :data:`OUTLIER_MADS` robust standard deviations from their pose's median on any
+    channel. Returns (labels, number of rows rejected)."""
+    Z = np.asarray(Z, float)
+    out = np.array(labels, copy=True)
+    n0 = int((out >= 0).sum())
+    for j in np.unique(out[out >= 0]):
+        idx = np.flatnonzero(out == j)
+        block = Z[idx]
+        med = np.median(block, axis=0)
+        mad = 1.4826 * np.median(np.abs(block - med), axis=0)
+        mad = np.maximum(mad, 1e-12 * np.maximum(np.abs(med), 1.0))
+        bad = np.any(np.abs(block - med) > OUTLIER_MADS * mad, axis=1)
+        if (~bad).sum() >= MIN_POSE_SAMPLES:
+            out[idx[bad]] = -1
+    return out, n0 - int((out >= 0).sum())
+
+
 def match_poses(Z, known_Z):
     """Rows of ``Z`` that belong to a pose of a known reading: the poses of ``Z``
     (:func:`find_poses`; every row its own pose when none are found) each take the known reading

@@ -404,3 +404,24 @@ def test_cli_a_route_far_from_the_pose_fit_exits_3(tmp_path, capsys):
     assert main(args + ["--method", "paper", "--allow-unreliable"]) == 0
     cc = json.loads(out.read_text())["diagnostics"]["crosscheck"]
     assert cc["poses"] == 12 and cc["ratio"] > 10
+
+
+def test_robust_leaves_out_spikes_and_helps_on_outlier_rigs():
+    from calib.rig import reject_outliers
+
+    rig = simulate_rig(2, outliers=0.02)
+    lab, n = reject_outliers(rig.Z, rig.pose)
+    spikes = np.abs(rig.Z - simulate_rig(2).Z).max(axis=1) > 0  # the rows a spike hit
+    assert (lab[spikes] < 0).mean() >= 0.9  # spikes of 20 noise levels: caught
+    assert (lab[~spikes] < 0).mean() < 0.01  # clean rows: kept
+    assert n == (lab < 0).sum()
+    better = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for seed in range(6):
+            rig, tr, te, ls, Zk, Mk = rig_fits(seed, outliers=0.05)
+            plain = held_out(rig, fit_joint(rig.Z[tr], Zk, Mk), te)
+            cal = fit_joint(rig.Z[tr], Zk, Mk, robust=True)
+            assert cal.diagnostics["joint"]["outlier_rows_rejected"] > 0
+            better += held_out(rig, cal, te) <= plain
+    assert better >= 4
