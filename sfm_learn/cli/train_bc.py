@@ -62,7 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=fraction,
         default=DEFAULTS["held_out"],
         metavar="FRACTION",
-        help=f"fraction of episodes held out (default {DEFAULTS['held_out']})",
+        help="fraction of episodes held out to measure accuracy on (default "
+        f"{DEFAULTS['held_out']}); the saved policy is then refitted on every episode",
     )
     p.add_argument(
         "--features",
@@ -123,7 +124,9 @@ def run(args) -> int:
         print(f"train accuracy {_fmt_acc(meta['train_accuracy'])} (nothing held out)")
     else:
         print(
-            f"held-out ({meta['held_out_episodes']} episodes, {meta['held_out_steps']} rows): "
+            f"held-out ({meta['held_out_episodes']} episodes, {meta['held_out_steps']} rows, "
+            f"measured on a network trained on the other {meta['validation_trained_steps']}; "
+            "the saved policy was then refitted on every row): "
             f"accuracy {_fmt_acc(held['accuracy'])}; majority-class baseline "
             f"{_fmt_acc(held['majority_accuracy'])}; both right {held['joint_accuracy']:.3f}"
         )
