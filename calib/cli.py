@@ -342,8 +342,7 @@ def _summary(args, cal, status) -> str:
 def _fit_least_squares(args, channels, Z) -> str:
     from ._validate import check_matrix
     from .io import LOAD_COLUMNS, load_columns, save_calibration
-    from .least_squares import leave_one_pose_out_ls
-    from .models import choose, fit_model
+    from .models import choose, fit_model, leave_one_pose_out_ls
     from .rig import find_poses
 
     cols = load_columns(args.dof)

@@ -121,35 +121,3 @@ class StatsView:
         self.n, self.p = data.n, p
         self.min, self.max = data.min[:p], data.max[:p]
 
-
-def leave_one_pose_out_ls(Z, M, labels, model: str = "affine", drift: str = "none",
-                          t=None) -> dict:
-    """Leave-one-pose-out error of least squares (bias on; ``model``/``drift`` of
-    :func:`calib.models.fit_model`, ``t`` each row's position in the log) on a static-pose log:
-    each pose of ``labels`` (-1 rows unused) is left out in turn, the rest fitted, and the fit's
-    mean load over the pose's rows compared with the pose's mean known load. Same keys as
-    :func:`calib.joint.leave_one_pose_out`."""
-    from .models import fit_model
-
-    Z = np.asarray(Z, float)
-    M = np.asarray(M, float)
-    labels = np.asarray(labels)
-    t = np.linspace(0.0, 1.0, len(Z)) if t is None else np.asarray(t, float)
-    errors, failed = [], 0
-    for j in np.unique(labels[labels >= 0]):
-        hold = labels == j
-        keep = ~hold & (labels >= 0)
-        try:
-            cal = fit_model(Z[keep], M[keep], model, drift, t[keep])
-        except CalibrationError:
-            failed += 1
-            continue
-        errors.append(cal.apply(Z[hold]).mean(axis=0) - M[hold].mean(axis=0))
-    E = np.array(errors).reshape(-1, M.shape[1])
-    return {
-        "folds": len(E),
-        "failed_folds": failed,
-        "rms": float(np.sqrt(np.mean(E**2))) if len(E) else float("nan"),
-        "rms_per_axis": np.sqrt(np.mean(E**2, axis=0)) if len(E) else np.full(M.shape[1], np.nan),
-        "errors": E,
-    }

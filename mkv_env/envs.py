@@ -20,6 +20,10 @@ from mkv_env.sensors import SensorSuite
 from mkv_env.tracker import MotionTracker
 from mkv_env.world import World, generate_layout, random_free_pose
 
+#: Observation modes (``gym.make(id, observation=...)``): the sensor readings, the same mapped to
+#: [-1, 1], or the shape-from-motion features of the latter (see ``MKVEnv._set_observation``).
+OBSERVATIONS = ("raw", "rescaled", "features")
+
 LAYOUT_ATTEMPTS = 20
 """Fresh layouts tried per reset of ``MKV-v0`` before giving up on a free start pose."""
 JAM_ATTEMPTS = 50
@@ -146,6 +150,7 @@ class MKVEnv(gym.Env):
         stuck_penalty: float = 0.1,
         collision_penalty: float = 0.05,
         kernel: str | None = None,
+        observation: str = "raw",
     ):
         custom = _python_overrides(type(self))
         if kernel is None:
@@ -159,6 +164,8 @@ class MKVEnv(gym.Env):
         _check(kernel == "python" or not custom,
                f"kernel='c' runs the rewards of the MK-V ids only; {type(self).__name__} "
                f"overrides {', '.join(custom)}: use kernel='python' (the default for it)")
+        _check(observation in OBSERVATIONS,
+               f"observation must be one of {OBSERVATIONS}, got {observation!r}")
         _check(render_mode is None or render_mode in self.metadata["render_modes"],
                f"render_mode must be one of {self.metadata['render_modes']} or None, "
                f"got {render_mode!r}")
@@ -208,6 +215,10 @@ class MKVEnv(gym.Env):
             dtype=np.float32,
         )
         self.action_space = action_space()
+        self.observation = observation
+        self._features = self._rescale = None
+        if observation != "raw":
+            self._set_observation(observation)
         self._tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
                                       escape_distance_m, float(escape_forward_m))
         self.world: World | None = None
@@ -265,8 +276,52 @@ class MKVEnv(gym.Env):
         if self.kernel == "c" and self.world is not None:
             self._batch, self._out = _kernel.new_batch(self, 1)
 
+    # ------------------------------------------------------------------ observation modes
+    def _set_observation(self, mode: str) -> None:
+        """``rescaled``: every channel mapped from its Box bounds to [-1, 1] exactly as
+        ``gymnasium.wrappers.RescaleObservation`` does (float32); ``features``: the default
+        shape-from-motion features (:func:`mkv_env.features.default_feature_spec`: every
+        channel, decaying traces, the previous command) of the rescaled channels, built online
+        with the commands actually sent. A policy trained on either runs on ``gym.make(id,
+        observation=mode)`` with no wrapper."""
+        from gymnasium.wrappers.utils import rescale_box
+
+        from .features import FeatureBuilder, default_feature_spec
+
+        box, self._rescale, _ = rescale_box(self.observation_space, np.float32(-1.0),
+                                            np.float32(1.0))
+        if mode == "rescaled":
+            self.observation_space = box
+            return
+        self._features = FeatureBuilder(default_feature_spec(self.sensor_names, ACTION_NVEC))
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self._features.n_features,),
+                                            np.float32)
+
+    def _observe(self, obs, action=None):
+        """The observation in this env's mode (``action``: the command just sent; None at a
+        reset)."""
+        x = self._rescale(obs)
+        if self._features is None:
+            return x
+        if action is None:
+            self._features.reset()
+            return self._features.step(x).astype(np.float32)
+        return self._features.step(x, np.asarray(action, dtype=np.int64)).astype(np.float32)
+
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self._reset_raw(seed=seed, options=options)
+        if self._rescale is not None:
+            obs = self._observe(obs)
+        return obs, info
+
+    def step(self, action):
+        out = self._step_raw(action)
+        if self._rescale is None:
+            return out
+        return (self._observe(out[0], action), *out[1:])
+
+    def _reset_raw(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.world = self._build_world()
         self._sensors.reset(self.np_random, self.world)
@@ -289,7 +344,7 @@ class MKVEnv(gym.Env):
             self.render()
         return obs, info
 
-    def step(self, action):
+    def _step_raw(self, action):
         if self.world is None:
             raise RuntimeError("call reset() before step()")
         drive, steer = self._decode(action)
@@ -715,8 +770,8 @@ def _place(world: World, pose) -> None:
 
 #: The step-time methods whose code the compiled kernel carries for the four MK-V classes; a
 #: subclass that overrides one of them is stepped by its own Python (kernel "python").
-_KERNEL_METHODS = ("step", "_after_physics", "_reward", "_terminated", "_info", "_kernel_info",
-                   "_potential", "_pose", "_decode")
+_KERNEL_METHODS = ("step", "_step_raw", "_after_physics", "_reward", "_terminated", "_info",
+                   "_kernel_info", "_potential", "_pose", "_decode")
 
 
 def _python_overrides(cls) -> list[str]:

@@ -92,6 +92,10 @@ class MKVVectorEnv(VectorEnv):
         if kwargs.get("render_mode") not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be 'rgb_array' or None for a vector env, "
                              f"got {kwargs['render_mode']!r}")
+        if kwargs.get("observation", "raw") != "raw":
+            raise ValueError(f"observation={kwargs['observation']!r} is an option of single envs; "
+                             "the native vector env gives raw readings: use "
+                             "gym.make_vec(..., vectorization_mode='sync') or rescale the batch")
         self.num_envs = int(num_envs)
         self.envs: list[MKVEnv] = [env_cls(**kwargs) for _ in range(self.num_envs)]
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)

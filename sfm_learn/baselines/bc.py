@@ -10,7 +10,7 @@ An SB3 ``ActorCriticPolicy`` (tanh MLP, policy net 64x64; its value head is unus
 by plain supervised learning: minibatch Adam on the negative log-likelihood of the dataset's
 [drive, steer] commands under the policy's ``MultiDiscrete([3, 3])`` action distribution (the sum
 of the two categorical cross-entropies). Inputs are, by default, the same features the
-shape-from-motion policy uses (:func:`~sfm_learn.eigenspace.features.default_feature_spec`:
+shape-from-motion policy uses (:func:`~mkv_env.features.default_feature_spec`:
 every channel,
 decaying traces, the previous command), or with ``--features raw`` the raw observation; each
 input column is standardised with training-set statistics stored in the file.
@@ -65,7 +65,7 @@ DEFAULTS = {"epochs": 30, "batch_size": 256, "lr": 1e-3, "held_out": 0.2}
 
 # ---------------------------------------------------------------------- features
 def feature_spec(sensor_names, features: str = "default"):
-    from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
+    from mkv_env.features import FeatureSpec, default_feature_spec
 
     if features == "default":
         return default_feature_spec(sensor_names, ACTION_NVEC, ACTION_NAMES)
@@ -143,7 +143,7 @@ def train(
     import numpy as np
 
     from mkv_env.dataset import split_by_episode
-    from sfm_learn.eigenspace.features import FeatureBuilder
+    from mkv_env.features import FeatureBuilder
 
     sensor_names = list(data.metadata["sensor_names"])
     acts = data["actions"]
@@ -318,7 +318,7 @@ class BCPolicy:
     def __init__(self, policy, meta: dict, seed: int | None = None):
         import numpy as np
 
-        from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec, OnlineFeatures
+        from mkv_env.features import FeatureBuilder, FeatureSpec, OnlineFeatures
 
         self.meta = self.metadata = meta
         spec = FeatureSpec.from_dict(meta["feature_spec"])

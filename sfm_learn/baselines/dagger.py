@@ -75,9 +75,9 @@ def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
           env_kwargs: dict | None = None, epochs: int = 30, batch_size: int = 256,
           lr: float = 1e-3, teacher: str = "teacher", on_round=None):
     """Run DAgger; returns ``(policy, meta)``. ``on_round(round, info)`` after every round."""
+    from mkv_env.features import FeatureBuilder
     from mkv_env.policies import make_policy
     from mkv_env.recorder import make_env
-    from sfm_learn.eigenspace.features import FeatureBuilder
 
     if not (isinstance(rounds, int) and 1 <= rounds <= 100):
         raise ValueError(f"rounds must be an integer in 1..100, got {rounds!r}")

@@ -316,11 +316,14 @@ def train(
     if observation not in OBSERVATIONS:
         raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
     env_kwargs = dict(env_kwargs or {})
+    if "observation" in env_kwargs:
+        raise ValueError("env kwargs must not set 'observation': train-ppo chooses it (raw: the "
+                         "rescaled readings; features: their SfM features)")
     sensor_names, nvec, low, high = check_env(env_id, env_kwargs)
     scale = sb3.rescale_function(low, high)
     feature_spec = None
     if observation == "features":
-        from sfm_learn.eigenspace.features import default_feature_spec
+        from mkv_env.features import default_feature_spec
 
         feature_spec = default_feature_spec(sensor_names, nvec).to_dict()
     hp = dict(DEFAULTS)
@@ -331,14 +334,18 @@ def train(
     planned = planned_timesteps(timesteps, n_envs, hp["n_steps"])
     eval_every = eval_every or max(1, timesteps // 10)
 
-    fns = [functools.partial(sb3.make_rescaled_env, env_id, env_kwargs,
-                             feature_spec=feature_spec) for _ in range(n_envs)]
+    # the env gives the policy's inputs itself (gym.make(id, observation=...)): the zip runs on
+    # gym.make(env_id, **meta["make_kwargs"]) with plain SB3 and no wrapper
+    make_kwargs = {**env_kwargs, "observation": "features" if observation == "features"
+                   else "rescaled"}
+    fns = [functools.partial(sb3.make_observed_env, env_id, make_kwargs) for _ in range(n_envs)]
     venv = SubprocVecEnv(fns) if vec == "async" else DummyVecEnv(fns)
     meta = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "env_id": env_id,
         "env_kwargs": env_kwargs,
+        "make_kwargs": make_kwargs,
         "sensor_names": sensor_names,
         "action_nvec": nvec,
         "obs_rescale": {"low": np.asarray(low, dtype=float).tolist(),
@@ -502,7 +509,7 @@ def load_spec(arg, env, seed):
 
         n = len(meta["sensor_names"])
         if meta.get("feature_spec") is not None:
-            from sfm_learn.eigenspace.features import FeatureSpec
+            from mkv_env.features import FeatureSpec
 
             n = FeatureSpec.from_dict(meta["feature_spec"]).n_features
         acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}

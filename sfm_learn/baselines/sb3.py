@@ -211,14 +211,14 @@ def rescale_function(low, high):
 
 class FeatureObservation(gym.Wrapper):
     """Observations replaced by the shape-from-motion feature vector of a
-    :class:`~sfm_learn.eigenspace.features.FeatureSpec` (decaying traces of every channel, the
+    :class:`~mkv_env.features.FeatureSpec` (decaying traces of every channel, the
     previous command, ...), built online from the wrapped env's observations and the actions
     actually sent; reset at every episode start. Gives a reactive policy (PPO's MLP) the same
     short memory the SfM and BC policies see. Features are float32, like the network's input.
     """
 
     def __init__(self, env: gym.Env, spec: dict):
-        from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec
+        from mkv_env.features import FeatureBuilder, FeatureSpec
 
         super().__init__(env)
         self.builder = FeatureBuilder(FeatureSpec.from_dict(spec))
@@ -234,6 +234,21 @@ class FeatureObservation(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         feats = self.builder.step(obs, np.asarray(action, dtype=np.int64))
         return feats.astype(np.float32), reward, terminated, truncated, info
+
+
+def make_observed_env(env_id: str, make_kwargs: dict, monitor: bool = True) -> gym.Env:
+    """Env factory for (possibly subprocess) vector envs of ``mkv train-ppo``:
+    ``gym.make(env_id, **make_kwargs)`` (``make_kwargs`` names the observation mode, rescaled
+    or features, so the env itself gives the policy's inputs), SB3's Monitor on top. Picklable
+    through functools.partial; imports :mod:`mkv_env` so the ids exist in a fresh worker."""
+    import mkv_env  # noqa: F401
+
+    env = gym.make(env_id, **make_kwargs)
+    if monitor:
+        from stable_baselines3.common.monitor import Monitor
+
+        env = Monitor(env)
+    return env
 
 
 def make_rescaled_env(env_id: str, env_kwargs: dict, monitor: bool = True,
@@ -315,7 +330,7 @@ class FeatureActorPolicy:
     the next step's previous command, exactly as the training wrapper does."""
 
     def __init__(self, policy, nvec, spec: dict, transform=None, seed: int | None = None):
-        from sfm_learn.eigenspace.features import FeatureSpec, OnlineFeatures
+        from mkv_env.features import FeatureSpec, OnlineFeatures
 
         self.actor = ActorPolicy(policy, nvec, seed=seed)
         self.transform = transform

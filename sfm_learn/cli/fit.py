@@ -74,7 +74,7 @@ def feature_spec_from_args(args, names):
     overrides."""
     from dataclasses import replace
 
-    from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
+    from mkv_env.features import FeatureSpec, default_feature_spec
     from sfm_learn.eigenspace.policy import PRESETS
 
     features = args.features or PRESETS[args.preset]["features"]

@@ -33,13 +33,13 @@ import zlib
 import numpy as np
 
 from mkv_env.actions import ACTION_NVEC
-from sfm_common.files import atomic_path
-from sfm_learn.eigenspace.features import (
+from mkv_env.features import (
     FeatureBuilder,
     FeatureSpec,
     OnlineFeatures,
     default_feature_spec,
 )
+from sfm_common.files import atomic_path
 from sfm_learn.eigenspace.projector import EigenspaceProjector
 
 __all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thresholds",
@@ -408,7 +408,7 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
         data: the teacher's recording (any number of episodes), or a list of recordings with
             the same sensor layout (e.g. wandering runs plus jam runs), stacked.
         feature_spec: the features; default
-            :func:`~sfm_learn.eigenspace.features.default_feature_spec`.
+            :func:`~mkv_env.features.default_feature_spec`.
         n_components: kept eigenvectors; ``None`` = the paper's largest-ratio rule.
         solver, rank_rtol, alpha: passed to :class:`EigenspaceProjector`.
         thresholds: ``"learned"`` (balanced accuracy on the training rows) or ``"fixed"``.

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mkv_env.features import FeatureSpec, default_feature_spec
 from mkv_env.params import SENSOR_NAMES
-from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
 from sfm_learn.eigenspace.policy import fit_policy
 from sfm_learn.evaluation.compare import compare
 from sfm_learn.evaluation.runner import evaluate_many

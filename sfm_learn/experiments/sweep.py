@@ -217,8 +217,8 @@ def check_spec(doc) -> dict:
                                 f"got {opts[key]!r}")
             if key in opts:
                 opts[key] = int(opts[key])
-        if "preset" in opts and opts["preset"] not in ("default", "paper"):
-            raise SpecError(f"learner {name!r}: preset must be 'default' or 'paper', "
+        if "preset" in opts and opts["preset"] not in ("default", "paper", "ols"):
+            raise SpecError(f"learner {name!r}: preset must be 'default', 'paper' or 'ols', "
                             f"got {opts['preset']!r}")
         if "env" in opts:
             if not isinstance(opts["env"], str):

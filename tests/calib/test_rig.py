@@ -307,8 +307,7 @@ def _quadratic_sensor(seed, poses=40, p=5, noise=0.0, bend=0.05):
 
 
 def test_quadratic_model_fits_a_bending_sensor_and_auto_picks_it():
-    from calib.least_squares import leave_one_pose_out_ls
-    from calib.models import choose, fit_model
+    from calib.models import choose, fit_model, leave_one_pose_out_ls
 
     Z, F, pose = _quadratic_sensor(0, noise=0.01)
     aff = fit_model(Z, F, "affine")

@@ -4,8 +4,8 @@ import gymnasium as gym
 
 import mkv_env  # noqa: F401
 from mkv_env import actions, params, sensors, teacher
+from mkv_env.features import FeatureSpec, default_feature_spec
 from sfm_learn.baselines import bc
-from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
 
 
 def test_every_reader_sees_the_same_sensor_names_and_actions():

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sfm_learn.eigenspace.features import FeatureBuilder, FeatureSpec
+from mkv_env.features import FeatureBuilder, FeatureSpec
 
 OBS = ["drive_current", "steer_current", "bump_fl", "bump_fr", "heading"]
 

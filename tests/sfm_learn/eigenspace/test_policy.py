@@ -7,8 +7,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import mkv_env  # noqa: F401
+from mkv_env.features import FeatureSpec, default_feature_spec
 from mkv_env.policies import PolicySpecError, make_policy
-from sfm_learn.eigenspace.features import FeatureSpec, default_feature_spec
 from sfm_learn.eigenspace.policy import (
     PolicyFileError,
     SfMPolicy,
