@@ -70,7 +70,27 @@ def known_prefixes() -> list[str]:
 
 def make_policy(spec: str, env=None, seed: int | None = None):
     """Build the policy named by ``spec`` for ``env`` (a Gymnasium env, used for its spaces and
-    control period). Raises :class:`PolicySpecError` with a one-line message on a bad spec."""
+    control period). Raises :class:`PolicySpecError` with a one-line message on a bad spec.
+
+    Specs (the ``--policy`` values of ``mkv eval/record/play``; :func:`known_prefixes` lists the
+    registered ones): ``teacher`` (the scripted teacher), ``random``, ``const:NAME`` (one
+    command), ``script:PATH`` (a text file of commands), ``sfm:PATH`` (``mkv fit``), ``bc:PATH``
+    (``mkv train-bc``), ``dagger:PATH`` (``mkv train-dagger``), ``ppo:PATH``
+    (``mkv train-ppo``), ``sb3:ALGO:PATH`` (any SB3 / rl-zoo3 zip, and the project's zips).
+
+    The returned object has SB3's ``predict(obs, state=None, episode_start=None,
+    deterministic=False) -> (actions, state)`` for one raw observation of ``env`` or a batch, and
+    ``reset(seed)``; learned policies rebuild their own inputs (rescaling, SfM features) from
+    the env's raw readings, so give them an env made with the default ``observation="raw"``.
+    ``seed`` seeds the policy's own randomness (random actions, sampling). Nothing in a file is
+    unpickled (docs/trust.md).
+
+    >>> import gymnasium as gym, mkv_env
+    >>> env = gym.make("MKVJam-v1")
+    >>> policy = make_policy("teacher", env, seed=0)
+    >>> obs, _ = env.reset(seed=1)
+    >>> action, _ = policy.predict(obs, deterministic=True)
+    """
     if not isinstance(spec, str) or not spec.strip():
         raise PolicySpecError(f"policy spec must be a non-empty string, got {spec!r}")
     prefix, _, arg = spec.strip().partition(":")

@@ -12,9 +12,11 @@ action space, which the MK-V envs do not have, so they are refused with that rea
 
 Observations are passed to the model as the env gives them, except:
 
-* a zip written by ``mkv train-ppo`` (it carries ``mkv_meta.json``) gets the observation rescaling
-  it was trained with (Gymnasium's ``RescaleObservation``), so ``sb3:PPO:ppo.zip`` and
-  ``ppo:ppo.zip`` act the same;
+* a zip written by ``mkv train-ppo``, ``mkv train-bc`` or ``mkv train-dagger`` (it carries
+  ``mkv_meta.json``) is loaded by the project's own loader (``ppo:``, ``bc:``, ``dagger:``), which
+  rebuilds the inputs it was trained on (rescaling, SfM features with the previous command), so
+  ``sb3:PPO:FILE.zip`` and ``ppo:``/``bc:``/``dagger:FILE.zip`` act the same (PPO is the SB3 class
+  of all three networks; another class name is refused in one line);
 * rl-zoo3's observation normalisation: a ``vecnormalize.pkl`` beside the zip or in a folder named
   after the zip (rl-zoo3's ``<run>/<env>.zip`` + ``<run>/<env>/vecnormalize.pkl``), and nowhere
   else, is applied with its saved statistics (frozen).
@@ -168,20 +170,6 @@ def _vecnormalize_transform(pkl: str):
     if not getattr(stats, "norm_obs", False):
         return None
     return lambda obs: stats.normalize_obs(np.asarray(obs, dtype=np.float32))
-
-
-def _mkv_transform(path: str):
-    """The observation map of a zip written by ``mkv train-ppo`` (None for other zips)."""
-    try:
-        with zipfile.ZipFile(path) as zf:
-            if "mkv_meta.json" not in zf.namelist():
-                return None
-            meta = json.loads(zf.read("mkv_meta.json"))
-    except (zipfile.BadZipFile, OSError, ValueError):
-        return None
-    from sfm_learn.baselines.ppo import observation_transform
-
-    return observation_transform(meta, len(meta.get("sensor_names", [])))
 
 
 # ---------------------------------------------------------------------- reading a zip safely
@@ -399,9 +387,31 @@ def check_spec(arg: str):
     return cls, path
 
 
+def _project_format(path: str) -> str | None:
+    """``mkv-ppo`` / ``mkv-bc`` / ``mkv-dagger`` for a zip the project wrote, else None."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            if "mkv_meta.json" not in zf.namelist():
+                return None
+            meta = json.loads(zf.read("mkv_meta.json"))
+    except (zipfile.BadZipFile, OSError, ValueError, RecursionError):
+        return None
+    fmt = meta.get("format") if isinstance(meta, dict) else None
+    return fmt if fmt in ("mkv-ppo", "mkv-bc", "mkv-dagger") else None
+
+
 def load_spec(arg: str, env, seed):
-    """``sb3:ALGO:PATH`` -> :class:`SB3Model` (nothing unpickled unless :func:`trusted`)."""
+    """``sb3:ALGO:PATH`` -> :class:`SB3Model` (nothing unpickled unless :func:`trusted`); a zip
+    the project wrote goes to its own loader (module doc)."""
     cls, path = check_spec(arg)
+    fmt = _project_format(path)
+    if fmt is not None:
+        kind = fmt.removeprefix("mkv-")
+        if cls.__name__ != "PPO":
+            raise PolicySpecError(f"{path} was written by mkv train-{kind} (an SB3 PPO policy "
+                                  f"network): load it as sb3:PPO:{path} or {kind}:{path}")
+        module = importlib.import_module(f"sfm_learn.baselines.{kind}")
+        return module.load_spec(path, env, seed)
     from sfm_learn.baselines.sb3 import import_torch
 
     import_torch()
@@ -419,9 +429,9 @@ def load_spec(arg: str, env, seed):
             from None
     if env is not None:
         _check_spaces(model, env, path, cls.__name__)
-    transform = _mkv_transform(path)
+    transform = None
     pkl = find_vecnormalize(path)
-    if transform is None and pkl is not None:
+    if pkl is not None:
         try:
             transform = _vecnormalize_transform(pkl)
         except PolicySpecError:

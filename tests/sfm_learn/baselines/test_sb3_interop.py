@@ -185,3 +185,46 @@ def test_sb3_spec_refuses_a_model_of_other_spaces(tmp_path, capsys):
         make_policy(f"sb3:PPO:{tmp_path / 'cartpole.zip'}", env, seed=0)
     env.close()
     assert os.path.exists(tmp_path / "cartpole.zip")
+
+
+@pytest.mark.parametrize("observation", ["raw", "features"])
+def test_plain_sb3_recipe_runs_every_ppo_zip_with_no_wrapper(tmp_path, observation):
+    """Issue 25: the README's three lines (PPO.load, then gymnasium.make with the kwargs the zip
+    records) run a ``mkv train-ppo`` zip of either observation mode with no project wrapper,
+    and act as ``mkv eval ppo:`` and ``sb3:PPO:`` do."""
+    import json
+    import zipfile
+
+    model, meta = mkv_ppo.train("MKVJam-v0", 128, n_envs=1, env_kwargs=SHORT, eval_episodes=1,
+                                hyperparameters={"n_steps": 64}, observation=observation)
+    path = tmp_path / "ppo.zip"
+    mkv_ppo.save(model, meta, path)
+    with zipfile.ZipFile(path) as zf:
+        kwargs = json.loads(zf.read("mkv_meta.json"))["make_kwargs"]
+    assert kwargs["observation"] == ("features" if observation == "features" else "rescaled")
+    loaded = PPO.load(path, device="cpu")
+    seeds = list(range(310, 314))
+    plain = []
+    for s in seeds:
+        env = gym.make("MKVJam-v0", **kwargs)  # SHORT is in kwargs too
+        obs, _ = env.reset(seed=s)
+        done = False
+        while not done:
+            action, _ = loaded.predict(obs, deterministic=True)
+            plain.append(action)
+            obs, _, term, trunc, _ = env.step(action)
+            done = term or trunc
+    plain = np.stack(plain)
+    np.testing.assert_array_equal(actions_mkv(f"ppo:{path}", seeds), plain)
+    np.testing.assert_array_equal(actions_mkv(f"sb3:PPO:{path}", seeds), plain)
+
+
+def test_sb3_spec_accepts_every_zip_the_project_writes(files, capsys):
+    seeds = list(range(320, 323))
+    bc_zip = files["bc"][3:]
+    np.testing.assert_array_equal(actions_mkv(f"sb3:PPO:{bc_zip}", seeds),
+                                  actions_mkv(files["bc"], seeds))
+    code = main(["eval", "--env", "MKVJam-v0", "--policy", f"sb3:A2C:{bc_zip}", "--episodes",
+                 "1"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "was written by mkv train-bc" in err
