@@ -25,8 +25,14 @@ baseline (always predicting the training set's most frequent value: the teacher 
 forward with the steering off, so raw accuracy flatters) and the recall of each value
 (reverse/off/forward, left/off/right).
 
-File format (a zip; :func:`read_metadata`): ``policy.pth`` (the policy's torch ``state_dict``,
-loaded with ``weights_only=True``) and ``mkv_meta.json``: ``format`` (``"mkv-bc"``),
+File format (format_version 2; :func:`read_metadata`): a Stable-Baselines3 PPO model zip, so
+``PPO.load(path)`` reads it, whose network takes the env's own observation
+(``gym.make(env_id, **make_kwargs)``, ``observation="features"``, or ``"rescaled"`` for
+``--features raw``: the standardisation and the rescaling are folded into its first layers,
+:func:`fold_inputs`), plus ``mkv_meta.json``. The ``bc:`` loader reads only ``policy.pth``
+(``weights_only=True``) and ``mkv_meta.json`` and feeds the same inputs (format_version 1 files,
+an unfolded network on standardised raw features, still load). ``mkv_meta.json``: ``format``
+(``"mkv-bc"``), ``make_kwargs``, ``obs_rescale``,
 ``env_id``/``env_kwargs``/``control_period_s`` of the dataset, ``sensor_names``, ``action_nvec``,
 ``action_names``, ``features`` (``"default"``/``"raw"``), ``feature_spec``
 (:meth:`FeatureSpec.to_dict`), ``input_mean``/``input_std``, ``net_arch``, ``activation``,
@@ -52,6 +58,8 @@ from __future__ import annotations
 import io
 import os
 import time
+
+import numpy as np
 
 from mkv_env.actions import ACTION_NAMES, ACTION_NVEC, VALUE_NAMES
 from sfm_common.files import atomic_write_bytes
@@ -293,16 +301,91 @@ def fit_features(x_train, y_train, x_held, y_held, n_features: int, *, epochs: i
     }
 
 
-def save(policy, meta: dict, path: str) -> None:
-    """``policy.pth`` + ``mkv_meta.json`` in a deterministic zip, written atomically."""
+def env_observation(meta: dict) -> str:
+    """The env observation mode whose output a saved BC/DAgger network takes directly:
+    ``features`` for the default SfM features, ``rescaled`` for ``--features raw``."""
+    return "features" if meta.get("features", "default") == "default" else "rescaled"
+
+
+def fold_inputs(policy, meta: dict, low, high):
+    """A copy of the trained network that takes the env's own observation in mode
+    :func:`env_observation` (features of the readings rescaled to [-1, 1]) instead of
+    standardised features of the raw readings: both maps are affine per column (traces and
+    history start at the episode's first reading, the previous command is unchanged), so they
+    fold into the first layers of the policy and value nets. Returns the new network."""
+    from mkv_env.features import FeatureSpec
 
     torch = sb3.import_torch()
+    spec = FeatureSpec.from_dict(meta["feature_spec"])
+    if spec.history and spec.history_pad != "edge":
+        raise ValueError("only edge-padded histories fold into the network")
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    a_ch = 2.0 / (high - low)
+    b_ch = -1.0 - 2.0 * low / (high - low)
+    index = {c: i for i, c in enumerate(spec.obs_names)}
+    names = list(spec.feature_names)
+    a, b = np.ones(len(names)), np.zeros(len(names))
+    for j, name in enumerate(names):
+        head = name.split("[")[0].split("~")[0]
+        if head in index and not (name.endswith("[t-1]") and head in spec.action_names):
+            a[j], b[j] = a_ch[index[head]], b_ch[index[head]]
+    mean = np.asarray(meta["input_mean"], np.float64)
+    std = np.asarray(meta["input_std"], np.float64)
+    # u = (f_raw - mean) / std with f_raw = (f_res - b) / a:  u = s * f_res + t
+    scale = 1.0 / (a * std)
+    shift = -(b / a + mean) / std
+    folded = build_policy(len(names), meta["net_arch"])
+    folded.load_state_dict(policy.state_dict())
+    ext = folded.mlp_extractor
+    firsts = [m[0] for m in (ext.policy_net, ext.value_net)
+              if len(m) and isinstance(m[0], torch.nn.Linear)]
+    if not len(ext.policy_net):
+        firsts.append(folded.action_net)  # pi=[]: the action head reads the inputs directly
+    if not len(ext.value_net):
+        firsts.append(folded.value_net)  # vf=[]: so does the value head
+    with torch.no_grad():
+        for layer in firsts:
+            W = layer.weight.double()
+            layer.bias.copy_((layer.bias.double() + W @ torch.as_tensor(shift)).float())
+            layer.weight.copy_((W * torch.as_tensor(scale)[None, :]).float())
+    return folded
+
+
+def save(policy, meta: dict, path: str) -> None:
+    """A Stable-Baselines3 PPO model zip (``PPO.load`` reads it) whose policy is the trained
+    network folded onto the env's own observation (:func:`fold_inputs`), plus
+    ``mkv_meta.json``; written atomically. ``gym.make(meta["env_id"], **meta["make_kwargs"])``
+    gives that observation, so plain SB3 runs the policy with no project code."""
+    import gymnasium as gym
+
+    import mkv_env  # noqa: F401
+
+    torch = sb3.import_torch()
+    from stable_baselines3 import PPO
+
+    meta = dict(meta)
+    kwargs = dict(meta.get("env_kwargs") or {})
+    mode = env_observation(meta)
+    raw = gym.make(meta["env_id"], **kwargs)
+    low, high = raw.observation_space.low, raw.observation_space.high
+    raw.close()
+    folded = fold_inputs(policy, meta, low, high)
+    env = gym.make(meta["env_id"], **kwargs, observation=mode)
+    acts = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
+    model = PPO("MlpPolicy", env, n_steps=2, batch_size=2, device="cpu",
+                policy_kwargs={"net_arch": dict(meta["net_arch"]),
+                               "activation_fn": acts[meta.get("activation", "tanh")]})
+    model.policy.load_state_dict(folded.state_dict())
+    env.close()
+    meta.update(format_version=2, make_kwargs={**kwargs, "observation": mode},
+                inputs="the env observation of make_kwargs (standardisation folded into the "
+                "network)",
+                obs_rescale={"low": np.asarray(low, float).tolist(),
+                             "high": np.asarray(high, float).tolist(), "to": [-1.0, 1.0]})
     buf = io.BytesIO()
-    torch.save(policy.state_dict(), buf)
-    atomic_write_bytes(
-        path,
-        sb3.zip_bytes({sb3.META_MEMBER: sb3.meta_bytes(meta), "policy.pth": buf.getvalue()}),
-    )
+    model.save(buf)
+    atomic_write_bytes(path, sb3.add_member(buf.getvalue(), sb3.META_MEMBER,
+                                            sb3.meta_bytes(meta)))
 
 
 def read_metadata(path: str) -> dict:
@@ -327,6 +410,17 @@ class BCPolicy:
         self.std = np.asarray(meta["input_std"], dtype=np.float64)
         if self.mean.shape != (self.builder.n_features,) or self.std.shape != self.mean.shape:
             raise ValueError("input statistics do not match the feature spec")
+        self.transform = None
+        if meta.get("format_version", 1) >= 2:
+            # the network takes features of the readings rescaled to [-1, 1] (the env's
+            # observation="features"/"rescaled"), its standardisation folded in (fold_inputs)
+            r = meta["obs_rescale"]
+            n = len(spec.obs_names)
+            if len(r["low"]) != n or len(r["high"]) != n:
+                raise ValueError("obs_rescale does not match the sensor names")
+            self.transform = sb3.rescale_function(r["low"], r["high"])
+            self.mean = np.zeros_like(self.mean)
+            self.std = np.ones_like(self.std)
         self.actor = sb3.ActorPolicy(policy, meta["action_nvec"], seed=seed)
         self._online = OnlineFeatures(spec)
 
@@ -341,6 +435,8 @@ class BCPolicy:
         import numpy as np
 
         obs, single = self._online.as_batch(observation, "a BC policy")
+        if self.transform is not None:
+            obs = self.transform(obs)
         feats = self._online.step(obs, episode_start)
         x = (np.stack(feats) - self.mean) / self.std
         actions = self.actor.actions_from_logits(self.actor.logits(x), deterministic)
@@ -351,6 +447,8 @@ class BCPolicy:
         """Deterministic actions for a whole recording at once (batch features with the given
         previous ``actions``): equals :meth:`predict` step by step when ``actions`` are the
         policy's own."""
+        if self.transform is not None:
+            observations = self.transform(observations)
         x = (self.builder.transform(observations, actions, episode_start) - self.mean) / self.std
         return self.actor.actions_from_logits(self.actor.logits(x))
 

@@ -71,8 +71,11 @@ def test_metadata_contents(teacher_data, trained):
     assert meta["train_wall_s"] > 0 and len(meta["history"]) == 15
     assert set(meta["held_out"]["recall"]) == {"drive", "steer"}
     json.dumps(meta, allow_nan=False)
-    with zipfile.ZipFile(trained) as zf:
-        assert sorted(zf.namelist()) == ["mkv_meta.json", "policy.pth"]
+    with zipfile.ZipFile(trained) as zf:  # an SB3 PPO model zip plus mkv_meta.json
+        assert {"data", "policy.pth", "mkv_meta.json"} <= set(zf.namelist())
+    assert meta["format_version"] == 2
+    assert meta["make_kwargs"] == {**data.metadata.get("env_kwargs", {}),
+                                   "observation": "features"}
 
 
 def test_saved_policy_is_trained_on_every_episode(teacher_data):
@@ -272,3 +275,41 @@ def test_corrupt_bc_zip_is_one_line(trained, tmp_path, capsys):
         capsys, "eval", "--env", "MKV-v0", "--policy", f"bc:{truncated}", "--episodes", "1"
     )
     assert code == 2 and err.count("\n") == 1 and "not a readable bc policy zip" in err
+
+
+@pytest.mark.parametrize("features", ["default", "raw"])
+def test_plain_sb3_runs_a_bc_zip_with_no_project_code(teacher_data, tmp_path, features):
+    """Issue 25: a BC zip is a PPO model zip whose network takes the env's own observation
+    (gym.make(env_id, **make_kwargs)); plain PPO.load acts exactly as bc: does, and as the
+    in-memory network before folding on all but rounding ties."""
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+
+    data = ds.load(teacher_data)
+    policy, meta = bc.train(data, epochs=3, seed=1, held_out=0.0, features=features)
+    path = tmp_path / "bc.zip"
+    bc.save(policy, meta, path)
+    saved = bc.read_metadata(path)
+    model = PPO.load(path, device="cpu")
+    mine = make_policy(f"bc:{path}", make_env("MKV-v0", ENV_KW), seed=0)
+    unfolded = bc.BCPolicy(policy, meta)  # the network as trained (standardised raw features)
+    plain_env = gym.make(saved["env_id"], **{**saved["make_kwargs"], **ENV_KW})
+    raw_env = make_env("MKV-v0", ENV_KW)
+    same = total = agree = 0
+    for s in (400, 401):
+        obs, _ = plain_env.reset(seed=s)
+        raw, _ = raw_env.reset(seed=s)
+        mine.reset(s)
+        unfolded.reset(s)
+        done = False
+        while not done:
+            a_plain, _ = model.predict(obs, deterministic=True)
+            a_mine, _ = mine.predict(raw, deterministic=True)
+            a_raw, _ = unfolded.predict(raw, deterministic=True)
+            same += np.array_equal(a_plain, a_mine)
+            agree += np.array_equal(a_plain, a_raw)
+            total += 1
+            obs, _, term, trunc, _ = plain_env.step(a_plain)
+            raw, *_ = raw_env.step(a_plain)
+            done = term or trunc
+    assert same == total and agree >= 0.99 * total, (same, agree, total)
