@@ -215,6 +215,17 @@ def _from_rl_zoo3(entry: dict, env_id: str, path: str) -> dict:
                              "(RescaleObservation); use normalize: false")
     if "policy_kwargs" in entry:
         entry.update(_zoo_policy_kwargs(entry.pop("policy_kwargs"), env_id, path))
+    if "env_kwargs" in entry:  # rl-zoo3's way to name the env's observation mode
+        kw = entry.pop("env_kwargs")
+        if not isinstance(kw, dict) or set(kw) - {"observation"}:
+            raise ValueError(f"env_kwargs of {where}: only {{observation: rescaled | features}} "
+                             "is read from a hyperparameter file (give other env kwargs with "
+                             "--env-kwargs)")
+        obs = kw.get("observation", "rescaled")
+        if obs not in ("rescaled", "features"):
+            raise ValueError(f"env_kwargs.observation of {where} must be rescaled or features "
+                             "(mkv train-ppo always rescales the readings to [-1, 1])")
+        entry["observation"] = "raw" if obs == "rescaled" else "features"
     for key in list(entry):
         if key in _ZOO_REFUSED:
             raise ValueError(f"{key} of {where}: {_ZOO_REFUSED[key]}")

@@ -92,15 +92,18 @@ class SB3Model:
     ``(actions, state)``; ``episode_start`` is passed as one bool per env.
     """
 
-    def __init__(self, model, transform=None, spec: str = "sb3"):
+    def __init__(self, model, transform=None, spec: str = "sb3", observer=None):
         self.model = model
         self.transform = transform
         self.spec = spec
+        self.observer = observer
 
     def reset(self, seed: int | None = None) -> None:
-        """Seed the model's sampling (used by ``deterministic=False``)."""
+        """Seed the model's sampling (used by ``deterministic=False``); a new episode."""
         if seed is not None:
             self.model.set_random_seed(int(seed) % 2**32)
+        if self.observer is not None:
+            self.observer.online.reset()
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
         obs = np.asarray(observation)
@@ -110,8 +113,74 @@ class SB3Model:
         if episode_start is not None:
             episode_start = np.broadcast_to(
                 np.asarray(episode_start, dtype=bool).reshape(-1), (n_envs,)).copy()
-        return self.model.predict(obs, state=state, episode_start=episode_start,
-                                  deterministic=deterministic)
+        if self.observer is None:
+            return self.model.predict(obs, state=state, episode_start=episode_start,
+                                      deterministic=deterministic)
+        batch, single = self.observer.online.as_batch(obs, self.spec)
+        inputs = np.stack(self.observer.online.step(batch, episode_start)).astype(np.float32)
+        actions, state = self.model.predict(inputs, state=state, episode_start=episode_start,
+                                            deterministic=deterministic)
+        self.observer.online.set_previous(np.asarray(actions).reshape(len(batch), -1))
+        return (actions[0] if single else actions), state
+
+
+class EnvObservation:
+    """An MK-V env's observation mode (``gym.make(id, observation=...)``) rebuilt from raw
+    readings, for a model trained on such an env (an rl-zoo3 run whose ``env_kwargs`` name
+    it): ``transform`` rescales to [-1, 1] exactly as the env does; for ``features`` the
+    ``online`` builder adds the SfM features with each env's previous command."""
+
+    def __init__(self, mode: str, sensor_names, low, high, action_nvec):
+        from mkv_env.features import OnlineFeatures, default_feature_spec
+        from sfm_learn.baselines.sb3 import rescale_function
+
+        self.mode = mode
+        self.transform = rescale_function(low, high)
+        spec = default_feature_spec(list(sensor_names), list(action_nvec))
+        self.online = OnlineFeatures(spec) if mode == "features" else None
+        n = spec.n_features if mode == "features" else len(sensor_names)
+        import gymnasium as gym
+
+        self.space = (gym.spaces.Box(-np.inf, np.inf, (n,), np.float32) if mode == "features"
+                      else gym.spaces.Box(-1.0, 1.0, (n,), np.float32))
+
+
+def zoo_observation(path: str) -> str | None:
+    """The env observation mode an rl-zoo3 run trained with (``env_kwargs: {observation: ...}``
+    in ``<folder>/<zip stem>/config.yml``), or None (no such file, no such key, unreadable)."""
+    folder = os.path.dirname(os.path.abspath(path))
+    stem = os.path.splitext(os.path.basename(path))[0]
+    cfg = os.path.join(folder, stem, "config.yml")
+    if not os.path.isfile(cfg) or os.path.getsize(cfg) > 1_000_000:
+        return None
+    try:
+        import yaml
+
+        with open(cfg, encoding="utf-8") as f:
+            # rl-zoo3's config.yml is a python-tagged OrderedDict: read as a plain mapping by a
+            # SafeLoader that admits that one tag (nothing is built from any other python tag)
+            doc = yaml.load(f, Loader=yaml_loader_base())  # noqa: S506
+    except Exception:  # a damaged or foreign config: not an mkv observation mode
+        return None
+    kw = doc.get("env_kwargs") if isinstance(doc, dict) else None
+    mode = kw.get("observation") if isinstance(kw, dict) else None
+    return mode if mode in ("rescaled", "features") else None
+
+
+def yaml_loader_base():
+    """yaml's SafeLoader (or a stand-in without PyYAML), with rl-zoo3's OrderedDict tag."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def ordered(loader, node):
+        pairs = loader.construct_sequence(node.value[0], deep=True) if node.value else []
+        return {k: v for k, v in pairs}
+
+    Loader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict",
+                           ordered)
+    return Loader
 
 
 def find_vecnormalize(path: str) -> str | None:
@@ -415,6 +484,15 @@ def load_spec(arg: str, env, seed):
     from sfm_learn.baselines.sb3 import import_torch
 
     import_torch()
+    observer = None
+    mode = zoo_observation(path)
+    if mode is not None and env is not None and hasattr(env.unwrapped, "sensor_names") and (
+            getattr(env.unwrapped, "observation", "raw") == "raw"):
+        # trained on gym.make(id, observation=mode): rebuild that observation from the readings
+        space = env.observation_space
+        observer = EnvObservation(mode, env.unwrapped.sensor_names, space.low, space.high,
+                                  env.action_space.nvec)
+        env = _SpacesOf(observer.space, env.action_space)
     if trusted():
         custom = _CUSTOM_OBJECTS
     else:
@@ -442,10 +520,20 @@ def load_spec(arg: str, env, seed):
         except Exception as e:
             raise PolicySpecError(f"{pkl}: cannot read the normalisation statistics "
                                   f"({type(e).__name__})") from None
-    policy = SB3Model(model, transform, spec=f"sb3:{cls.__name__}:{path}")
+    if observer is not None:
+        transform = observer.transform
+    policy = SB3Model(model, transform, spec=f"sb3:{cls.__name__}:{path}", observer=observer)
     if seed is not None:
         policy.reset(seed)
     return policy
+
+
+class _SpacesOf:
+    """The spaces a model is checked against (an env's, or those of an observation mode)."""
+
+    def __init__(self, observation_space, action_space):
+        self.observation_space, self.action_space = observation_space, action_space
+        self.unwrapped = self
 
 
 def _check_spaces(model, env, path: str, algo: str) -> None:

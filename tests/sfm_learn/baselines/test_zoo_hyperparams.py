@@ -64,3 +64,55 @@ def test_mkv_train_ppo_trains_on_an_rl_zoo3_yml(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-400:]
     assert out.exists()
+
+
+def test_env_kwargs_name_the_observation_and_nothing_else(tmp_path):
+    p = tmp_path / "ppo.yml"
+    p.write_text(ZOO.replace("  normalize: false", "  normalize: false\n  env_kwargs:\n"
+                             "    observation: features"))
+    assert load_hyperparameters("MKV-v1", str(p))["observation"] == "features"
+    for extra, match in (("    observation: raw", "must be rescaled or features"),
+                         ("    n_clutter: 3", "only {observation")):
+        p.write_text(ZOO.replace("  normalize: false", f"  normalize: false\n  env_kwargs:\n"
+                                 f"{extra}"))
+        with pytest.raises(ValueError, match=match):
+            load_hyperparameters("MKV-v1", str(p))
+
+
+def test_the_packaged_file_trains_under_rl_zoo3_and_its_zip_runs_in_mkv(tmp_path):
+    """Issue 25: the packaged hyperparameters are a valid rl-zoo3 yml (2,048 steps of
+    ``python -m rl_zoo3.train ... --gym-packages mkv_env``), and the run's zip, trained on
+    gym.make(id, observation="features"), runs through ``sb3:PPO:`` on a plain env exactly as
+    plain SB3 runs it on the features env."""
+    pytest.importorskip("rl_zoo3")
+    import gymnasium as gym
+    import numpy as np
+    from stable_baselines3 import PPO
+
+    import mkv_env  # noqa: F401
+    from mkv_env.recorder import record
+    from sfm_learn.baselines.ppo import HYPERPARAMS_FILE
+
+    r = subprocess.run([sys.executable, "-m", "rl_zoo3.train", "--algo", "ppo", "--env",
+                        "MKVJam-v1", "--gym-packages", "mkv_env", "--conf-file",
+                        HYPERPARAMS_FILE, "-n", "2048", "--log-folder", str(tmp_path),
+                        "--seed", "0", "--eval-freq", "-1", "--vec-env", "dummy"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    zips = list(tmp_path.glob("ppo/MKVJam-v1_*/MKVJam-v1.zip"))
+    assert len(zips) == 1
+    model = PPO.load(zips[0], device="cpu")
+    kw = {"max_episode_steps": 40}
+    seeds = [5, 6]
+    plain = []
+    for s in seeds:
+        env = gym.make("MKVJam-v1", observation="features", **kw)
+        obs, _ = env.reset(seed=s)
+        done = False
+        while not done:
+            a, _ = model.predict(obs, deterministic=True)
+            plain.append(a)
+            obs, _, term, trunc, _ = env.step(a)
+            done = term or trunc
+    mkv = record("MKVJam-v1", f"sb3:PPO:{zips[0]}", len(seeds), seeds[0], kw)["actions"]
+    np.testing.assert_array_equal(mkv, np.stack(plain))
