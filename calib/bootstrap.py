@@ -17,9 +17,12 @@ from .result import Calibration, CalibrationError, CalibrationWarning
 
 
 def _rotate_onto(C: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """R C with R in O(r) minimising |R C - ref|."""
-    P, _, Qt = np.linalg.svd(ref @ C.T)
-    return (P @ Qt) @ C
+    """R C with R in O(r) minimising |R C - ref| (scipy's orthogonal Procrustes on the
+    transposes: C^T R^T ~ ref^T)."""
+    from scipy.linalg import orthogonal_procrustes
+
+    Rt, _ = orthogonal_procrustes(C.T, ref.T)
+    return Rt.T @ C
 
 
 def bootstrap_intervals(

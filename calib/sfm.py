@@ -274,6 +274,8 @@ def align_to_known(C_unit: np.ndarray, offset: np.ndarray, known_Z, known_M):
     Uk = (Zk - offset) @ C_unit.T
     Fk = Mk[:, :r]
     H = Uk.T @ Fk
+    # Procrustes by hand (not scipy.linalg.orthogonal_procrustes): the singular values decide
+    # whether the pairs leave a mirror ambiguity, and then the proper rotation is chosen (D)
     P, sig, Qt = np.linalg.svd(H)
     if sig[0] <= 0:
         raise CalibrationError("known loads are all zero: cannot fix rotation and scale")

@@ -32,8 +32,11 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float]:
     m = float(v.mean())
     if len(v) < 2:
         return m, m, m
-    half = float(stats.t.ppf(0.5 + level / 2, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
-    return m, m - half, m + half
+    sem = float(v.std(ddof=1) / math.sqrt(len(v)))
+    if sem == 0.0:
+        return m, m, m
+    lo, hi = stats.t.interval(level, len(v) - 1, loc=m, scale=sem)
+    return m, float(lo), float(hi)
 
 
 BOUNDS = {"escape_rate": (0.0, 1.0), "stuck_fraction": (0.0, 1.0), "distance_m": (0.0, math.inf)}
