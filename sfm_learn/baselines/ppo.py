@@ -307,6 +307,7 @@ def train(
     eval_at=None,
     progress=None,
     log=None,
+    tensorboard_dir: str | None = None,
 ):
     """Train PPO; returns ``(model, meta)``. ``progress`` has ``update(n)``; ``log(line)`` gets
     one line per evaluation. Writes checkpoints (atomically) when ``checkpoint_dir`` is given.
@@ -316,6 +317,10 @@ def train(
 
     ``observation``: ``"raw"`` (the rescaled sensor vector) or ``"features"`` (the SfM/BC default
     features of the rescaled sensors and the previous command, :class:`sb3.FeatureObservation`).
+
+    ``tensorboard_dir``: SB3's logger writes TensorBoard events there (``PPO_<seed>_<n>``
+    subfolders: rollout returns and lengths, losses, and every evaluation point as
+    ``eval/mean_return``, ``eval/escape_rate``, ``eval/distance_m``); needs ``tensorboard``.
     """
 
     torch = sb3.import_torch()
@@ -404,6 +409,11 @@ def train(
         meta["final_eval"] = point
         if log is not None:
             log(fmt_point(point))
+        if tensorboard_dir:
+            for key in ("mean_return", "escape_rate", "distance_m"):
+                if point.get(key) is not None:
+                    model.logger.record(f"eval/{key}", float(point[key]))
+            model.logger.dump(steps)
         if checkpoint_dir:
             meta["timesteps"], meta["train_wall_s"] = steps, round(wall, 3)
             save(model, meta, os.path.join(checkpoint_dir, f"ppo_{steps:08d}.zip"))
@@ -434,8 +444,16 @@ def train(
             # does not divide the rollout (a truncated last minibatch: harmless)
             warnings.filterwarnings("ignore", message="You have specified a mini-batch size")
             model = _make_ppo(PPO, venv, seed, hp, torch)
-        # no logger output: SB3's default logger makes an empty /tmp/SB3-<date> folder per run
-        model.set_logger(Logger(None, []))
+        if tensorboard_dir:
+            from stable_baselines3.common.logger import configure
+
+            n = 1 + sum(1 for d in os.listdir(tensorboard_dir)
+                        if d.startswith(f"PPO_{seed}_")) if os.path.isdir(tensorboard_dir) else 1
+            model.set_logger(configure(os.path.join(tensorboard_dir, f"PPO_{seed}_{n}"),
+                                       ["tensorboard"]))
+        else:
+            # no logger output: SB3's default logger makes an empty /tmp/SB3-<date> folder
+            model.set_logger(Logger(None, []))
         state["start"] = time.perf_counter()
         model.learn(total_timesteps=int(timesteps), callback=_Callback())
         if (

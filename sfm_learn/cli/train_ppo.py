@@ -113,6 +113,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="also write DIR/ppo_<steps>.zip at every evaluation",
     )
+    p.add_argument(
+        "--tensorboard",
+        default=None,
+        metavar="DIR",
+        help="write TensorBoard logs (returns, losses, evaluations) to DIR/PPO_<seed>_<n>; "
+        "watch with: tensorboard --logdir DIR (needs the tensorboard package)",
+    )
     g = p.add_argument_group("PPO hyperparameters")
     g.add_argument(
         "--n-steps",
@@ -162,6 +169,17 @@ def run(args) -> int:
         parent = os.path.dirname(os.path.abspath(d))
         if not os.path.isdir(parent):
             raise CliError(f"checkpoint directory parent {parent} does not exist")
+    tb = args.tensorboard
+    if tb:
+        if os.path.exists(tb) and not os.path.isdir(tb):
+            raise CliError(f"--tensorboard {tb} exists and is not a directory")
+        if not os.path.isdir(os.path.dirname(os.path.abspath(tb))):
+            raise CliError(f"--tensorboard {tb}: its parent directory does not exist")
+        try:
+            import tensorboard  # noqa: F401
+        except ImportError:
+            raise CliError("--tensorboard needs the tensorboard package: pip install "
+                           "tensorboard (or the project's [tensorboard] extra)") from None
     try:
         check_env(args.env, args.env_kwargs)  # one-line error before torch is imported
         hp = load_hyperparameters(args.env, args.hyperparams)
@@ -176,6 +194,8 @@ def run(args) -> int:
     observation = hp.pop("observation")
     if d:
         os.makedirs(d, exist_ok=True)
+    if args.tensorboard:
+        os.makedirs(args.tensorboard, exist_ok=True)
     total = planned_timesteps(timesteps, n_envs, hp["n_steps"])
     with progress_for(args, total, f"train-ppo {args.env}", unit="step") as bar:
         log = None if args.quiet else bar.write
@@ -194,6 +214,7 @@ def run(args) -> int:
             observation=observation,
             progress=bar,
             log=log,
+            tensorboard_dir=args.tensorboard,
         )
     save(model, meta, args.out)
     rate = meta["timesteps"] / meta["train_wall_s"] if meta["train_wall_s"] > 0 else float("nan")

@@ -273,3 +273,32 @@ def test_metadata_reader_roundtrip_through_bytes(trained):
     out, _ = trained
     with zipfile.ZipFile(io.BytesIO(out.read_bytes())) as zf:
         assert json.loads(zf.read("mkv_meta.json")) == ppo.read_metadata(out)
+
+
+def test_tensorboard_logs_training_and_evaluations(tmp_path, capsys):
+    """Issue 25: ``mkv train-ppo --tensorboard DIR`` writes SB3's TensorBoard events with the
+    evaluation points; a DIR that is a file is refused in one line before anything runs."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from sfm_learn.cli import main
+
+    tb = tmp_path / "tb"
+    code = main(["train-ppo", "--env", "MKV-v1", "--timesteps", "512", "--n-envs", "2",
+                 "--n-steps", "128", "--eval-episodes", "1", "--out", str(tmp_path / "p.zip"),
+                 "--tensorboard", str(tb), "--quiet"])
+    assert code == 0
+    runs = list(tb.iterdir())
+    assert [r.name for r in runs] == ["PPO_0_1"]
+    ea = EventAccumulator(str(runs[0]))
+    ea.Reload()
+    tags = set(ea.Tags()["scalars"])
+    assert {"eval/mean_return", "train/loss"} <= tags
+    assert len(ea.Scalars("eval/mean_return")) >= 2  # before and after training
+    (tmp_path / "afile").write_text("x")
+    capsys.readouterr()
+    code = main(["train-ppo", "--env", "MKV-v1", "--timesteps", "512", "--out",
+                 str(tmp_path / "q.zip"), "--tensorboard", str(tmp_path / "afile")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "is not a directory" in err
+    assert not (tmp_path / "q.zip").exists()
