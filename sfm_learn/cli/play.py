@@ -32,8 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
                    help="stop after N steps (default: the episode's own end)")
-    p.add_argument("--out", metavar="DIR|OUT.gif",
-                   help="write frames (PNG files in DIR, or one animated GIF) instead of a "
+    p.add_argument("--out", metavar="DIR|OUT.gif|OUT.mp4",
+                   help="write frames (PNG files in DIR, one animated GIF, or an MP4 video "
+                        "through gymnasium's RecordVideo, which needs moviepy) instead of a "
                         "window; the default without a display is play_frames/")
     add_trust_argument(p)
 
@@ -48,8 +49,9 @@ def run(args) -> int:
     if out is None and not has_display():
         out = "play_frames"
     gif = out is not None and out.lower().endswith(".gif")
+    mp4 = out is not None and out.lower().endswith(".mp4")
     if out is not None:
-        if gif:
+        if gif or mp4:
             check_output_path(out)
         elif os.path.exists(out) and not os.path.isdir(out):
             raise CliError(f"frames directory {out} exists and is not a directory")
@@ -58,6 +60,12 @@ def run(args) -> int:
             import PIL.Image  # noqa: F401  (only to write GIFs)
         except ImportError:
             raise CliError("writing a GIF needs Pillow; give a directory for PNG frames") from None
+    if mp4:
+        try:
+            import moviepy  # noqa: F401  (RecordVideo writes MP4 through it)
+        except ImportError:
+            raise CliError("writing an MP4 needs moviepy (pip install moviepy, or the project's "
+                           "[zoo] extra); give .gif or a directory instead") from None
     check_env_and_policies(args.env, args.env_kwargs, [args.policy])
     try:
         import pygame  # noqa: F401
@@ -65,13 +73,24 @@ def run(args) -> int:
         raise CliError("mkv play needs pygame (pip install 'mkv-sfm[render]')") from None
 
     env = make_env(args.env, args.env_kwargs, render_mode="rgb_array" if out else "human")
+    video_dir = None
+    if mp4:
+        import tempfile
+
+        from gymnasium.wrappers import RecordVideo
+
+        scratch = tempfile.mkdtemp(prefix=".mkv-play-", dir=os.path.dirname(
+            os.path.abspath(out)))
+        video_dir = os.path.join(scratch, "video")  # new: RecordVideo warns on an existing one
+        env = RecordVideo(env, video_dir, episode_trigger=lambda e: e == 0, name_prefix="run",
+                          disable_logger=True)
     frames = []
     try:
         policy = make_policy(args.policy, env, seed=policy_seed(args.seed))
         if hasattr(policy, "reset"):
             policy.reset(seed=policy_seed(args.seed))
         obs, info = env.reset(seed=args.seed)
-        if out:
+        if out and not mp4:
             frames.append(env.render())
         steps, ret, start, state = 0, 0.0, True, None
         while True:
@@ -81,17 +100,27 @@ def run(args) -> int:
             obs, reward, terminated, truncated, info = env.step(action)
             ret += float(reward)
             steps += 1
-            if out:
+            if out and not mp4:
                 frames.append(env.render())
             if terminated or truncated or (args.max_steps and steps >= args.max_steps):
                 break
     finally:
-        env.close()
+        env.close()  # RecordVideo writes its file here
+        if video_dir is not None:
+            videos = (sorted(f for f in os.listdir(video_dir) if f.endswith(".mp4"))
+                      if os.path.isdir(video_dir) else [])
+            if videos:
+                os.replace(os.path.join(video_dir, videos[0]), out)
+            import shutil
+
+            shutil.rmtree(os.path.dirname(video_dir), ignore_errors=True)
     summary = f"{steps} steps, return {ret:.2f}, distance {info['distance_m']:.2f} m"
     if "escaped" in info:
         summary += ", escaped" if info["escaped"] else ", not escaped"
     print(summary)
-    if out:
+    if mp4:
+        print(f"wrote {steps + 1} frames to {out} (gymnasium RecordVideo)")
+    elif out:
         written = _write_gif(frames, out, env.metadata.get("render_fps", 10)) if gif \
             else _write_pngs(frames, out)
         print(f"wrote {written}")

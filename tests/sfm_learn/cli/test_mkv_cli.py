@@ -103,6 +103,17 @@ def test_play_writes_a_gif(capsys, tmp_path):
     assert gif.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
 
 
+def test_play_writes_an_mp4_through_record_video(capsys, tmp_path):
+    pytest.importorskip("moviepy")
+    mp4 = tmp_path / "run.mp4"
+    code, text, err = run(capsys, "play", "--policy", "teacher", "--env", "MKVJam-v1",
+                          "--seed", "2", "--max-steps", "12", "--out", str(mp4))
+    assert code == 0, err
+    assert mp4.read_bytes()[4:8] == b"ftyp"  # an MP4 container
+    assert "RecordVideo" in text and "Overwriting" not in err
+    assert sorted(os.listdir(tmp_path)) == ["run.mp4"]  # the scratch folder is gone
+
+
 @pytest.mark.parametrize("argv,match", [
     (["eval", "--env", "Nope-v0", "--policy", "teacher", "--episodes", "2"], "Nope-v0"),
     (["eval", "--env", "MKV-v0", "--policy", "bogus", "--episodes", "2"], "unknown policy"),
