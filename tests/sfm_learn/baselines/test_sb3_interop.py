@@ -56,13 +56,13 @@ def test_evaluate_policy_on_a_vector_env_of_two(files, name):
     assert all(np.isfinite(rewards))
 
 
-def actions_plain(model, env_id, seeds, wrap=lambda e: e, state_kept=True):
-    """What a plain SB3 user would do: PPO.load + gymnasium.make + public wrappers, one episode
-    per seed, deterministic actions (recurrent state threaded unless ``state_kept`` is False).
-    Returns the actions of all episodes, stacked."""
+def actions_plain(model, env_id, seeds, wrap=lambda e: e, state_kept=True, make_kwargs=None):
+    """What a plain SB3 user would do: PPO.load + gymnasium.make (``make_kwargs``, default
+    SHORT) + public wrappers, one episode per seed, deterministic actions (recurrent state
+    threaded unless ``state_kept`` is False). Returns the actions of all episodes, stacked."""
     out = []
     for s in seeds:
-        env = wrap(gym.make(env_id, **SHORT))
+        env = wrap(gym.make(env_id, **(SHORT if make_kwargs is None else make_kwargs)))
         obs, _ = env.reset(seed=s)
         state, start, done = None, True, False
         while not done:
@@ -202,19 +202,9 @@ def test_plain_sb3_recipe_runs_every_ppo_zip_with_no_wrapper(tmp_path, observati
     with zipfile.ZipFile(path) as zf:
         kwargs = json.loads(zf.read("mkv_meta.json"))["make_kwargs"]
     assert kwargs["observation"] == ("features" if observation == "features" else "rescaled")
-    loaded = PPO.load(path, device="cpu")
     seeds = list(range(310, 314))
-    plain = []
-    for s in seeds:
-        env = gym.make("MKVJam-v0", **kwargs)  # SHORT is in kwargs too
-        obs, _ = env.reset(seed=s)
-        done = False
-        while not done:
-            action, _ = loaded.predict(obs, deterministic=True)
-            plain.append(action)
-            obs, _, term, trunc, _ = env.step(action)
-            done = term or trunc
-    plain = np.stack(plain)
+    # SHORT is in the recorded kwargs too
+    plain = actions_plain(PPO.load(path, device="cpu"), "MKVJam-v0", seeds, make_kwargs=kwargs)
     np.testing.assert_array_equal(actions_mkv(f"ppo:{path}", seeds), plain)
     np.testing.assert_array_equal(actions_mkv(f"sb3:PPO:{path}", seeds), plain)
 
