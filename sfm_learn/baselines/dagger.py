@@ -73,8 +73,11 @@ def _rollout(env, actor, teacher, first_seed: int, n_steps: int):
 
 def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
           env_kwargs: dict | None = None, epochs: int = 30, batch_size: int = 256,
-          lr: float = 1e-3, teacher: str = "teacher", on_round=None):
-    """Run DAgger; returns ``(policy, meta)``. ``on_round(round, info)`` after every round."""
+          lr: float = 1e-3, teacher: str = "teacher", on_round=None,
+          min_updates: int = bc.MIN_UPDATES):
+    """Run DAgger; returns ``(policy, meta)``. ``on_round(round, info)`` after every round.
+    Each round's refit runs ``epochs``, or enough for ``min_updates`` minibatch updates
+    (:func:`sfm_learn.baselines.bc.planned_epochs`)."""
     from mkv_env.features import FeatureBuilder
     from mkv_env.policies import make_policy
     from mkv_env.recorder import make_env
@@ -100,7 +103,8 @@ def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
             x = np.concatenate([builder.transform(o, s, st) for o, s, _, st in parts])
             y = np.concatenate([lab for _, _, lab, _ in parts])
             policy, fit = bc.fit_features(x, y, None, None, spec.n_features, epochs=epochs,
-                                          batch_size=batch_size, lr=lr, seed=seed + r)
+                                          batch_size=batch_size, lr=lr, seed=seed + r,
+                                          min_updates=min_updates)
             meta_now = {"feature_spec": spec.to_dict(), "action_nvec": list(ACTION_NVEC), **fit}
             learner = bc.BCPolicy(policy, meta_now, seed=seed)
             info = {"round": r, "rows": int(len(obs)), "episodes": episodes,

@@ -3,8 +3,8 @@
 
 ::
 
-    mkv train-bc DATA.npz --out bc.zip [--epochs 30] [--batch-size 256] [--lr 1e-3] [--seed 0]
-                 [--held-out 0.2] [--features default|raw] [--quiet]
+    mkv train-bc DATA.npz --out bc.zip [--epochs 30] [--min-updates 1000] [--batch-size 256]
+                 [--lr 1e-3] [--seed 0] [--held-out 0.2] [--features default|raw] [--quiet]
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from sfm_learn.cli.common import (
     check_output_path,
     check_outputs,
     fraction,
+    int_in_range,
     load_dataset,
     positive_float,
     positive_int,
@@ -35,6 +36,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=DEFAULTS["epochs"],
         metavar="N",
         help=f"passes over the training rows (default {DEFAULTS['epochs']})",
+    )
+    p.add_argument(
+        "--min-updates",
+        type=int_in_range(0, 10_000_000),
+        default=DEFAULTS["min_updates"],
+        metavar="N",
+        help="at least N minibatch updates: more epochs on small data (default "
+        f"{DEFAULTS['min_updates']}; 0: exactly --epochs)",
     )
     p.add_argument(
         "--batch-size",
@@ -91,9 +100,10 @@ def run(args) -> int:
                       unit="epoch") as bar:
 
         def on_epoch(epoch, rec):
+            bar.total = rec["of"]
             bar.update(1)
             if not args.quiet:
-                line = f"epoch {epoch}/{args.epochs}: train NLL {rec['train_nll']:.4f}"
+                line = f"epoch {epoch}/{rec['of']}: train NLL {rec['train_nll']:.4f}"
                 if "held_out_nll" in rec:
                     line += (
                         f", held-out NLL {rec['held_out_nll']:.4f}, accuracy "
@@ -110,12 +120,13 @@ def run(args) -> int:
             held_out=args.held_out,
             features=args.features,
             on_epoch=on_epoch,
+            min_updates=args.min_updates,
         )
     meta["dataset"]["file"] = os.path.basename(args.data)
     save(policy, meta, args.out)
     print(
         f"{meta['teacher_steps']} training rows ({meta['teacher_episodes']} episodes), "
-        f"{meta['epochs']} epochs in {meta['train_wall_s']:.1f} s, "
+        f"{meta['epochs']} epochs ({meta['updates']} updates) in {meta['train_wall_s']:.1f} s, "
         f"{len(meta['feature_spec']['obs_names'])} channels -> "
         f"{len(meta['input_mean'])} {args.features} features"
     )

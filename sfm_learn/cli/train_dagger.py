@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 
+from sfm_learn.baselines.bc import MIN_UPDATES
 from sfm_learn.baselines.dagger import DEFAULTS, save, train
 from sfm_learn.cli.common import (
     CliError,
@@ -29,6 +30,7 @@ from sfm_learn.cli.common import (
 
 rounds_type = int_in_range(1, 100)
 steps_type = int_in_range(2, 10_000_000)
+updates_type = int_in_range(0, 10_000_000)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="episode seeds S + 1000*round + i; network seeds (default 0)")
     p.add_argument("--epochs", type=positive_int, default=DEFAULTS["epochs"], metavar="N",
                    help=f"epochs per round's refit (default {DEFAULTS['epochs']})")
+    p.add_argument("--min-updates", type=updates_type, default=MIN_UPDATES, metavar="N",
+                   help="at least N minibatch updates per refit: more epochs on small data "
+                        f"(default {MIN_UPDATES}; 0: exactly --epochs)")
     p.add_argument("--lr", type=positive_float, default=DEFAULTS["lr"], metavar="LR",
                    help=f"Adam learning rate (default {DEFAULTS['lr']})")
     add_quiet_argument(p)
@@ -64,7 +69,7 @@ def run(args) -> int:
         try:
             policy, meta = train(args.env, args.steps, rounds=args.rounds, seed=args.seed,
                                  env_kwargs=args.env_kwargs, epochs=args.epochs, lr=args.lr,
-                                 on_round=on_round)
+                                 on_round=on_round, min_updates=args.min_updates)
         except ValueError as e:
             raise CliError(one_line(e)) from None
     save(policy, meta, args.out)

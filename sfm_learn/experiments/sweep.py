@@ -203,7 +203,8 @@ def check_spec(doc) -> dict:
         kind = opts.pop("kind", name.split("-")[0])
         if kind not in KINDS:
             raise SpecError(f"learner {name!r}: unknown kind {kind!r}; known: {', '.join(KINDS)}")
-        allowed = {"sfm": {"preset"}, "bc": {"epochs"}, "dagger": {"rounds", "epochs"},
+        allowed = {"sfm": {"preset"}, "bc": {"epochs", "min_updates"},
+                   "dagger": {"rounds", "epochs", "min_updates"},
                    "ppo": {"env", "hyperparams", "eval_env"}}[kind] | {"eval_env"}
         if set(opts) - allowed:
             raise SpecError(f"learner {name!r} ({kind}): unknown option(s) "
@@ -211,9 +212,10 @@ def check_spec(doc) -> dict:
         if "hyperparams" in opts and not (isinstance(opts["hyperparams"], str)
                                           and opts["hyperparams"]):
             raise SpecError(f"learner {name!r}: hyperparams must be a file name")
-        for key, hi in (("epochs", 100_000), ("rounds", 1_000)):
-            if key in opts and not (_is_int(opts[key]) and 1 <= opts[key] <= hi):
-                raise SpecError(f"learner {name!r}: {key} must be an integer in [1, {hi}], "
+        for key, lo, hi in (("epochs", 1, 100_000), ("rounds", 1, 1_000),
+                            ("min_updates", 0, 10_000_000)):
+            if key in opts and not (_is_int(opts[key]) and lo <= opts[key] <= hi):
+                raise SpecError(f"learner {name!r}: {key} must be an integer in [{lo}, {hi}], "
                                 f"got {opts[key]!r}")
             if key in opts:
                 opts[key] = int(opts[key])
@@ -298,6 +300,11 @@ def _evaluate(spec: dict, policy_spec: str, env_ids: Sequence[str]) -> dict:
     return out
 
 
+def _min_updates(opts) -> dict:
+    """``min_updates`` when the spec sets it; else the learners' own default (bc.MIN_UPDATES)."""
+    return {"min_updates": opts["min_updates"]} if "min_updates" in opts else {}
+
+
 def _train_teacher_learner(spec, job, kind, opts, budget, pol_dir) -> tuple[str, int]:
     """Train one teacher-step learner; returns (policy spec, teacher steps used)."""
     base = os.path.join(pol_dir, f"{job.learner}_s{job.seed}_b{budget}")
@@ -306,7 +313,7 @@ def _train_teacher_learner(spec, job, kind, opts, budget, pol_dir) -> tuple[str,
 
         policy, meta = dagger.train(spec["teacher_env"], budget, rounds=opts.get("rounds", 4),
                                     seed=TRAIN_SEED_BASE + 10_000 * job.seed,
-                                    epochs=opts.get("epochs", 30))
+                                    epochs=opts.get("epochs", 30), **_min_updates(opts))
         dagger.save(policy, meta, base + ".zip")
         return f"dagger:{base}.zip", meta["teacher_steps"]
     data = teacher_data(spec, job.seed, budget, os.path.dirname(pol_dir))
@@ -318,7 +325,8 @@ def _train_teacher_learner(spec, job, kind, opts, budget, pol_dir) -> tuple[str,
         return f"sfm:{base}.npz", data.n_steps
     from sfm_learn.baselines import bc
 
-    policy, meta = bc.train(data, epochs=opts.get("epochs", 30), seed=job.seed, held_out=0.0)
+    policy, meta = bc.train(data, epochs=opts.get("epochs", 30), seed=job.seed, held_out=0.0,
+                            **_min_updates(opts))
     bc.save(policy, meta, base + ".zip")
     return f"bc:{base}.zip", data.n_steps
 

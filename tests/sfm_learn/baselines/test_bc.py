@@ -8,6 +8,8 @@ import zipfile
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 pytest.importorskip("stable_baselines3")
 
@@ -36,7 +38,8 @@ def teacher_data(tmp_path_factory):
 @pytest.fixture(scope="module")
 def trained(teacher_data, tmp_path_factory):
     out = tmp_path_factory.mktemp("bc") / "bc.zip"
-    code = main(["train-bc", str(teacher_data), "--out", str(out), "--epochs", "15", "--quiet"])
+    code = main(["train-bc", str(teacher_data), "--out", str(out), "--epochs", "15",
+                 "--min-updates", "0", "--quiet"])
     assert code == 0
     return out
 
@@ -69,6 +72,8 @@ def test_metadata_contents(teacher_data, trained):
     assert meta["dataset"]["file"] == "teacher.npz"
     assert len(meta["input_mean"]) == len(meta["input_std"]) > len(data.sensor_names)
     assert meta["train_wall_s"] > 0 and len(meta["history"]) == 15
+    assert meta["epochs_requested"] == 15 and meta["min_updates"] == 0
+    assert meta["updates"] == 15 * -(-data.n_steps // meta["batch_size"])
     assert set(meta["held_out"]["recall"]) == {"drive", "steer"}
     json.dumps(meta, allow_nan=False)
     with zipfile.ZipFile(trained) as zf:  # an SB3 PPO model zip plus mkv_meta.json
@@ -82,9 +87,10 @@ def test_saved_policy_is_trained_on_every_episode(teacher_data):
     # with a held-out split the returned network is the one held_out=0 trains (same seed, same
     # rows): identical weights; refit=False returns the validation network, which differs
     data = ds.load(teacher_data)
-    refit, meta = bc.train(data, epochs=3, seed=4, held_out=0.3)
-    full, _ = bc.train(data, epochs=3, seed=4, held_out=0.0)
-    val, vmeta = bc.train(data, epochs=3, seed=4, held_out=0.3, refit=False)
+    kw = {"epochs": 3, "seed": 4, "min_updates": 40}  # the minimum raises the epochs (7 / 5)
+    refit, meta = bc.train(data, held_out=0.3, **kw)
+    full, _ = bc.train(data, held_out=0.0, **kw)
+    val, vmeta = bc.train(data, held_out=0.3, refit=False, **kw)
     a, b, c = (p.state_dict() for p in (refit, full, val))
     assert all(np.array_equal(a[k].numpy(), b[k].numpy()) for k in a)
     assert not all(np.array_equal(a[k].numpy(), c[k].numpy()) for k in a)
@@ -211,6 +217,7 @@ def test_bc_zip_as_ppo_is_refused(trained, capsys):
         ("outdir", "does not exist"),
         ("held_out", "fraction in [0, 1)"),
         ("epochs", "positive integer"),
+        ("min_updates", "integer in [0, 10_000_000]"),
         ("lr", "positive number"),
         ("features", "invalid choice"),
     ],
@@ -231,6 +238,8 @@ def test_train_bc_bad_input_is_one_line_exit_2(teacher_data, tmp_path, capsys, c
         extra = ["--held-out", "1.5"]
     elif case == "epochs":
         extra = ["--epochs", "-1"]
+    elif case == "min_updates":
+        extra = ["--min-updates", "-5"]
     elif case == "lr":
         extra = ["--lr", "nan"]
     elif case == "features":
@@ -313,3 +322,29 @@ def test_plain_sb3_runs_a_bc_zip_with_no_project_code(teacher_data, tmp_path, fe
             raw, *_ = raw_env.step(a_plain)
             done = term or trunc
     assert same == total and agree >= 0.99 * total, (same, agree, total)
+
+
+@given(n=st.integers(1, 100_000), epochs=st.integers(1, 500), batch=st.integers(1, 4096),
+       min_updates=st.integers(0, 20_000))
+def test_planned_epochs_is_the_least_that_reaches_the_minimum(n, epochs, batch, min_updates):
+    e = bc.planned_epochs(n, epochs, batch, min_updates)
+    batches = -(-n // batch)
+    assert e >= epochs and e * batches >= min_updates
+    if e > epochs:  # one epoch fewer would not reach the minimum
+        assert (e - 1) * batches < min_updates
+
+
+def test_small_data_gets_the_minimum_number_of_updates(teacher_data, tmp_path, capsys):
+    # issue 26: at 1,200 teacher steps 30 epochs were 150 updates and BC underfitted; the default
+    # runs at least bc.MIN_UPDATES minibatch updates, and says so
+    data = ds.load(teacher_data)  # 1,500 rows: 6 minibatches, so 30 epochs are 180 updates
+    out = tmp_path / "bc.zip"
+    code, stdout, _ = run(capsys, "train-bc", str(teacher_data), "--out", str(out), "--held-out",
+                          "0", "--quiet")
+    assert code == 0
+    meta = bc.read_metadata(out)
+    batches = -(-data.n_steps // meta["batch_size"])
+    assert meta["min_updates"] == bc.MIN_UPDATES == 1000 and meta["epochs_requested"] == 30
+    assert meta["updates"] == meta["epochs"] * batches >= 1000
+    assert (meta["epochs"] - 1) * batches < 1000 and meta["epochs"] > 30
+    assert f"{meta['epochs']} epochs ({meta['updates']} updates)" in stdout
