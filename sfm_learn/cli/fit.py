@@ -17,6 +17,7 @@ from sfm_learn.cli.common import (
     check_output_path,
     check_outputs,
     check_png_path,
+    int_in_range,
     load_dataset,
     non_negative_int,
 )
@@ -66,6 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--thresholds", choices=("learned", "fixed"), default=None,
                    help="quantisation of signed commands: learned on the training data "
                         "(preset default) or fixed at -0.5/+0.5 (preset paper)")
+    p.add_argument("--min-support", type=int_in_range(0, 10_000_000), default=None, metavar="N",
+                   help="hold a sensor channel constant when it leaves its resting value in "
+                        "fewer than N training rows (preset default: 5; paper: 0)")
     p.add_argument("--spectrum", metavar="PNG", help="also plot the singular-value spectrum")
 
 
@@ -112,10 +116,12 @@ def run(args) -> int:
                        f"features and 2 commands, got {args.rank}")
     solver = args.solver or PRESETS[args.preset]["solver"]
     thresholds = args.thresholds or PRESETS[args.preset]["thresholds"]
+    min_support = (PRESETS[args.preset]["min_support"] if args.min_support is None
+                   else args.min_support)
     try:
         policy = fit_policy(datasets, spec, n_components=args.rank, solver=solver,
                             rank_rtol=args.rank_rtol, encoding=args.encoding,
-                            thresholds=thresholds)
+                            thresholds=thresholds, min_support=min_support)
     except ValueError as e:
         raise CliError(str(e).splitlines()[0]) from None
     proj = policy.projector
@@ -124,6 +130,9 @@ def run(args) -> int:
           + ", ".join(sorted({str(d['env_id']) for d in tr['datasets']}))
           + f") in {tr['wall_s']:.3f} s")
     print(f"features ({spec.n_features}): " + ", ".join(spec.feature_names))
+    if tr["rare_channels"]:
+        print("held constant (fewer than " + str(min_support) + " active rows): "
+              + ", ".join(f"{c} ({n} rows)" for c, n in tr["rare_channels"].items()))
     print("\n".join(spectrum_lines(proj.singular_values_, proj.n_components_,
                                    proj.rank_floor_)))
     how = "given" if args.rank is not None else "largest adjacent ratio"

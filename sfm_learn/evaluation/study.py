@@ -38,7 +38,7 @@ _NO_CURRENTS = tuple(n for n in SENSOR_NAMES if not n.endswith("_current"))
 _NO_BUMPS = tuple(n for n in SENSOR_NAMES if not n.startswith("bump_"))
 _T = (0.5, 0.8)
 _DEFAULT = {"trace_decays": _T, "prev_action": "signed"}
-_PAPER_FIT = {"solver": "lstsq", "thresholds": "fixed"}
+_PAPER_FIT = {"solver": "lstsq", "thresholds": "fixed", "min_support": 0}
 
 
 @dataclass(frozen=True)

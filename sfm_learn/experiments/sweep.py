@@ -203,7 +203,7 @@ def check_spec(doc) -> dict:
         kind = opts.pop("kind", name.split("-")[0])
         if kind not in KINDS:
             raise SpecError(f"learner {name!r}: unknown kind {kind!r}; known: {', '.join(KINDS)}")
-        allowed = {"sfm": {"preset"}, "bc": {"epochs", "min_updates"},
+        allowed = {"sfm": {"preset", "min_support"}, "bc": {"epochs", "min_updates"},
                    "dagger": {"rounds", "epochs", "min_updates"},
                    "ppo": {"env", "hyperparams", "eval_env"}}[kind] | {"eval_env"}
         if set(opts) - allowed:
@@ -213,7 +213,7 @@ def check_spec(doc) -> dict:
                                           and opts["hyperparams"]):
             raise SpecError(f"learner {name!r}: hyperparams must be a file name")
         for key, lo, hi in (("epochs", 1, 100_000), ("rounds", 1, 1_000),
-                            ("min_updates", 0, 10_000_000)):
+                            ("min_updates", 0, 10_000_000), ("min_support", 0, 10_000_000)):
             if key in opts and not (_is_int(opts[key]) and lo <= opts[key] <= hi):
                 raise SpecError(f"learner {name!r}: {key} must be an integer in [{lo}, {hi}], "
                                 f"got {opts[key]!r}")
@@ -321,6 +321,8 @@ def _train_teacher_learner(spec, job, kind, opts, budget, pol_dir) -> tuple[str,
         from sfm_learn.eigenspace.policy import fit_policy, preset
 
         fspec, kw = preset(opts.get("preset", "default"), data.metadata["sensor_names"])
+        if "min_support" in opts:
+            kw["min_support"] = opts["min_support"]
         fit_policy(data, fspec, **kw).save(base + ".npz")
         return f"sfm:{base}.npz", data.n_steps
     from sfm_learn.baselines import bc

@@ -7,6 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import mkv_env  # noqa: F401
+from mkv_env.dataset import build
 from mkv_env.features import FeatureSpec, default_feature_spec
 from mkv_env.policies import PolicySpecError, make_policy
 from sfm_learn.eigenspace.policy import (
@@ -16,7 +17,9 @@ from sfm_learn.eigenspace.policy import (
     fit_policy,
     learn_thresholds,
     onehot_actions,
+    preset,
     quantise,
+    rare_channels,
     signed_actions,
 )
 from sfm_learn.evaluation import evaluate
@@ -302,3 +305,46 @@ def test_a_policy_that_sees_nothing_useful_fails_the_escape_target(wander_train)
     blind = fit_policy(wander_train, spec)
     teacher = evaluate("MKVJam-v0", "teacher", 30, 1000).metrics["escape_rate"]
     assert evaluate("MKVJam-v0", blind, 30, 1000).metrics["escape_rate"] < 0.9 * teacher
+
+
+# ---------------------------------------------------------------- rare channels (issue 26)
+@given(n=st.integers(1, 200), active=st.integers(0, 200), min_support=st.integers(0, 50))
+def test_rare_channels_counts_rows_away_from_the_mode(n, active, min_support):
+    active = min(active, n // 2)              # the mode stays the resting value
+    obs = np.zeros((n, 2))
+    obs[:active, 0] = 1.0                     # a switch pressed in `active` rows
+    obs[:, 1] = np.arange(n)                  # a counter: always varying
+    rare = rare_channels(obs, ["bump", "ticks"], min_support)
+    assert ("bump" in rare) == (active < min_support)
+    if "bump" in rare:
+        assert rare["bump"] == active
+    assert ("ticks" in rare) == (n - 1 < min_support)
+
+
+def test_a_rarely_pressed_bumper_is_held_constant_in_the_default_fit(small_train):
+    # one row with the rear bumper pressed: with min_support 0 its features get coefficients
+    # fitted to that one row (the failure: reversing into walls for good); the default preset
+    # holds the channel and its traces constant, so their coefficients are exactly 0
+    names = list(small_train.sensor_names)
+    obs = np.array(small_train["observations"], copy=True)
+    j = names.index("bump_rear")
+    obs[:, j] = 0.0
+    obs[len(obs) // 2, j] = 1.0
+    data = build({**small_train.arrays, "observations": obs.astype(np.float32)},
+                 small_train.metadata)
+    spec, kw = preset("default", names)
+    assert kw["min_support"] == 5
+    held = fit_policy(data, spec, **kw)
+    free = fit_policy(data, spec, **{**kw, "min_support": 0})
+    cols = [i for i, f in enumerate(spec.feature_names) if f.startswith("bump_rear")]
+    assert len(cols) == 3 and held.training["rare_channels"]["bump_rear"] == 1
+    assert np.all(np.abs(held.projector.coef_[cols]) < 1e-9)  # zero up to rounding
+    assert np.any(np.abs(free.projector.coef_[cols]) > 1e-3)
+    assert "bump_rear" not in free.training["rare_channels"]
+    # paper preset: every channel, as the paper
+    assert preset("paper", names)[1]["min_support"] == 0
+
+
+def test_min_support_must_be_a_non_negative_integer(small_train):
+    with pytest.raises(ValueError, match="min_support"):
+        fit_policy(small_train, min_support=-1)
