@@ -1,76 +1,71 @@
-"""Per learner and budget over training sets, and paired comparisons (issue 26), from a sweep.
+"""Per learner and budget over training sets, and paired comparisons (issue 26), from sweeps.
 
-    python scripts/claims_summary.py SWEEP_DIR > docs/claims_20_sets.md
+    python scripts/claims_summary.py SWEEP_DIR [SWEEP_DIR ...] > docs/claims_20_sets.md
+    python scripts/claims_summary.py --bundle OUT.json SWEEP_DIR [SWEEP_DIR ...]
 
-Reads ``SWEEP_DIR/rows/*.json`` (``mkv sweep``): escape rate on MKVJam-v1 and distance on
-MKV-v1 per (learner, budget, training seed). Prints the mean with a percentile-bootstrap interval
-over training sets (2,000 resamples, seeded), the median, the 10th percentile and the failure
-rate (escape < 0.8 or distance < 10 m), then paired differences of the escape rate over the same
-training sets (and the same evaluation seeds), with "no clear difference" unless the paired
-interval excludes 0.
+Reads ``SWEEP_DIR/rows/*.json`` (``mkv sweep``) and prints the tables and the claim sentences of
+:mod:`sfm_learn.experiments.claims`. ``--bundle`` instead writes the rows (policy paths dropped)
+with the specs as the package's reference file (``sfm_learn/experiments/reference/claims.json``),
+from which ``mkv demo`` and the README's claims are generated.
 """
 
 from __future__ import annotations
 
-import collections
+import argparse
+import datetime
 import glob
 import json
 import os
 import sys
 
-import numpy as np
-
-PAIRS = (("sfm", "bc"), ("sfm", "dagger"), ("bc", "dagger"), ("sfm", "sfm-ols"),
-         ("sfm", "sfm-paper"))
+from sfm_common.files import atomic_write_text
+from sfm_learn.experiments.claims import claim_sentences, tables
 
 
-def boot(v, rng, n=2000):
-    means = [np.mean(rng.choice(v, len(v))) for _ in range(n)]
-    return np.percentile(means, [2.5, 97.5])
+def read_rows(folder: str) -> list[dict]:
+    if not os.path.isdir(os.path.join(folder, "rows")):
+        sys.exit(f"claims_summary.py: {folder} has no rows/ folder (a mkv sweep --out folder)")
+    rows = []
+    for f in sorted(glob.glob(os.path.join(folder, "rows", "*.json"))):
+        with open(f, encoding="utf-8") as fh:
+            r = json.load(fh)
+        r.pop("policy", None)
+        rows.append(r)
+    return rows
 
 
 def main(argv=None):
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1 or not os.path.isdir(os.path.join(argv[0], "rows")):
-        sys.exit("usage: claims_summary.py SWEEP_DIR (a folder with rows/*.json)")
-    by = collections.defaultdict(dict)
-    for f in glob.glob(os.path.join(argv[0], "rows", "*.json")):
-        with open(f) as fh:
-            r = json.load(fh)
-        if r.get("status") != "ok":
-            continue
-        m = r["metrics"]
-        by[(r["learner"], r["budget"])][r["seed"]] = (m["MKVJam-v1"]["escape_rate"],
-                                                      m["MKV-v1"]["distance_m"])
-    rng = np.random.default_rng(0)
-    print("| learner | budget | sets | escape mean [bootstrap 95%] | median | p10 | distance m "
-          "mean | failure rate (escape < 0.8 or distance < 10 m) |")
-    print("|---|---|---|---|---|---|---|---|")
-    for (learner, budget) in sorted(by):
-        d = by[(learner, budget)]
-        e = np.array([d[s][0] for s in sorted(d)])
-        dist = np.array([d[s][1] for s in sorted(d)])
-        lo, hi = boot(e, rng)
-        fail = (e < 0.8) | (dist < 10)
-        print(f"| {learner} | {budget} | {len(e)} | {e.mean():.3f} [{lo:.3f}, {hi:.3f}] | "
-              f"{np.median(e):.3f} | {np.percentile(e, 10):.3f} | {dist.mean():.2f} | "
-              f"{fail.mean():.2f} ({int(fail.sum())}/{len(e)}) |")
-    print("\n| pair | budget | paired mean difference in escape [bootstrap 95%] | verdict |")
-    print("|---|---|---|---|")
-    budgets = sorted({b for _, b in by})
-    for a, c in PAIRS:
-        for b in budgets:
-            da, dc = by.get((a, b), {}), by.get((c, b), {})
-            seeds = sorted(set(da) & set(dc))
-            if not seeds:
-                continue
-            diff = np.array([da[s][0] - dc[s][0] for s in seeds])
-            lo, hi = boot(diff, rng)
-            verdict = (f"{a} higher" if lo > 0 else f"{c} higher" if hi < 0
-                       else "no clear difference")
-            print(f"| {a} - {c} | {b} | {diff.mean():+.3f} [{lo:+.3f}, {hi:+.3f}] "
-                  f"(n={len(seeds)}) | {verdict} |")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sweeps", nargs="+", metavar="SWEEP_DIR")
+    ap.add_argument("--bundle", metavar="OUT.json", help="write the reference bundle instead")
+    args = ap.parse_args(argv)
+    rows, specs = [], []
+    for d in args.sweeps:
+        rows += read_rows(d)
+        with open(os.path.join(d, "spec.json"), encoding="utf-8") as fh:
+            specs.append(json.load(fh))
+    if args.bundle:
+        from sfm_learn.evaluation import evaluate
+
+        ev = specs[0]["eval"]
+        if any(s["eval"] != ev for s in specs):
+            sys.exit("claims_summary.py: the sweeps were evaluated on different seeds")
+        teacher = {e: {k: v for k, v in evaluate(e, "teacher", ev["episodes"], ev["seed"],
+                                                  workers=2).metrics.items()}
+                   for e in sorted({e for s in specs for e in s["env"]})}
+        about = (f"Rows of {', '.join(s.get('name', '?') for s in specs)}, run with "
+                 f"`mkv sweep ... --workers 2` on a 2-core machine on "
+                 f"{datetime.date.today().isoformat()} (policy paths dropped). The README's and "
+                 "`mkv demo`'s claims are generated from them by sfm_learn.experiments.claims.")
+        atomic_write_text(args.bundle, json.dumps({"about": about, "specs": specs, "rows": rows,
+                                                   "teacher": teacher},
+                                                  indent=1, sort_keys=True) + "\n")
+        print(f"wrote {args.bundle}: {len(rows)} rows")
+        return 0
+    print(tables(rows))
+    print("\n".join(claim_sentences(rows)))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -410,29 +410,24 @@ def _evaluate(env_id, learners: dict, ppo_specs: dict, episodes, b: Budget, stem
 
 
 def _reference_sweep(png: str) -> dict | None:
-    """The bundled sample-efficiency sweep (5 seeds per point; too long for the demo to rerun):
-    its table and its curves drawn into ``png``. None when the bundle is missing."""
-    from sfm_learn.experiments.summary import (
-        aggregate,
-        combined_table,
-        load_reference,
-        plot_curves,
-    )
+    """The bundled claims sweeps (20 training sets per teacher-step point, 10 PPO seeds; too long
+    for the demo to rerun): their tables, paired verdicts (:mod:`sfm_learn.experiments.claims`)
+    and curves drawn into ``png``. None when the bundle is missing."""
+    from sfm_learn.experiments import claims
+    from sfm_learn.experiments.summary import aggregate, plot_curves
 
     try:
-        doc = load_reference()
+        doc = claims.load_reference()
     except (OSError, ValueError):
         return None
-    agg = aggregate(doc["rows"])
     units = {n: ("env steps" if lr["kind"] == "ppo" else "teacher steps")
-             for n, lr in doc["spec"]["learners"].items()}
-    columns = [("MKVJam-v1", "escape_rate", "MKVJam-v1 escape rate"),
-               ("MKV-v1", "distance_m", "MKV-v1 distance [m]"),
-               ("MKV-v1", "stuck_fraction", "MKV-v1 stuck fraction")]
-    plot_curves(agg, [(e, m) for e, m, _ in columns], png, units, doc["spec"].get("name", ""))
-    return {"about": doc.get("about", ""), "table": combined_table(agg, units, columns),
-            "plot": os.path.basename(png), "eval": doc["spec"]["eval"],
-            "seeds": doc["spec"]["seeds"]}
+             for spec in doc["specs"] for n, lr in spec["learners"].items()}
+    panels = [("MKVJam-v1", "escape_rate"), ("MKV-v1", "distance_m"),
+              ("MKV-v1", "stuck_fraction")]
+    plot_curves(aggregate(doc["rows"]), panels, png, units, "claims over many training sets")
+    return {"about": doc.get("about", ""), "tables": claims.tables(doc["rows"]),
+            "sentences": claims.claim_sentences(doc["rows"]), "plot": os.path.basename(png),
+            "specs": [s.get("name", "") for s in doc["specs"]]}
 
 
 def _calib(out: str, seeds: int, quiet: bool) -> dict:

@@ -9,9 +9,7 @@ counted and listed, never averaged.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from collections import defaultdict
 
 import numpy as np
@@ -94,19 +92,6 @@ def plot_curves(agg: dict, panels: list[tuple[str, str]], path: str,
     return plot_sweep_curves(agg["curves"], panels, path, units, labels, title)
 
 
-REFERENCE = os.path.join(os.path.dirname(__file__), "reference", "sample_efficiency.json")
-"""Rows of the sample-efficiency sweep shipped with the package (``mkv demo`` shows them)."""
-
-
-def load_reference(path: str = REFERENCE) -> dict:
-    """``{"about", "spec", "rows"}`` of a bundled sweep (:data:`REFERENCE`)."""
-    with open(path, encoding="utf-8") as f:
-        doc = json.load(f)
-    if not isinstance(doc, dict) or not {"spec", "rows"} <= set(doc):
-        raise ValueError(f"{path} is not a bundled sweep")
-    return doc
-
-
 def combined_table(agg: dict, units: dict[str, str], columns) -> str:
     """One Markdown row per (learner, budget): ``columns`` are ``(env, metric, header)``;
     each cell is the mean over seeds [95% t-interval] ("-" where the learner was not
@@ -133,5 +118,5 @@ def combined_table(agg: dict, units: dict[str, str], columns) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["REFERENCE", "aggregate", "combined_table", "load_reference", "markdown_table",
+__all__ = ["aggregate", "combined_table", "markdown_table",
            "plot_curves", "t_interval"]

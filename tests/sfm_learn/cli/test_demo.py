@@ -51,7 +51,12 @@ def test_quick_demo_evaluates_every_policy_on_the_same_seeds(demo_dir):
         assert doc[2]["metrics"]["distance_m"] < 0.05          # stand still stands still
     report = (demo_dir / "report.md").read_text()
     assert "one PPO seed at the demo's reduced budget" in report
-    assert "## Sample efficiency over 5 seeds (the bundled sweep" in report
+    assert "## Over many training sets (the bundled claims sweeps" in report
+    # the claims sentences are the generated ones of the bundled rows, verbatim
+    from sfm_learn.experiments import claims
+
+    for line in claims.claim_sentences(claims.load_reference()["rows"]):
+        assert f"- {line}" in report
     assert (demo_dir / "sample_efficiency.png").read_bytes()[:4] == b"\x89PNG"
     assert "intra-op thread" in report                          # thread settings printed
     sfm = json.loads((demo_dir / "eval" / "jam.json").read_text())[3]

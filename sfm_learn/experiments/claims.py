@@ -1,0 +1,255 @@
+"""Claims over many training sets (issue 26): per-point spread, failure rates, paired verdicts.
+
+A sweep's rows give one value per (learner, budget, training seed). For every point this module
+reports the mean with a percentile-bootstrap interval over training sets, the median, the 10th
+percentile and the *failure rate*: the share of training sets whose policy escapes fewer than
+:data:`ESCAPE_FAIL` of MKVJam-v1 jams or wanders less than :data:`DISTANCE_FAIL` m per MKV-v1
+episode (each test only where that env was evaluated). Two learners are ranked only by a *paired*
+comparison: the per-training-set differences of the escape rate over the seeds both have (same
+training seed, same evaluation episodes), with a percentile-bootstrap interval; the verdict names
+the higher learner only when the interval excludes 0 over at least :data:`MIN_PAIRED` sets, and
+says "no clear difference" otherwise.
+Every ranking sentence the README and ``mkv demo`` print comes from :func:`claim_sentences`.
+
+Bootstraps are seeded (2,000 resamples), so the same rows give the same text.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+import textwrap
+from collections import defaultdict
+
+import numpy as np
+
+JAM, WANDER = "MKVJam-v1", "MKV-v1"
+ESCAPE_FAIL = 0.8
+DISTANCE_FAIL = 10.0
+RESAMPLES = 2000
+MIN_PAIRED = 10
+"""Fewer common training sets than this give no verdict ("too few sets"), whatever the interval."""
+PAIRS = (("sfm", "bc"), ("sfm", "dagger"), ("bc", "dagger"), ("sfm", "sfm-ols"),
+         ("sfm", "sfm-paper"))
+NAMES = {"sfm": "SfM", "sfm-ols": "SfM with the OLS solver", "sfm-paper": "the paper's SfM",
+         "bc": "BC", "dagger": "DAgger", "ppo-jam": "PPO (jam reward)",
+         "ppo-wander": "PPO (wander reward)"}
+
+
+def by_point(rows) -> dict:
+    """``{(learner, budget): {seed: {"escape": x|None, "distance": d|None}}}`` from ok rows."""
+    out: dict = defaultdict(dict)
+    for r in rows:
+        if r.get("status") != "ok":
+            continue
+        m = r["metrics"]
+        out[(r["learner"], int(r["budget"]))][int(r["seed"])] = {
+            "escape": m.get(JAM, {}).get("escape_rate"),
+            "distance": m.get(WANDER, {}).get("distance_m"),
+        }
+    return dict(out)
+
+
+def bootstrap_mean_ci(values, rng, resamples: int = RESAMPLES) -> tuple[float, float]:
+    """95% percentile-bootstrap interval of the mean of ``values`` (resampling training sets)."""
+    v = np.asarray(values, dtype=float)
+    idx = rng.integers(0, len(v), size=(resamples, len(v)))
+    lo, hi = np.percentile(v[idx].mean(axis=1), [2.5, 97.5])
+    return float(lo), float(hi)
+
+
+def point_summary(sets: dict, seed: int = 0) -> dict:
+    """Summary of one point (``by_point`` value): n, escape mean/CI/median/p10, distance mean,
+    failures (count of sets failing either test that was measured)."""
+    rng = np.random.default_rng(seed)
+    seeds = sorted(sets)
+    esc = np.array([sets[s]["escape"] for s in seeds if sets[s]["escape"] is not None], float)
+    dist = np.array([sets[s]["distance"] for s in seeds if sets[s]["distance"] is not None], float)
+    fail = [((sets[s]["escape"] is not None and sets[s]["escape"] < ESCAPE_FAIL)
+             or (sets[s]["distance"] is not None and sets[s]["distance"] < DISTANCE_FAIL))
+            for s in seeds]
+    out = {"n": len(seeds), "failures": int(sum(fail))}
+    if len(esc):
+        out.update(escape_mean=float(esc.mean()), escape_ci=bootstrap_mean_ci(esc, rng),
+                   escape_median=float(np.median(esc)), escape_p10=float(np.percentile(esc, 10)))
+    if len(dist):
+        out.update(distance_mean=float(dist.mean()), distance_ci=bootstrap_mean_ci(dist, rng))
+    return out
+
+
+def paired(points: dict, a: str, b: str, budget: int, seed: int = 0) -> dict | None:
+    """Paired escape-rate difference ``a - b`` at ``budget`` over their common training seeds:
+    ``{"n", "mean", "ci", "verdict"}``; None when they share no seed."""
+    da, db = points.get((a, budget), {}), points.get((b, budget), {})
+    seeds = sorted(s for s in set(da) & set(db)
+                   if da[s]["escape"] is not None and db[s]["escape"] is not None)
+    if not seeds:
+        return None
+    diff = np.array([da[s]["escape"] - db[s]["escape"] for s in seeds])
+    lo, hi = bootstrap_mean_ci(diff, np.random.default_rng(seed))
+    verdict = None if len(seeds) < MIN_PAIRED else a if lo > 0 else b if hi < 0 else None
+    return {"n": len(seeds), "mean": float(diff.mean()), "ci": (lo, hi), "verdict": verdict}
+
+
+def _name(learner: str) -> str:
+    return NAMES.get(learner, learner)
+
+
+def _budget(learner: str, budget: int) -> str:
+    return f"{budget // 1000}k env steps" if learner.startswith("ppo") else \
+        f"{budget:,} teacher steps"
+
+
+def tables(rows) -> str:
+    """Markdown: the per-point table, then the paired table."""
+    points = by_point(rows)
+    lines = ["| learner | budget | sets | escape mean [bootstrap 95%] | median | p10 | "
+             f"distance m mean | failure rate (escape < {ESCAPE_FAIL} or distance < "
+             f"{DISTANCE_FAIL:g} m) |", "|---|---|---:|---|---:|---:|---:|---|"]
+    for (learner, budget) in sorted(points):
+        p = point_summary(points[(learner, budget)])
+        esc = (f"{p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, {p['escape_ci'][1]:.3f}] | "
+               f"{p['escape_median']:.3f} | {p['escape_p10']:.3f}"
+               if "escape_mean" in p else "- | - | -")
+        dist = f"{p['distance_mean']:.2f}" if "distance_mean" in p else "-"
+        lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
+                     f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
+    lines += ["", "| pair | budget | paired mean difference in escape [bootstrap 95%] | verdict |",
+              "|---|---:|---|---|"]
+    budgets = sorted({b for _, b in points})
+    for a, c in PAIRS:
+        for b in budgets:
+            r = paired(points, a, c, b)
+            if r is None:
+                continue
+            verdict = (f"{r['verdict']} higher" if r["verdict"] else "no clear difference"
+                       if r["n"] >= MIN_PAIRED else f"too few sets (< {MIN_PAIRED})")
+            lines.append(f"| {a} - {c} | {b:,} | {r['mean']:+.3f} [{r['ci'][0]:+.3f}, "
+                         f"{r['ci'][1]:+.3f}] (n={r['n']}) | {verdict} |")
+    return "\n".join(lines) + "\n"
+
+
+def claim_sentences(rows) -> list[str]:
+    """One sentence per budget for the teacher-step learners (escape rates, failure rates, every
+    paired verdict), and one per PPO learner: the text the README and the demo print."""
+    points = by_point(rows)
+    out = []
+    budgets = sorted({b for (lr, b) in points if not lr.startswith("ppo")})
+    for b in budgets:
+        parts = []
+        for learner in ("sfm", "bc", "dagger", "sfm-ols", "sfm-paper"):
+            if (learner, b) not in points:
+                continue
+            p = point_summary(points[(learner, b)])
+            parts.append(f"{_name(learner)} {p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, "
+                         f"{p['escape_ci'][1]:.3f}], failing on {p['failures']} of {p['n']}")
+        if not parts:
+            continue
+        verdicts = []
+        for a, c in PAIRS:
+            r = paired(points, a, c, b)
+            if r is None:
+                continue
+            ci = f"{r['mean']:+.3f} [{r['ci'][0]:+.3f}, {r['ci'][1]:+.3f}]"
+            if r["n"] < MIN_PAIRED:
+                verdicts.append(f"{_name(a)} and {_name(c)}: too few common sets ({r['n']}) "
+                                "to rank")
+            elif r["verdict"]:
+                lo_name = _name(c if r["verdict"] == a else a)
+                verdicts.append(f"{_name(r['verdict'])} above {lo_name} ({_name(a)} minus "
+                                f"{_name(c)} {ci})")
+            else:
+                verdicts.append(f"{_name(a)} and {_name(c)}: no clear difference ({ci})")
+        out.append(f"At {b:,} teacher steps the escape rates (mean [95% bootstrap over training "
+                   f"sets]) are {'; '.join(parts)}. Paired over the same sets: "
+                   f"{'; '.join(verdicts)}.")
+    for learner in sorted({lr for lr, _ in points if lr.startswith("ppo")}):
+        parts = []
+        for b in sorted(b for lr, b in points if lr == learner):
+            p = point_summary(points[(learner, b)])
+            if "escape_mean" in p:
+                val = (f"escapes {p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, "
+                       f"{p['escape_ci'][1]:.3f}] (median {p['escape_median']:.2f}, 10th "
+                       f"percentile {p['escape_p10']:.2f})")
+            else:
+                val = (f"wanders {p['distance_mean']:.1f} m [{p['distance_ci'][0]:.1f}, "
+                       f"{p['distance_ci'][1]:.1f}]")
+            parts.append(f"at {_budget(learner, b)} it {val}, failing on {p['failures']} of "
+                         f"{p['n']} seeds")
+        out.append(f"{_name(learner)}: {'; '.join(parts)}.")
+    return out
+
+
+REFERENCE = os.path.join(os.path.dirname(__file__), "reference", "claims.json")
+"""The rows behind the README's claims (``scripts/claims_summary.py --bundle``)."""
+
+
+def load_reference(path: str = REFERENCE) -> dict:
+    """``{"about", "specs", "rows"}`` of the bundled claims sweeps."""
+    with open(path, encoding="utf-8") as f:
+        doc = json.load(f)
+    if not isinstance(doc, dict) or not {"specs", "rows"} <= set(doc):
+        raise ValueError(f"{path} is not a bundled claims file")
+    return doc
+
+
+def readme_block(doc: dict, width: int = 100) -> str:
+    """The README's claims paragraphs, generated from ``doc`` (:func:`load_reference`)."""
+    ev = {json.dumps(s["eval"], sort_keys=True) for s in doc["specs"]}
+    evals = "; ".join(f"evaluation seeds {e['seed']:,}.., {e['episodes']} episodes per env"
+                      for e in map(json.loads, sorted(ev)))
+    points = by_point(doc["rows"])
+    sets = sorted({len(v) for v in points.values()})
+    t = doc.get("teacher", {})
+    teacher = (f"; the teacher on the same seeds escapes {t[JAM]['escape_rate']:.2f} of jams and "
+               f"wanders {t[WANDER]['distance_m']:.1f} m" if JAM in t and WANDER in t else "")
+    head = (f"Over {' or '.join(map(str, sets))} training sets per point "
+            f"({', '.join('`' + s.get('file', s.get('name', '?')) + '`' for s in doc['specs'])}; "
+            f"{evals}; a set *fails* when its policy escapes fewer than {ESCAPE_FAIL:g} of jams "
+            f"or wanders less than {DISTANCE_FAIL:g} m{teacher}; generated by "
+            "`python -m sfm_learn.experiments.claims` from the bundled rows):")
+    paras = [head] + claim_sentences(doc["rows"])
+    return "\n\n".join(textwrap.fill(p, width, break_on_hyphens=False, break_long_words=False)
+                        for p in paras)
+
+
+BLOCK = re.compile(r"(<!-- claims:begin -->\n)(.*?)(<!-- claims:end -->)", re.S)
+
+
+def replace_block(text: str, block: str) -> str:
+    """``text`` with the part between ``<!-- claims:begin -->`` and ``<!-- claims:end -->``
+    replaced by ``block``; ValueError when the markers are missing."""
+    if not BLOCK.search(text):
+        raise ValueError("no <!-- claims:begin --> ... <!-- claims:end --> block")
+    return BLOCK.sub(lambda m: m.group(1) + block.strip() + "\n" + m.group(3), text, count=1)
+
+
+def main(argv=None) -> int:
+    """Print the claims block from the bundled rows; ``--write FILE ...`` puts it into each file
+    between its markers (README.md, docs/baselines.md)."""
+    argv = sys.argv[1:] if argv is None else argv
+    block = readme_block(load_reference())
+    if not argv:
+        print(block)
+        return 0
+    if argv[0] != "--write" or len(argv) < 2:
+        print("usage: python -m sfm_learn.experiments.claims [--write FILE ...]", file=sys.stderr)
+        return 2
+    from sfm_common.files import atomic_write_text
+
+    for path in argv[1:]:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+        try:
+            atomic_write_text(path, replace_block(text, block))
+        except ValueError as e:
+            print(f"{path}: {e}", file=sys.stderr)
+            return 1
+        print(f"updated {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

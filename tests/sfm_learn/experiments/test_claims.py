@@ -1,0 +1,91 @@
+"""sfm_learn.experiments.claims: failure rates, paired verdicts, the README's generated claims."""
+
+import pathlib
+import re
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sfm_learn.experiments import claims
+
+
+def _row(learner, budget, seed, escape=None, distance=None, status="ok"):
+    m = {}
+    if escape is not None:
+        m["MKVJam-v1"] = {"escape_rate": escape}
+    if distance is not None:
+        m["MKV-v1"] = {"distance_m": distance}
+    return {"learner": learner, "budget": budget, "seed": seed, "status": status, "metrics": m}
+
+
+def test_failure_counts_either_test_where_measured():
+    rows = [_row("bc", 1200, 0, 0.95, 14.0), _row("bc", 1200, 1, 0.70, 14.0),
+            _row("bc", 1200, 2, 0.95, 6.0), _row("bc", 1200, 3, 0.79, 9.0),
+            _row("bc", 1200, 4, 0.2, 0.0, status="error"),  # error rows are not averaged
+            _row("ppo-jam", 200000, 0, 0.5), _row("ppo-wander", 200000, 0, distance=12.0)]
+    pts = claims.by_point(rows)
+    p = claims.point_summary(pts[("bc", 1200)])
+    assert p["n"] == 4 and p["failures"] == 3
+    assert np.isclose(p["escape_mean"], np.mean([0.95, 0.70, 0.95, 0.79]))
+    assert claims.point_summary(pts[("ppo-jam", 200000)])["failures"] == 1
+    wander = claims.point_summary(pts[("ppo-wander", 200000)])
+    assert wander["failures"] == 0 and "escape_mean" not in wander
+
+
+def test_a_consistent_gap_is_ranked_and_noise_is_not():
+    rng = np.random.default_rng(3)
+    base = rng.uniform(0.85, 0.95, 20)
+    rows = [_row("sfm", 1200, s, base[s] + 0.05, 14) for s in range(20)]
+    rows += [_row("bc", 1200, s, base[s], 14) for s in range(20)]
+    # dagger: the same as sfm plus zero-mean noise much larger than any paired effect
+    noise = rng.normal(0, 0.05, 20)
+    noise -= noise.mean()
+    rows += [_row("dagger", 1200, s, base[s] + 0.05 + noise[s], 14) for s in range(20)]
+    pts = claims.by_point(rows)
+    assert claims.paired(pts, "sfm", "bc", 1200)["verdict"] == "sfm"
+    assert claims.paired(pts, "bc", "sfm", 1200)["verdict"] == "sfm"
+    assert claims.paired(pts, "sfm", "dagger", 1200)["verdict"] is None
+    text = " ".join(claims.claim_sentences(rows))
+    assert "SfM above BC" in text and "SfM and DAgger: no clear difference" in text
+
+
+def test_too_few_common_sets_give_no_verdict():
+    rows = [_row("sfm", 1200, s, 1.0, 14) for s in range(3)]
+    rows += [_row("bc", 1200, s, 0.5, 14) for s in range(3)]
+    r = claims.paired(claims.by_point(rows), "sfm", "bc", 1200)
+    assert r["n"] == 3 and r["verdict"] is None and r["mean"] == 0.5
+    assert "too few" in claims.tables(rows) and "too few common sets" in \
+        claims.claim_sentences(rows)[0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(diffs=st.lists(st.floats(-0.5, 0.5, allow_nan=False), min_size=10, max_size=30))
+def test_the_verdict_names_a_learner_exactly_when_the_interval_excludes_zero(diffs):
+    rows = [_row("sfm", 1200, s, 0.5 + d, 14) for s, d in enumerate(diffs)]
+    rows += [_row("bc", 1200, s, 0.5, 14) for s in range(len(diffs))]
+    r = claims.paired(claims.by_point(rows), "sfm", "bc", 1200)
+    lo, hi = r["ci"]
+    assert lo <= r["mean"] + 1e-12 and r["mean"] <= hi + 1e-12
+    assert r["verdict"] == ("sfm" if lo > 0 else "bc" if hi < 0 else None)
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/baselines.md"])
+def test_the_docs_claims_are_the_generated_sentences_of_the_bundled_rows(page):
+    # every ranking sentence of the claims paragraphs is generated from the bundled rows
+    text = (pathlib.Path(__file__).resolve().parents[3] / page).read_text()
+    block = re.search(r"<!-- claims:begin -->\n(.*?)\n<!-- claims:end -->", text, re.S)
+    assert block, f"{page} has no generated claims block"
+    expected = claims.readme_block(claims.load_reference())
+    assert block.group(1).strip() == expected.strip(), (
+        f"{page}'s claims differ from the bundled rows: regenerate with "
+        f"python -m sfm_learn.experiments.claims --write {page}")
+
+
+def test_replace_block_swaps_only_the_marked_part():
+    text = "a\n<!-- claims:begin -->\nold\n<!-- claims:end -->\nb\n"
+    assert claims.replace_block(text, "new\n") == (
+        "a\n<!-- claims:begin -->\nnew\n<!-- claims:end -->\nb\n")
+    with pytest.raises(ValueError, match="no <!-- claims:begin"):
+        claims.replace_block("nothing here", "x")
