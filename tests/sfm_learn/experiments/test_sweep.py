@@ -122,6 +122,11 @@ def test_t_interval_and_aggregate():
     ({"budgets": {"sfm": [200]}}, "budgets lacks learner 'sfm-paper'"),
     ({"learners": {"sfm": {"epochs": 3}}, "budgets": {"sfm": [10]}}, "unknown option"),
     ({"colour": 1}, "unknown sweep spec key"),
+    ({"learners": {"sfm": {"min_support": -1}}, "budgets": {"sfm": [10]}},
+     "min_support must be an integer in [0, 10000000]"),
+    ({"learners": {"bc": {"min_updates": "many"}}, "budgets": {"bc": [10]}},
+     "min_updates must be an integer in [0, 10000000]"),
+    ({"learners": {"sfm": {"min_updates": 5}}, "budgets": {"sfm": [10]}}, "unknown option"),
     ({"eval": {"episodes": 0}}, "eval.episodes"),
     ({"env": "Nope-v9"}, "Nope-v9"),
 ])
