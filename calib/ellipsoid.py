@@ -8,10 +8,16 @@
 2. Refinement (approximate maximum likelihood): Levenberg-Marquardt on the first-order geometric
    (Sampson) distance ``d_i = (rho_i - 1) rho_i / |W^T v_i|`` with ``v_i = W (y_i - c)``,
    ``rho_i = |v_i|``; the weights are refreshed every iteration (IRLS). Parametrising W as a
-   symmetric
-   matrix removes the rotation gauge, and steps that leave the PD cone are rejected, so the result
-   is
-   always an ellipsoid. Normal equations are accumulated in row chunks, so memory stays O(chunk).
+   symmetric matrix removes the rotation gauge, and steps that leave the PD cone are rejected, so
+   the result is always an ellipsoid. Normal equations are accumulated in row chunks, so memory
+   stays O(chunk).
+
+Why a Levenberg-Marquardt loop of its own and not ``scipy.optimize.least_squares``: that needs the
+whole residual vector (and its Jacobian, n x parameters) in memory at every evaluation, while this
+fit streams logs larger than memory (``--chunk-rows``, dask arrays): each iteration is one pass
+that accumulates the normal equations and costs the batched trial steps, block by block. It also
+keeps the prior weight frozen within an iteration and rejects steps that leave the PD cone, which
+``least_squares`` has no hook for.
 """
 
 from __future__ import annotations
