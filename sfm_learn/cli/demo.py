@@ -424,7 +424,8 @@ def _reference_sweep(png: str) -> dict | None:
              for spec in doc["specs"] for n, lr in spec["learners"].items()}
     panels = [("MKVJam-v1", "escape_rate"), ("MKV-v1", "distance_m"),
               ("MKV-v1", "stuck_fraction")]
-    plot_curves(aggregate(doc["rows"]), panels, png, units, "claims over many training sets")
+    plot_curves(aggregate(doc["rows"]), panels, png, units,
+                "over many training sets (dots: each training set or PPO seed)", rows=doc["rows"])
     return {"about": doc.get("about", ""), "tables": claims.tables(doc["rows"]),
             "sentences": claims.claim_sentences(doc["rows"]), "plot": os.path.basename(png),
             "specs": [s.get("name", "") for s in doc["specs"]]}

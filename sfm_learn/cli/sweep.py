@@ -68,7 +68,8 @@ def _summary(d: str, plot: str | None) -> int:
                                 for n in os.listdir(os.path.join(d, sub))]
         check_outputs(inputs, [plot])
     damaged: list = []
-    agg = aggregate(read_rows(d, damaged))
+    rows = read_rows(d, damaged)
+    agg = aggregate(rows)
     for name, why in damaged:
         print(f"damaged row {name}: {why} (left out; a resumed sweep runs its job again)")
     metrics = [("escape_rate", "MKVJam"), ("distance_m", "MKV-"), ("stuck_fraction", "MKV-"),
@@ -87,7 +88,7 @@ def _summary(d: str, plot: str | None) -> int:
     if panels:
         path = plot or os.path.join(d, "curves.png")
         try:
-            plot_curves(agg, panels, path, units, spec.get("name", ""))
+            plot_curves(agg, panels, path, units, spec.get("name", ""), rows=rows)
         except ImportError:
             print("(matplotlib not installed: no plot)")
         else:

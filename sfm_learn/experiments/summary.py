@@ -84,12 +84,21 @@ def markdown_table(agg: dict, env_id: str, metric: str, units: dict[str, str]) -
 
 
 def plot_curves(agg: dict, panels: list[tuple[str, str]], path: str,
-                units: dict[str, str], title: str = "") -> str:
-    """Draw :func:`aggregate`'s curves (:func:`sfm_learn.reporting.plots.plot_sweep_curves`)."""
+                units: dict[str, str], title: str = "", rows: list[dict] | None = None) -> str:
+    """Draw :func:`aggregate`'s curves (:func:`sfm_learn.reporting.plots.plot_sweep_curves`);
+    with ``rows``, every training seed's value as a dot beside its learner's curve."""
     from sfm_learn.reporting.plots import plot_sweep_curves
 
     labels = {m: METRIC_LABELS.get(m, m) for _, m in panels}
-    return plot_sweep_curves(agg["curves"], panels, path, units, labels, title)
+    points: dict = defaultdict(list)
+    for r in rows or ():
+        if r.get("status") != "ok":
+            continue
+        for env_id, metric in panels:
+            v = r["metrics"].get(env_id, {}).get(metric)
+            if v is not None:
+                points[(r["learner"], env_id, metric)].append((r.get("steps", r["budget"]), v))
+    return plot_sweep_curves(agg["curves"], panels, path, units, labels, title, dict(points))
 
 
 def combined_table(agg: dict, units: dict[str, str], columns) -> str:

@@ -277,10 +277,12 @@ def plot_rank_study(results: dict, path, *, teacher: dict | None = None, title=N
 
 
 def plot_sweep_curves(curves: dict, panels, path, units: dict, labels: dict,
-                      title: str = "") -> str:
+                      title: str = "", points: dict | None = None) -> str:
     """A sweep's curves, one panel per ``(env, metric)``: a line per learner (mean over training
     seeds) with its 95% band, against steps on a log axis (teacher steps solid, env steps
-    dashed). ``curves[(learner, env, metric)]`` holds ``(budget, steps, mean, lo, hi, n)``."""
+    dashed). ``curves[(learner, env, metric)]`` holds ``(budget, steps, mean, lo, hi, n)``;
+    ``points[(learner, env, metric)]``, if given, ``(steps, value)`` of every training seed,
+    drawn as faint dots (nudged sideways per learner) so the spread over seeds shows."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.2), squeeze=False)
     learners = sorted({k[0] for k in curves})
@@ -289,7 +291,10 @@ def plot_sweep_curves(curves: dict, panels, path, units: dict, labels: dict,
     xlabel = ("teacher steps (solid) / PPO env steps (dashed)" if len(kinds) > 1
               else next(iter(kinds), "steps"))
     for ax, (env_id, metric) in zip(axes[0], panels, strict=True):
-        for learner in learners:
+        for k, learner in enumerate(learners):
+            for steps, value in (points or {}).get((learner, env_id, metric), ()):
+                ax.plot(steps * 1.04 ** (k - len(learners) / 2), value, ".", ms=3, alpha=0.35,
+                        color=colours[learner])
             pts = curves.get((learner, env_id, metric))
             if not pts:
                 continue
