@@ -1,10 +1,31 @@
 """Build the optional C kernel of mkv_env (everything else is in pyproject.toml).
 
-``mkv_env._fastsim`` runs the MK-V's wheel/motor substep loop in C; without a compiler the build
-skips it (``optional=True``) and mkv_env uses the pure-Python loop, which gives the same bits.
+``mkv_env._fastsim`` runs the MK-V's wheel/motor substep loop and the whole step kernel in C;
+without a compiler the build skips it (``optional=True``) and mkv_env uses the pure-Python
+reference, which gives the same bits. When numpy is importable at build time (it is a build
+requirement in pyproject.toml) the kernel links numpy's random library (``libnpyrandom``) and
+draws the sensor noise itself, on the worker threads; mkv_env checks at import that those draws
+are ``Generator.standard_normal``'s (``mkv_env.kernel.NOISE_IN_C``) and otherwise draws in Python.
 """
 
+import os
+
 from setuptools import Extension, setup
+
+
+def _npyrandom() -> dict:
+    """Compiler/linker settings for numpy's random C library, or {} when numpy is not there."""
+    try:
+        import numpy as np
+    except ImportError:
+        return {}
+    lib = os.path.join(os.path.dirname(np.__file__), "random", "lib")
+    header = os.path.join(np.get_include(), "numpy", "random", "distributions.h")
+    if not (os.path.isdir(lib) and os.path.isfile(header)):
+        return {}
+    return {"include_dirs": [np.get_include()], "library_dirs": [lib],
+            "libraries": ["npyrandom"], "define_macros": [("MKV_NPYRANDOM", "1")]}
+
 
 setup(
     ext_modules=[
@@ -15,6 +36,7 @@ setup(
             extra_compile_args=["-O2", "-ffp-contract=off", "-fno-builtin-sin",
                                 "-fno-builtin-cos", "-fno-fast-math"],
             optional=True,
+            **_npyrandom(),
         )
     ]
 )

@@ -624,6 +624,14 @@ static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs
 #include <sched.h>
 #include <stdatomic.h>
 
+/* Sensor noise drawn in C: numpy's own standard normal (libnpyrandom, linked by setup.py when
+ * numpy is there at build time) on the env's bit generator, so a slot refills its noise block on
+ * whichever thread steps it, with the draws the reference's SensorSuite.draw_block makes.
+ * Without it (MKV_NPYRANDOM undefined) Python draws every block (Batch.set_noise). */
+#ifdef MKV_NPYRANDOM
+#include "numpy/random/distributions.h"
+#endif
+
 #define NCH 10
 #define NOISE_ROWS 256
 #define OBSTACLE_TYPE 10
@@ -698,6 +706,9 @@ typedef struct {
     int64_t ncells, cap;
     int err;
     PyObject *keep; /* the World's counts array: kept alive while bound */
+    void *gen;      /* the episode's numpy bitgen_t (noise drawn in C), or NULL */
+    PyObject *gen_keep; /* its BitGenerator: kept alive while bound */
+    double nstd[NCH], nbias[NCH];
 } Slot;
 
 typedef struct BatchObject BatchObject;
@@ -813,11 +824,38 @@ static double floor_scale(double xd, void *body, const double *patches, Py_ssize
     return 1.0;
 }
 
+/* SensorSuite.draw_block in C: the next block of noise rows, bias + std * standard normal, drawn
+ * row by row, channel by channel from the slot's bit generator (numpy fills its (rows, channels)
+ * array in that order), as two roundings like numpy's ``block *= std; block += bias``. */
+static void refill_noise(Slot *s)
+{
+#ifdef MKV_NPYRANDOM
+    bitgen_t *g = s->gen;
+    for (int r = 0; r < NOISE_ROWS; r++)
+        for (int c = 0; c < NCH; c++) {
+            double z = random_standard_normal(g);
+            double t = z * s->nstd[c];
+            s->noise[NCH * r + c] = t + s->nbias[c];
+        }
+    s->row = 0;
+#else
+    (void)s;
+#endif
+}
+
+/* 1 when the slot has used its noise block and cannot draw the next itself (Python must). */
+static inline int needs_noise(const Slot *s)
+{
+    return s->row >= NOISE_ROWS && s->gen == NULL;
+}
+
 /* SensorSuite.read on slot i's current state: the observation into row i of the obs buffer.
  * Returns 0 or an error code. */
 static int read_sensors(BatchObject *b, Py_ssize_t i)
 {
     Slot *s = &b->slots[i];
+    if (s->row >= NOISE_ROWS) /* (only reached with a bit generator bound: see needs_noise) */
+        refill_noise(s);
     const double *P = b->P;
     double *v = s->v;
     const int64_t *c = s->contacts;
@@ -1129,6 +1167,7 @@ static void batch_dealloc(BatchObject *b)
             free(b->slots[i].patches);
             free(b->slots[i].cells);
             Py_XDECREF(b->slots[i].keep);
+            Py_XDECREF(b->slots[i].gen_keep);
         }
         PyMem_Free(b->slots);
     }
@@ -1360,6 +1399,98 @@ static PyObject *batch_set_noise(BatchObject *b, PyObject *const *args, Py_ssize
     Py_RETURN_NONE;
 }
 
+/* set_noise_source(i, bit_generator or None, std (10 float64), bias (10 float64)) -> bool: slot i
+ * draws its own noise blocks from this numpy BitGenerator (the episode's SensorSuite._rng's)
+ * from now on; True when bound. False (Python draws, through set_noise) when the extension was
+ * built without numpy's random library, for None, and for a generator another slot of the batch
+ * draws from too (both then draw through Python, in slot order, as the reference does). */
+static PyObject *batch_set_noise_source(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "set_noise_source() takes 4 arguments");
+        return NULL;
+    }
+    Py_ssize_t i;
+    Slot *s = get_slot(b, args[0], &i);
+    if (s == NULL)
+        return NULL;
+    double std[NCH], bias[NCH];
+    if (get_doubles(args[2], std, NCH, "noise std") < 0 ||
+        get_doubles(args[3], bias, NCH, "noise bias") < 0)
+        return NULL;
+    s->gen = NULL;
+    Py_CLEAR(s->gen_keep);
+#ifdef MKV_NPYRANDOM
+    if (args[1] == Py_None)
+        Py_RETURN_FALSE;
+    PyObject *cap = PyObject_GetAttrString(args[1], "capsule");
+    if (cap == NULL)
+        return NULL;
+    void *g = PyCapsule_GetPointer(cap, "BitGenerator");
+    Py_DECREF(cap);
+    if (g == NULL)
+        return NULL;
+    int shared = 0;
+    for (Py_ssize_t j = 0; j < b->n; j++)
+        if (j != i && b->slots[j].gen == g) {
+            if (b->running) {
+                PyErr_SetString(PyExc_RuntimeError, "step kernel: a step is running");
+                return NULL;
+            }
+            b->slots[j].gen = NULL;
+            Py_CLEAR(b->slots[j].gen_keep);
+            shared = 1;
+        }
+    if (shared)
+        Py_RETURN_FALSE;
+    memcpy(s->nstd, std, sizeof std);
+    memcpy(s->nbias, bias, sizeof bias);
+    Py_INCREF(args[1]);
+    s->gen_keep = args[1];
+    s->gen = g;
+    Py_RETURN_TRUE;
+#else
+    Py_RETURN_FALSE;
+#endif
+}
+
+/* normals(bit_generator, k) -> list of k floats from numpy's random_standard_normal in C (the
+ * import-time check that the linked library draws what Generator.standard_normal draws), or
+ * None when built without it. */
+static PyObject *fs_normals(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "normals() takes 2 arguments");
+        return NULL;
+    }
+#ifdef MKV_NPYRANDOM
+    Py_ssize_t k = PyLong_AsSsize_t(args[1]);
+    if (k == -1 && PyErr_Occurred())
+        return NULL;
+    PyObject *cap = PyObject_GetAttrString(args[0], "capsule");
+    if (cap == NULL)
+        return NULL;
+    bitgen_t *g = PyCapsule_GetPointer(cap, "BitGenerator");
+    Py_DECREF(cap);
+    if (g == NULL)
+        return NULL;
+    PyObject *out = PyList_New(k > 0 ? k : 0);
+    if (out == NULL)
+        return NULL;
+    for (Py_ssize_t m = 0; m < k; m++) {
+        PyObject *f = PyFloat_FromDouble(random_standard_normal(g));
+        if (f == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyList_SET_ITEM(out, m, f);
+    }
+    return out;
+#else
+    Py_RETURN_NONE;
+#endif
+}
+
 /* state(i) -> (values tuple, row, noise bytes, cells list) */
 static PyObject *batch_state(BatchObject *b, PyObject *idx)
 {
@@ -1418,7 +1549,7 @@ static PyObject *batch_step1(BatchObject *b, PyObject *const *args, Py_ssize_t n
         PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs() not set");
         return NULL;
     }
-    if (s->row >= NOISE_ROWS)
+    if (needs_noise(s))
         Py_RETURN_NONE;
     if (step_slot(b, i, drive, steer))
         return raise_slot_error(s, i);
@@ -1447,7 +1578,7 @@ static PyObject *batch_read(BatchObject *b, PyObject *idx)
         PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs or world not set");
         return NULL;
     }
-    if (s->row >= NOISE_ROWS)
+    if (needs_noise(s))
         Py_RETURN_FALSE;
     if (read_sensors(b, i))
         return raise_slot_error(s, i);
@@ -1500,7 +1631,7 @@ static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject 
             PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
             goto fail;
         }
-        if (b->slots[i].row >= NOISE_ROWS) {
+        if (needs_noise(&b->slots[i])) {
             if (*need == NULL && (*need = PyList_New(0)) == NULL)
                 goto fail;
             PyObject *k = PyLong_FromSsize_t(i);
@@ -1663,6 +1794,8 @@ static PyMethodDef batch_methods[] = {
     {"set_noise", (PyCFunction)(void (*)(void))batch_set_noise, METH_FASTCALL,
      "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
     {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},
+    {"set_noise_source", (PyCFunction)(void (*)(void))batch_set_noise_source, METH_FASTCALL,
+     "set_noise_source(i, bit_generator, std, bias) -> True when slot i draws its own noise."},
     {"read", (PyCFunction)batch_read, METH_O,
      "read(i) -> True, or False when slot i needs noise first: a reset's observation."},
     {"step1", (PyCFunction)(void (*)(void))batch_step1, METH_FASTCALL,
@@ -2295,6 +2428,8 @@ static PyMethodDef methods[] = {
     {"generate_layout", (PyCFunction)(void (*)(void))fs_generate_layout, METH_FASTCALL,
      "generate_layout(bitgen, W, H, n_clutter, n_patches, patch_scale, reserved, consts): "
      "mkv_env.world.generate_layout's draws and geometry in C."},
+    {"normals", (PyCFunction)(void (*)(void))fs_normals, METH_FASTCALL,
+     "normals(bit_generator, k) -> k standard normals drawn in C, or None (no numpy library)."},
     {"hypot", (PyCFunction)(void (*)(void))fs_hypot, METH_FASTCALL,
      "hypot(a, b): the kernel's copy of math.hypot."},
     {"pymod", (PyCFunction)(void (*)(void))fs_pymod, METH_FASTCALL,

@@ -71,8 +71,28 @@ def _pick_hypot() -> bool:
 if AVAILABLE:
     AVAILABLE = _pick_hypot()
 
+
+def _noise_in_c() -> bool:
+    """True when the kernel draws sensor noise itself and its draws are numpy's: the extension
+    was linked with numpy's random library and ``random_standard_normal`` there gives what
+    ``Generator.standard_normal`` gives here, for every bit generator numpy ships (probed)."""
+    if not hasattr(_fastsim, "normals"):
+        return False
+    for bg in (np.random.PCG64, np.random.PCG64DXSM, np.random.MT19937, np.random.Philox,
+               np.random.SFC64):
+        c = _fastsim.normals(bg(20261125), 3000)
+        if c is None or c != np.random.Generator(bg(20261125)).standard_normal(3000).tolist():
+            return False
+    return True
+
+
 if AVAILABLE:
     N_VALUES, N_PARAMS, NOISE_ROWS = _fastsim.N_VALUES, _fastsim.N_PARAMS, _fastsim.NOISE_ROWS
+
+#: True when each slot draws its own sensor-noise blocks in C, from the episode's generator, on
+#: whichever thread steps it (same draws as :meth:`SensorSuite.draw_block`); else Python draws
+#: every block (``Batch.set_noise``) when the kernel asks for one.
+NOISE_IN_C = AVAILABLE and _noise_in_c()
 
 #: The env classes' reward/termination rules, as the kernel numbers them.
 KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
@@ -236,6 +256,10 @@ def push(env, batch, slot: int) -> None:
     values.append(getattr(env, "_phi", 0.0))
     if s._block is not None:
         batch.set_noise(slot, s._block)
+    if NOISE_IN_C:  # the slot draws its next blocks from the episode's generator itself
+        batch.set_noise_source(slot, s._rng.bit_generator if s._rng is not None else None,
+                               np.asarray(s._std, dtype=np.float64),
+                               np.asarray(s._bias, dtype=np.float64))
     batch.load(slot, values, s._row, list(getattr(env, "_cells", ())))
 
 

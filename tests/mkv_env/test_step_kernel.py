@@ -267,6 +267,79 @@ def test_vector_without_infos_keeps_per_env_dicts():
 
 
 @needs_c
+def _plain(state):
+    """A bit generator's state with its arrays as lists (comparable with ==)."""
+    if isinstance(state, dict):
+        return {k: _plain(v) for k, v in state.items()}
+    return state.tolist() if isinstance(state, np.ndarray) else state
+
+
+@needs_c
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**63), kind=st.sampled_from(["PCG64", "PCG64DXSM", "MT19937",
+                                                          "Philox", "SFC64"]),
+       k=st.integers(0, 3000))
+def test_noise_drawn_in_c_is_numpys_standard_normal(seed, kind, k):
+    """The kernel's own draws (numpy's random library, linked) are Generator.standard_normal's
+    and leave the generator where numpy leaves it."""
+    from mkv_env import _fastsim
+
+    bg = getattr(np.random, kind)
+    g1, g2 = bg(seed), np.random.Generator(bg(seed))
+    got = _fastsim.normals(g1, k)
+    if got is None:  # built without numpy's library: Python draws every block
+        assert not kernel_mod.NOISE_IN_C
+        return
+    assert kernel_mod.NOISE_IN_C
+    assert [_bits(x) for x in got] == [_bits(x) for x in g2.standard_normal(k).tolist()]
+    assert _plain(g1.state) == _plain(g2.bit_generator.state)
+
+
+@needs_c
+@pytest.mark.parametrize("env_id", ["MKV-v0", "MKVJam-v1"])
+def test_noise_drawn_by_python_or_by_the_kernel_gives_the_same_run(env_id, monkeypatch):
+    """Both ways to refill a slot's noise block (the kernel on its threads, or Python through
+    set_noise when the library is missing) give the reference's bits."""
+    ref = _vector_run(env_id, "python", "NextStep", 1, n=4, steps=700, max_steps=300)
+    assert _vector_run(env_id, "c", "NextStep", 2, n=4, steps=700, max_steps=300) == ref
+    monkeypatch.setattr(kernel_mod, "NOISE_IN_C", False)
+    assert _vector_run(env_id, "c", "NextStep", 2, n=4, steps=700, max_steps=300) == ref
+
+
+@needs_c
+def test_a_generator_shared_by_two_robots_is_drawn_in_robot_order():
+    """Two envs handed one generator: the kernel does not draw from it on two threads (both
+    slots fall back to Python's draws, in slot order), so the run is the reference's."""
+    def run(kernel):
+        kw = {"kernel": kernel, "max_episode_steps": 10_000}
+        if kernel == "c":
+            kw["num_threads"] = 2
+        venv = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point", **kw)
+        venv.reset(seed=5)
+        shared = np.random.default_rng(77)
+        for e in venv.unwrapped.envs:
+            e.np_random = shared
+        obs, _ = venv.reset()  # no seed: both episodes draw from the one generator
+        rows = [obs.tobytes()]
+        for a in np.random.default_rng(1).integers(0, 3, size=(600, 2, 2)):
+            rows.append(venv.step(a)[0].tobytes())
+        venv.close()
+        return rows, shared.bit_generator.state
+
+    assert run("c") == run("python")
+    if kernel_mod.NOISE_IN_C:
+        b = kernel_mod._fastsim.Batch  # the binding says so: the second slot refuses the first's
+        venv = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+        venv.reset(seed=0)
+        batch, g = venv.unwrapped._batch, np.random.default_rng(3).bit_generator
+        z = np.zeros(10)
+        assert isinstance(batch, b)
+        assert batch.set_noise_source(0, g, z, z) is True
+        assert batch.set_noise_source(1, g, z, z) is False
+        assert batch.set_noise_source(0, None, z, z) is False
+        venv.close()
+
+
 def test_vector_env_rejects_bad_thread_counts():
     for bad in (0, -1, 1.5, True, 1000):
         with pytest.raises(ValueError, match="num_threads"):
