@@ -4,7 +4,8 @@
 without a compiler the build skips it (``optional=True``) and mkv_env uses the pure-Python
 reference, which gives the same bits. When numpy is importable at build time (it is a build
 requirement in pyproject.toml) the kernel links numpy's random library (``libnpyrandom``) and
-draws the sensor noise itself, on the worker threads; mkv_env checks at import that those draws
+draws the sensor noise itself, on the worker threads, and makes a vector env's result arrays
+with numpy's array API (``Batch.collect``); mkv_env checks at import that those draws
 are ``Generator.standard_normal``'s (``mkv_env.kernel.NOISE_IN_C``) and otherwise draws in Python.
 """
 
@@ -24,7 +25,8 @@ def _npyrandom() -> dict:
     if not (os.path.isdir(lib) and os.path.isfile(header)):
         return {}
     return {"include_dirs": [np.get_include()], "library_dirs": [lib],
-            "libraries": ["npyrandom"], "define_macros": [("MKV_NPYRANDOM", "1")]}
+            "libraries": ["npyrandom"],
+            "define_macros": [("MKV_NPYRANDOM", "1"), ("MKV_NUMPY", "1")]}
 
 
 setup(

@@ -631,6 +631,11 @@ static PyObject *fs_bind(PyObject *self, PyObject *const *args, Py_ssize_t nargs
 #ifdef MKV_NPYRANDOM
 #include "numpy/random/distributions.h"
 #endif
+/* numpy's array API (built with numpy's headers): Batch.collect makes a step's result arrays. */
+#ifdef MKV_NUMPY
+#define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
+#include "numpy/arrayobject.h"
+#endif
 
 #define NCH 10
 #define NOISE_ROWS 256
@@ -714,6 +719,7 @@ typedef struct {
 typedef struct BatchObject BatchObject;
 
 typedef struct {
+    _Alignas(64) atomic_long next; /* the next robot of this group to claim (own cache line) */
     BatchObject *b;
     int group;
     pthread_t th;
@@ -1003,19 +1009,40 @@ static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
     return 0;
 }
 
-/* The current job's robots of thread group g: a fixed, contiguous share per thread, so each
- * robot's memory (its Chipmunk space, shapes, contact buffers) stays in one core's caches
- * (threads taking robots in turn measured 1.24x on two cores against 1x; see
- * benchmarks/env_speed.py). Which thread steps a robot never changes its result. */
-static void run_group(BatchObject *b, int g)
+/* The current job's robots, claimed one by one by the threads. Each thread has a home group, a
+ * fixed contiguous share of the robots, so each robot's memory (its Chipmunk space, shapes,
+ * contact buffers) mostly stays in one core's caches (threads taking robots in turn measured
+ * 1.24x on two cores against 1.5x for contiguous shares; see benchmarks/env_speed.py); a thread
+ * that has finished its group takes the unclaimed robots of the others (the calling thread is
+ * late when it resets the envs that ended while the workers step). Which thread steps a robot
+ * never changes its result: each is claimed exactly once (an atomic counter per group). */
+static inline void step_robot(BatchObject *b, Py_ssize_t i)
 {
     const int64_t *a = b->acts;
-    Py_ssize_t lo = b->n * g / b->nthreads, hi = b->n * (g + 1) / b->nthreads;
-    for (Py_ssize_t i = lo; i < hi; i++) {
-        if (b->active != NULL && !b->active[i])
-            continue;
-        /* [drive, steer] in {0,1,2}: motor commands a0 - 1 and 1 - a1 (steer 0 = left = +1) */
-        step_slot(b, i, (long)(a[2 * i] - 1), (long)(1 - a[2 * i + 1]));
+    if (b->active != NULL && !b->active[i])
+        return;
+    /* [drive, steer] in {0,1,2}: motor commands a0 - 1 and 1 - a1 (steer 0 = left = +1) */
+    step_slot(b, i, (long)(a[2 * i] - 1), (long)(1 - a[2 * i + 1]));
+}
+
+static void run_group(BatchObject *b, int g)
+{
+    int T = b->nthreads;
+    if (T <= 1 || b->workers == NULL) {
+        for (Py_ssize_t i = 0; i < b->n; i++)
+            step_robot(b, i);
+        return;
+    }
+    for (int k = 0; k < T; k++) {
+        int h = (g + k) % T;
+        Py_ssize_t hi = b->n * (h + 1) / T;
+        atomic_long *next = &b->workers[h].next;
+        for (;;) {
+            Py_ssize_t i = (Py_ssize_t)atomic_fetch_add_explicit(next, 1, memory_order_relaxed);
+            if (i >= hi)
+                break;
+            step_robot(b, i);
+        }
     }
 }
 
@@ -1062,7 +1089,9 @@ static int start_workers(BatchObject *b)
     if (b->nthreads <= 1 || b->started)
         return 0;
     b->owner_pid = (long)getpid();
-    b->workers = calloc((size_t)b->nthreads, sizeof(Worker));
+    b->workers = aligned_alloc(64, (size_t)b->nthreads * sizeof(Worker)); /* cursor per line */
+    if (b->workers != NULL)
+        memset(b->workers, 0, (size_t)b->nthreads * sizeof(Worker));
     if (b->workers == NULL) {
         PyErr_NoMemory();
         return -1;
@@ -1084,6 +1113,9 @@ static void launch_job(BatchObject *b)
 {
     if (b->nthreads <= 1)
         return;
+    for (int g = 0; g < b->nthreads; g++) /* every group's robots unclaimed again */
+        atomic_store_explicit(&b->workers[g].next, (long)(b->n * g / b->nthreads),
+                              memory_order_relaxed);
     atomic_store(&b->pending, b->nthreads - 1);
     pthread_mutex_lock(&b->mu);
     __atomic_add_fetch(&b->gen, 1, __ATOMIC_RELEASE);
@@ -1747,6 +1779,145 @@ static PyObject *batch_step_finish(BatchObject *b, PyObject *unused)
     return conclude_job(b);
 }
 
+#ifdef MKV_NUMPY
+/* A fresh numpy copy of output buffer k (shape (n,) or (n, width)). */
+static PyObject *out_copy(BatchObject *b, int k)
+{
+    static const int types[256] = {['f'] = NPY_FLOAT32, ['d'] = NPY_FLOAT64, ['?'] = NPY_BOOL,
+                                   ['q'] = NPY_INT64};
+    npy_intp dims[2] = {b->n, O_WIDTH[k]};
+    PyObject *a = PyArray_SimpleNew(O_WIDTH[k] > 1 ? 2 : 1, dims, types[(int)O_FMT[k]]);
+    if (a != NULL)
+        memcpy(PyArray_DATA((PyArrayObject *)a), b->out[k].buf, (size_t)b->out[k].len);
+    return a;
+}
+
+/* collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, terminated,
+ * truncated, cols, info or None): a vector env's per-step bookkeeping after step(), in one call
+ * (MKVVectorEnv._step_kernel, the same operations as its Python fallback): fresh copies of this
+ * step's outputs; elapsed (int64, n) += 1 for every stepped robot (active, bool n, or None for
+ * all); truncated = elapsed >= max_steps (never when max_steps < 0) for stepped robots;
+ * autoreset (bool n, or None) = terminated | truncated; cols = {name: copy of output index} for
+ * each (name, mask_name, index) of spec; info = cols plus {mask_name: fresh all-True bool n}
+ * when want_info (Gymnasium's vector info of robots that all report every key). */
+static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "collect() takes 6 arguments");
+        return NULL;
+    }
+    if (!b->have_out || b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: no outputs, or a step is running");
+        return NULL;
+    }
+    Py_ssize_t n = b->n;
+    long long max_steps = PyLong_AsLongLong(args[1]);
+    if (max_steps == -1 && PyErr_Occurred())
+        return NULL;
+    int want = PyObject_IsTrue(args[5]);
+    if (want < 0)
+        return NULL;
+    if (!PyTuple_Check(args[4])) {
+        PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
+        return NULL;
+    }
+    Py_buffer ev, av, rv;
+    int have_a = 0, have_r = 0;
+    PyObject *result = NULL, *obs = NULL, *rew = NULL, *term = NULL, *trunc = NULL;
+    PyObject *cols = NULL, *info = NULL;
+    if (PyObject_GetBuffer(args[0], &ev, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
+        return NULL;
+    if (ev.itemsize != 8 || ev.len != n * 8 || ev.format == NULL ||
+        (strcmp(ev.format, "q") != 0 && strcmp(ev.format, "l") != 0)) {
+        PyErr_Format(PyExc_ValueError, "elapsed must be int64 of shape (%zd,)", n);
+        goto done;
+    }
+    if (args[2] != Py_None) {
+        if (PyObject_GetBuffer(args[2], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+            goto done;
+        have_a = 1;
+        if (av.len != n || av.format == NULL || strcmp(av.format, "?") != 0) {
+            PyErr_Format(PyExc_ValueError, "active must be bool of shape (%zd,)", n);
+            goto done;
+        }
+    }
+    if (args[3] != Py_None) {
+        if (PyObject_GetBuffer(args[3], &rv,
+                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
+            goto done;
+        have_r = 1;
+        if (rv.len != n || rv.format == NULL || strcmp(rv.format, "?") != 0) {
+            PyErr_Format(PyExc_ValueError, "autoreset must be bool of shape (%zd,)", n);
+            goto done;
+        }
+    }
+    obs = out_copy(b, O_OBS);
+    rew = out_copy(b, O_REW);
+    term = out_copy(b, O_TERM);
+    npy_intp dim = n;
+    trunc = PyArray_SimpleNew(1, &dim, NPY_BOOL);
+    cols = PyDict_New();
+    info = want ? PyDict_New() : NULL;
+    if (obs == NULL || rew == NULL || term == NULL || trunc == NULL || cols == NULL ||
+        (want && info == NULL))
+        goto done;
+    int64_t *el = ev.buf;
+    const uint8_t *act = have_a ? av.buf : NULL;
+    const uint8_t *te = PyArray_DATA((PyArrayObject *)term);
+    uint8_t *tr = PyArray_DATA((PyArrayObject *)trunc);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        int moved = act == NULL || act[i];
+        el[i] += moved;
+        tr[i] = (uint8_t)(moved && max_steps >= 0 && el[i] >= max_steps);
+        if (have_r)
+            ((uint8_t *)rv.buf)[i] = (uint8_t)(te[i] | tr[i]);
+    }
+    for (Py_ssize_t k = 0; k < PyTuple_GET_SIZE(args[4]); k++) {
+        PyObject *item = PyTuple_GET_ITEM(args[4], k), *name, *mname;
+        int idx;
+        if (!PyArg_ParseTuple(item, "UUi", &name, &mname, &idx))
+            goto done;
+        if (idx < 0 || idx >= O_LEN) {
+            PyErr_SetString(PyExc_ValueError, "output index out of range");
+            goto done;
+        }
+        PyObject *col = idx == O_OBS ? (Py_INCREF(obs), obs)
+                      : idx == O_TERM ? (Py_INCREF(term), term) : out_copy(b, idx);
+        if (col == NULL)
+            goto done;
+        int bad = PyDict_SetItem(cols, name, col) < 0 ||
+                  (want && PyDict_SetItem(info, name, col) < 0);
+        Py_DECREF(col);
+        if (bad)
+            goto done;
+        if (want) {
+            PyObject *m = PyArray_SimpleNew(1, &dim, NPY_BOOL);
+            if (m == NULL)
+                goto done;
+            memset(PyArray_DATA((PyArrayObject *)m), 1, (size_t)n);
+            bad = PyDict_SetItem(info, mname, m) < 0;
+            Py_DECREF(m);
+            if (bad)
+                goto done;
+        }
+    }
+    result = PyTuple_Pack(6, obs, rew, term, trunc, cols, want ? info : Py_None);
+done:
+    Py_XDECREF(obs);
+    Py_XDECREF(rew);
+    Py_XDECREF(term);
+    Py_XDECREF(trunc);
+    Py_XDECREF(cols);
+    Py_XDECREF(info);
+    PyBuffer_Release(&ev);
+    if (have_a)
+        PyBuffer_Release(&av);
+    if (have_r)
+        PyBuffer_Release(&rv);
+    return result;
+}
+#endif
+
 /* physics(actions, active) -> None: only the physics of every active robot (the floor the
  * benchmark compares against); sensors, tracker and outputs untouched. */
 static PyObject *batch_physics(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
@@ -1794,6 +1965,11 @@ static PyMethodDef batch_methods[] = {
     {"set_noise", (PyCFunction)(void (*)(void))batch_set_noise, METH_FASTCALL,
      "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
     {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},
+#ifdef MKV_NUMPY
+    {"collect", (PyCFunction)(void (*)(void))batch_collect, METH_FASTCALL,
+     "collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, "
+     "terminated, truncated, cols, info): a vector env's bookkeeping after step()."},
+#endif
     {"set_noise_source", (PyCFunction)(void (*)(void))batch_set_noise_source, METH_FASTCALL,
      "set_noise_source(i, bit_generator, std, bias) -> True when slot i draws its own noise."},
     {"read", (PyCFunction)batch_read, METH_O,
@@ -2441,6 +2617,10 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fastsim",
 
 PyMODINIT_FUNC PyInit__fastsim(void)
 {
+#ifdef MKV_NUMPY
+    if (_import_array() < 0)
+        return NULL;
+#endif
     for (int i = 0; i < S_LEN; i++) {
         state_names[i] = PyUnicode_InternFromString(STATE_NAMES[i]);
         if (state_names[i] == NULL)

@@ -94,6 +94,10 @@ if AVAILABLE:
 #: every block (``Batch.set_noise``) when the kernel asks for one.
 NOISE_IN_C = AVAILABLE and _noise_in_c()
 
+#: True when the extension makes a vector env's per-step result arrays itself (``Batch.collect``,
+#: built with numpy's array API); else :class:`mkv_env.vector.MKVVectorEnv` does it in Python.
+COLLECT = AVAILABLE and hasattr(_fastsim.Batch, "collect")
+
 #: The env classes' reward/termination rules, as the kernel numbers them.
 KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
 

@@ -121,11 +121,13 @@ class MKVVectorEnv(VectorEnv):
         self._final_env_infos: list[dict | None] = [None] * n
         self._lazy_infos: tuple | None = None  # (arrays, rows) to build env_infos from
         self._lazy_final: tuple | None = None
+        self._true_rows: np.ndarray | None = None  # all-True info-mask template (copied per step)
         self.vector_infos = bool(vector_infos)  # False: skip Gymnasium's vector info (SB3VecEnv)
         self._period, self._substeps = first.control_period_s, first.substeps
         self._dt = self._period / self._substeps
         self.num_threads = 1
         self._batch = None
+        self._collect = None
         if self.kernel != "c" and num_threads != 1:
             raise ValueError("num_threads > 1 needs the compiled step kernel (kernel='c'); the "
                              "Python reference steps its robots one by one")
@@ -137,6 +139,16 @@ class MKVVectorEnv(VectorEnv):
                 env._batch, env._out, env._slot, env._dirty = self._batch, self._out, i, self._dirty
             self._obs = self._out["obs"]
             self._kind = env_cls._KERNEL_KIND
+            # the per-step bookkeeping compiled (Batch.collect), when built with numpy's API
+            self._collect = getattr(self._batch, "collect", None) if _kernel.COLLECT else None
+            names = list(_INFO_COLUMNS)
+            if self._kind == _kernel.KIND_WANDER_V1:
+                names.append("cells_visited")
+            elif self._kind != _kernel.KIND_WANDER:
+                names.append("escaped")
+            index = {name: k for k, (name, _, _) in enumerate(_kernel.OUTPUTS)}
+            self._col_spec = tuple((k, _MASK_KEY[k], index[k]) for k in names)
+            self._max_steps = -1 if self.max_episode_steps is None else self.max_episode_steps
             self._has_scenario = hasattr(first, "scenario")
             self._scenarios = np.full(n, None, dtype=object)
             self._active = np.ones(n, dtype=bool)
@@ -227,7 +239,7 @@ class MKVVectorEnv(VectorEnv):
     def step(self, actions):
         if not self._started:
             raise gym.error.ResetNeeded("call reset() before step()")
-        if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
+        if self.autoreset_mode == AutoresetMode.DISABLED and np.count_nonzero(self._autoreset):
             raise gym.error.ResetNeeded(
                 f"envs {np.flatnonzero(self._autoreset).tolist()} have ended: with "
                 "autoreset_mode Disabled, reset them (options={'reset_mask': ...}) first")
@@ -240,7 +252,8 @@ class MKVVectorEnv(VectorEnv):
         n = self.num_envs
         acts = self._actions(actions)
         mode = self.autoreset_mode
-        resetting = mode == AutoresetMode.NEXT_STEP and self._autoreset.any()
+        # (count_nonzero: ndarray.any costs several times more on a few robots)
+        resetting = mode == AutoresetMode.NEXT_STEP and np.count_nonzero(self._autoreset) > 0
         if resetting:
             active = np.logical_not(self._autoreset, out=self._active)
             reset_idx = np.flatnonzero(self._autoreset).tolist()
@@ -273,36 +286,48 @@ class MKVVectorEnv(VectorEnv):
             finally:
                 b.step_finish()
             reset_idx = ()
-        # this step's numbers, copied (the kernel reuses its buffers): one copy per dtype block
-        blocks = out.blocks
-        obs, pose = blocks["obs"].copy(), blocks["pose"].copy()
-        rewards, distance = blocks["f"].copy()
-        terminated, stuck, bumped, collision, in_jam, escaped = blocks["b"].copy()
-        jams, escapes, collisions, cells = blocks["i"].copy()
-        elapsed = self._elapsed
-        if resetting:
-            elapsed += active
+        want = self.vector_infos
+        kind = self._kind
+        if self._collect is not None:  # the bookkeeping below in one compiled call
+            obs, rewards, terminated, truncated, cols, vinfo = self._collect(
+                self._elapsed, self._max_steps, active,
+                None if mode == AutoresetMode.SAME_STEP else self._autoreset, self._col_spec,
+                want)
+            elapsed = self._elapsed
+            if self._has_scenario:
+                cols["scenario"] = scen = self._scenarios.copy()
+                if want:
+                    vinfo["scenario"], vinfo["_scenario"] = scen, np.ones(n, dtype=bool)
         else:
-            elapsed += 1
-        if self.max_episode_steps is None:
-            truncated = np.zeros(n, dtype=bool)
-        else:
-            truncated = np.greater_equal(elapsed, self.max_episode_steps)
+            # this step's numbers, copied (the kernel reuses its buffers): one copy per block
+            vinfo = None
+            blocks = out.blocks
+            obs, pose = blocks["obs"].copy(), blocks["pose"].copy()
+            rewards, distance = blocks["f"].copy()
+            terminated, stuck, bumped, collision, in_jam, escaped = blocks["b"].copy()
+            jams, escapes, collisions, cells = blocks["i"].copy()
+            elapsed = self._elapsed
             if resetting:
-                truncated &= active
+                elapsed += active
+            else:
+                elapsed += 1
+            if self.max_episode_steps is None:
+                truncated = np.zeros(n, dtype=bool)
+            else:
+                truncated = np.greater_equal(elapsed, self.max_episode_steps)
+                if resetting:
+                    truncated &= active
+            cols = {"stuck": stuck, "bumped": bumped, "collision": collision,
+                    "distance_m": distance, "jams": jams, "escapes": escapes,
+                    "collisions": collisions, "in_jam": in_jam, "pose": pose}
+            if kind == _kernel.KIND_WANDER_V1:
+                cols["cells_visited"] = cells
+            elif kind != _kernel.KIND_WANDER:
+                cols["escaped"] = escaped
+                cols["scenario"] = self._scenarios.copy()
         if self.render_mode is not None:
             self._trails(active)
         info: dict[str, Any] = {}
-        want = self.vector_infos
-        cols = {"stuck": stuck, "bumped": bumped, "collision": collision,
-                "distance_m": distance, "jams": jams, "escapes": escapes,
-                "collisions": collisions, "in_jam": in_jam, "pose": pose}
-        kind = self._kind
-        if kind == _kernel.KIND_WANDER_V1:
-            cols["cells_visited"] = cells
-        elif kind != _kernel.KIND_WANDER:
-            cols["escaped"] = escaped
-            cols["scenario"] = self._scenarios.copy()
         for i, o, d in early:
             obs[i] = o
             elapsed[i] = 0
@@ -329,10 +354,12 @@ class MKVVectorEnv(VectorEnv):
                         "final_info": self._vector_info(final_cols, mask) if want else {},
                         "_final_info": mask.copy()}
             self._autoreset[:] = False
-        else:
+        elif vinfo is None:  # (collect has set the flags in place)
             self._autoreset = terminated | truncated
         if want:
-            info = {**self._vector_info(cols, None), **info}
+            if vinfo is None:
+                vinfo = self._vector_info(cols, None)
+            info = {**vinfo, **info} if info else vinfo
         self._lazy_infos = (cols, self._everyone)  # per-env dicts only if someone reads them
         self._lazy_final = final_lazy
         if final_lazy is None:
@@ -350,8 +377,13 @@ class MKVVectorEnv(VectorEnv):
         """Gymnasium's vector info from info columns: every key with its ``_key`` mask (all
         True, or ``mask``), as ``VectorEnv._add_info`` builds it from the per-env dicts."""
         n = self.num_envs
-        masks = (np.ones((len(cols), n), dtype=bool) if mask is None
-                 else np.repeat(mask[None, :], len(cols), axis=0))
+        if mask is None:  # fresh all-True rows, one copy of a template (np.ones costs more)
+            t = self._true_rows
+            if t is None or t.shape[0] != len(cols):
+                t = self._true_rows = np.ones((len(cols), n), dtype=bool)
+            masks = t.copy()
+        else:
+            masks = np.repeat(mask[None, :], len(cols), axis=0)
         if mask is None:
             info = dict(cols)
         else:
@@ -572,9 +604,10 @@ class MKVVectorEnv(VectorEnv):
 
 
 #: "_key", the name of a vector info key's mask.
-_MASK_KEY = {k: f"_{k}" for k in ("stuck", "bumped", "collision", "distance_m", "jams",
-                                    "escapes", "collisions", "in_jam", "pose", "escaped",
-                                    "scenario", "cells_visited")}
+#: The info keys every robot reports (the kernel's outputs of these names), in order.
+_INFO_COLUMNS = ("stuck", "bumped", "collision", "distance_m", "jams", "escapes", "collisions",
+                 "in_jam", "pose")
+_MASK_KEY = {k: f"_{k}" for k in (*_INFO_COLUMNS, "escaped", "scenario", "cells_visited")}
 
 
 def _masked(col: np.ndarray, mask: np.ndarray) -> np.ndarray:

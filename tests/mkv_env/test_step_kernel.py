@@ -307,6 +307,43 @@ def test_noise_drawn_by_python_or_by_the_kernel_gives_the_same_run(env_id, monke
 
 
 @needs_c
+@pytest.mark.parametrize("mode", ["NextStep", "SameStep", "Disabled"])
+def test_vector_bookkeeping_in_python_or_compiled_gives_the_same_run(mode, monkeypatch):
+    """Batch.collect (the per-step result arrays, elapsed, truncation, autoreset flags and
+    Gymnasium's info, compiled) and its Python fallback give the reference's bits."""
+    ref = _vector_run("MKVJam-v1", "python", mode, 1)
+    assert kernel_mod.COLLECT == hasattr(kernel_mod._fastsim.Batch, "collect")
+    assert _vector_run("MKVJam-v1", "c", mode, 2) == ref
+    monkeypatch.setattr(kernel_mod, "COLLECT", False)
+    assert _vector_run("MKVJam-v1", "c", mode, 2) == ref
+    assert _vector_run("MKV-v1", "c", mode, 1) == _vector_run("MKV-v1", "python", mode, 1)
+
+
+@needs_c
+def test_a_steps_results_are_its_own_arrays():
+    """What step() returns is never overwritten by the next step (fresh arrays, masks too), and
+    collect refuses buffers of the wrong kind in one line."""
+    venv = gym.make_vec("MKV-v1", num_envs=3, vectorization_mode="vector_entry_point")
+    venv.reset(seed=2)
+    first = venv.step(np.full((3, 2), 2))
+    kept = [first[0].copy(), first[1].copy(), {k: v.copy() for k, v in first[4].items()}]
+    for _ in range(5):
+        venv.step(np.zeros((3, 2), dtype=np.int64))
+    assert first[0].tobytes() == kept[0].tobytes() and first[1].tobytes() == kept[1].tobytes()
+    assert all(np.array_equal(first[4][k], v) for k, v in kept[2].items())
+    first[4]["_stuck"][0] = False  # masks are the caller's to change
+    if kernel_mod.COLLECT:
+        b = venv.unwrapped._batch
+        with pytest.raises(ValueError, match="elapsed must be int64"):
+            b.collect(np.zeros(3, dtype=np.int32), -1, None, None, (), False)
+        with pytest.raises(ValueError, match="active must be bool"):
+            b.collect(np.zeros(3, dtype=np.int64), -1, np.zeros(2, bool), None, (), False)
+        with pytest.raises(ValueError, match="output index"):
+            b.collect(np.zeros(3, dtype=np.int64), -1, None, None, (("a", "_a", 99),), True)
+    venv.close()
+
+
+@needs_c
 def test_a_generator_shared_by_two_robots_is_drawn_in_robot_order():
     """Two envs handed one generator: the kernel does not draw from it on two threads (both
     slots fall back to Python's draws, in slot order), so the run is the reference's."""
