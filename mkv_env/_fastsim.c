@@ -2113,6 +2113,20 @@ static int append_tuple(PyObject *list, const double *v, int n)
     return rc;
 }
 
+/* math.hypot(dx, dy) < R, as Python computes it, but hypot only where it could matter: the
+ * squared distance (relative error < 1e-15) decides when it is more than 1e-9 away from R^2. */
+static inline int near(double dx, double dy, double R)
+{
+    double d2 = dx * dx + dy * dy, R2 = R * R;
+    if (isfinite(d2) && isfinite(R2) && R > 0.0 && d2 > 1e-200 && R2 > 1e-200) {
+        if (d2 < R2 * (1.0 - 1e-9))
+            return 1;
+        if (d2 > R2 * (1.0 + 1e-9))
+            return 0;
+    }
+    return py_hypot(dx, dy) < R;
+}
+
 static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 8) {
@@ -2218,8 +2232,8 @@ static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ss
             int hit = 0;
             for (int j = 0; j < ni && !hit; j++)
                 for (Py_ssize_t k = 0; k < nc && !hit; k++)
-                    hit = py_hypot(b[j].x - circles[k].x, b[j].y - circles[k].y) <
-                          b[j].r + circles[k].r + cgap;
+                    hit = near(b[j].x - circles[k].x, b[j].y - circles[k].y,
+                               b[j].r + circles[k].r + cgap);
             if (hit)
                 continue;
             for (int j = 0; j < ni; j++) {
