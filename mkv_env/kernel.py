@@ -15,10 +15,13 @@ same IEEE operations in the same order (``math.hypot`` is CPython's ``vector_nor
 same bits: ``tests/mkv_env/test_step_kernel.py`` drives both with random actions, parameters and
 seeds and compares every observation, reward, flag and info value.
 
-Random numbers stay numpy's: the sensor noise is still drawn by the env's ``np_random`` in blocks
-of 256 rows (:meth:`SensorSuite.draw_block`); a slot that has used its block asks for a new one
-(``step`` returns the slots that need one, before stepping anything), so the draws happen in the
-same order as the reference's.
+Random numbers stay numpy's: the sensor noise comes from the episode's generator (the env's
+``np_random`` at reset) in blocks of 256 rows, as :meth:`SensorSuite.draw_block` draws them. When
+the extension is linked with numpy's random library (:data:`NOISE_IN_C`, checked at import), a slot
+draws its next block itself with numpy's ``random_standard_normal`` on that generator's bit
+generator, on whichever thread steps it; otherwise a slot that has used its block asks for a new
+one (``step`` returns the slots that need one, before stepping anything) and Python draws it.
+Either way the draws happen in the reference's order.
 
 State moves between Python and C at well-defined points only: a reset ``push``es the Python
 objects' state into the slot; reading ``env.tracker``, ``env.sensors`` or ``robot.state`` after C

@@ -354,7 +354,7 @@ class MKVVectorEnv(VectorEnv):
                         "final_info": self._vector_info(final_cols, mask) if want else {},
                         "_final_info": mask.copy()}
             self._autoreset[:] = False
-        elif vinfo is None:  # (collect has set the flags in place)
+        elif self._collect is None:  # (collect has set the flags in place)
             self._autoreset = terminated | truncated
         if want:
             if vinfo is None:
