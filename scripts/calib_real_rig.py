@@ -13,7 +13,13 @@ means on the poses :func:`calib.joint.choose_known_poses` recommends (from the r
 directions); centered and paper routes get the same 4 known loads. Prints per set the held-out
 rms of least squares and each route's ratio to it, and whether ``calib fit`` would exit 3.
 
-    python scripts/calib_real_rig.py --data DIR [--split alternate|halves]
+    python scripts/calib_real_rig.py --data DIR [--split alternate|halves] [--diagnose]
+
+``--diagnose`` adds, per set, where the joint route's error comes from (true pose labels): the
+pose fit's chosen optimum against the one reached from the *true* directions of the unknown poses
+(a search failure would show as a lower cost there); the best an affine forward model can do
+(fitted with all 12 loads known, then the 8 unknown directions re-inferred from it); and a full
+quadratic forward model started from the true directions (identifiable or not).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from calib import rig as rig_mod  # noqa: E402
 from calib.bias import fit_bias  # noqa: E402
 from calib.joint import choose_known_poses, fit_joint  # noqa: E402
 from calib.least_squares import fit_least_squares  # noqa: E402
@@ -47,11 +54,67 @@ def load_set(folder: str, k: int):
     return Z, M, pose, within, count
 
 
+def _traceless(M, g):
+    """The 5 quadratic forms of a load that are not constant on a sphere of radius g."""
+    x, y, z = (np.asarray(M) / g).T
+    return np.column_stack([x * x - y * y, x * x + y * y - 2 * z * z, x * y, x * z, y * z])
+
+
+class _QuadraticForward(rig_mod.ForwardModel):
+    """zbar = A m + o + Q q(m) per channel (q: the traceless quadratic forms): the most a
+    second-order sensor model adds; used only to show whether it is identifiable here."""
+
+    def linear(self, M, W):
+        pd = self.pd
+        X = np.column_stack([M, np.ones(pd.P), _traceless(M, self.magnitude)])
+        R = np.empty_like(pd.means)
+        for c in range(pd.p):
+            b = np.linalg.lstsq(X * W[:, c:c + 1], pd.means[:, c] * W[:, c], rcond=None)[0]
+            R[:, c] = (pd.means[:, c] - X @ b) * W[:, c]
+        return None, R
+
+
+def diagnose(Z, M, pose, tr, te, loads, means, kn, base) -> str:
+    """One line: where the joint route's error comes from on this set (see the docstring)."""
+    def ratio(pose_loads):
+        cal = fit_least_squares(Z[tr], pose_loads[pose][tr], bias=True)
+        return float(np.sqrt(np.mean((cal.apply(Z[te]) - M[te]) ** 2))) / base
+
+    s1 = rig_mod.rig_pose_loads(Z[tr], pose[tr], means[kn], loads[kn])
+    pd, fin, W2 = s1["pd"], s1["final"], s1["W2"]
+    truth = loads[pd.unknown] / np.linalg.norm(loads[pd.unknown], axis=1, keepdims=True)
+    parts = [f"chosen ({'bent' if s1['bend'].get('used') else 'affine'}) {ratio(fin['M']):.2f}x "
+             f"cost {fin['cost']:.3g}"]
+    for name, bend in (("affine", False), ("bent", True)):
+        fm = rig_mod.ForwardModel(pd)
+        fm.bend = bend
+        t = fm.solve(truth, fin["g"], W2)
+        parts.append(f"{name} from true directions {ratio(t['M']):.2f}x cost {t['cost']:.3g}")
+    # the affine model's limit: fitted with every load known, directions re-inferred from it
+    X = np.column_stack([loads, np.ones(len(loads))])
+    B = np.linalg.lstsq(X, means, rcond=None)[0]
+    A, o = B[:3].T, B[3]
+    est = loads.copy()
+    for j in np.setdiff1d(np.arange(len(loads)), kn):
+        d = np.linalg.lstsq(A, means[j] - o, rcond=None)[0]
+        est[j] = np.linalg.norm(loads[j]) * d / np.linalg.norm(d)
+    parts.append(f"affine fitted on all 12 loads {ratio(est):.2f}x "
+                 f"(pose loads off by up to {np.abs(est - loads).max():.2f} N)")
+    q = _QuadraticForward(pd, float(np.median(np.linalg.norm(loads[kn], axis=1))))
+    t = q.solve(truth, q.magnitude, W2)
+    parts.append(f"full quadratic from true directions {ratio(t['M']):.2f}x "
+                 f"(pose loads off by up to {np.linalg.norm(t['M'] - loads, axis=1).max():.1f} N)")
+    return "; ".join(parts)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="folder of data_<set>.0_*.csv files")
     ap.add_argument("--split", choices=("alternate", "halves"), default="alternate")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="also print where the joint route's error comes from (slow)")
     args = ap.parse_args(argv)
+    notes = []
     print("| set | load (N) | least squares rms (N) | joint (default) | centered | paper |")
     print("|---|---|---|---|---|---|")
     for k in range(5):
@@ -84,7 +147,13 @@ def main(argv=None):
                 cells.append((err(c) / ls, bool(assess(c, Zk, Mk))))
         g = float(np.median(np.linalg.norm(loads, axis=1)))
         print(f"| {k} | {g:.2f} | {ls:.3f} | " + " | ".join(
-            f"{q:.2f}x{' (exit 3)' if bad else ''}" for q, bad in cells) + " |")
+            f"{q:.2f}x{' (exit 3)' if bad else ''}" for q, bad in cells) + " |", flush=True)
+        if args.diagnose:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                notes.append(f"set {k}: " + diagnose(Z, M, pose, tr, te, loads, means, kn, ls))
+    for line in notes:
+        print(line)
 
 
 if __name__ == "__main__":
