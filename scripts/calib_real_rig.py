@@ -13,7 +13,8 @@ means on the poses :func:`calib.joint.choose_known_poses` recommends (from the r
 directions); centered and paper routes get the same 4 known loads. Prints per set the held-out
 rms of least squares and each route's ratio to it, and whether ``calib fit`` would exit 3.
 
-    python scripts/calib_real_rig.py --data DIR [--split alternate|halves] [--diagnose]
+    python scripts/calib_real_rig.py --data DIR [--split alternate|halves] [--known K]
+                                   [--diagnose]
 
 ``--diagnose`` adds, per set, where the joint route's error comes from (true pose labels): the
 pose fit's chosen optimum against the one reached from the *true* directions of the unknown poses
@@ -111,6 +112,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="folder of data_<set>.0_*.csv files")
     ap.add_argument("--split", choices=("alternate", "halves"), default="alternate")
+    ap.add_argument("--known", type=int, default=4, choices=range(3, 12), metavar="K",
+                    help="known pose means handed to the motion routes (default 4, the issue's)")
     ap.add_argument("--diagnose", action="store_true",
                     help="also print where the joint route's error comes from (slow)")
     args = ap.parse_args(argv)
@@ -127,7 +130,7 @@ def main(argv=None):
         P = pose.max() + 1
         loads = np.array([M[pose == j].mean(axis=0) for j in range(P)])
         means = np.array([Z[tr & (pose == j)].mean(axis=0) for j in range(P)])
-        kn = choose_known_poses(loads, 4)
+        kn = choose_known_poses(loads, args.known)
         Zk, Mk = means[kn], loads[kn]
 
         def err(cal, te=te, Z=Z, M=M):
