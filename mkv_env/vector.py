@@ -5,12 +5,14 @@ for every MK-V id) returns an :class:`MKVVectorEnv`. It holds N ordinary single 
 class (they build and reset the worlds) and one compiled step kernel with N slots
 (:mod:`mkv_env.kernel`): each step is one C call that moves every robot, reads its sensors,
 tracks it and scores it, writing observations, rewards, flags and the info numbers straight into
-preallocated arrays, with the GIL released and, with ``num_threads=K``, on K threads (disjoint
-groups of robots; results do not depend on K). Python then only handles the batch: autoreset,
-truncation and the resets themselves. Env ``i`` of a vector env reset with ``seed`` follows the
-same trajectory, bit for bit, as a single env reset with ``seed + i`` and given the same actions
-(``tests/mkv_env/test_vector.py``); ``kernel="python"`` runs the reference implementation (each
-robot's step in Python) instead.
+preallocated arrays, with the GIL released and, with ``num_threads=K``, on K threads (each with
+a home group of robots, taking the others' unclaimed robots when done; results do not depend on
+K). A second C call (``Batch.collect``) turns those buffers into the step's fresh result arrays,
+truncation, autoreset flags and Gymnasium's info dict; Python then only resets the envs that
+ended (while the worker threads step the others). Env ``i`` of a vector env reset with ``seed``
+follows the same trajectory, bit for bit, as a single env reset with ``seed + i`` and given the
+same actions (``tests/mkv_env/test_vector.py``); ``kernel="python"`` runs the reference
+implementation (each robot's step in Python) instead.
 
 Semantics are Gymnasium 1.x's (those of ``SyncVectorEnv`` over ``gymnasium.make(id)``):
 
@@ -274,8 +276,8 @@ class MKVVectorEnv(VectorEnv):
         except ValueError:  # the kernel checks the values before it steps anything
             raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) of "
                              "[drive, steer] with each in {0, 1, 2}") from None
-        while need is not None:  # robots that used up their noise block: the next, as drawn
-            for i in need:       # by the reference, then the step
+        while need is not None:  # robots that used up their noise block and cannot draw it
+            for i in need:       # in C (kernel.NOISE_IN_C): the next, as the reference draws it
                 b.set_noise(i, envs[i]._sensors.draw_block())
             need = run(acts, active)
         early = []
