@@ -20,7 +20,7 @@ $(STAMP): $(BIN)/python pyproject.toml setup.py mkv_env/_fastsim.c
 install: $(STAMP)
 
 # The main job on defaults: teacher data, SfM fit + Figure 3, BC, PPO, evaluation, calib trials;
-# writes demo_out/report.md (about 3 minutes on 2 cores, measured 172 s).
+# writes demo_out/report.md (3-4.5 minutes on 2 cores: 172 s and 267 s measured on two machines).
 demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv demo --out demo_out
 
