@@ -1431,6 +1431,19 @@ static PyObject *batch_set_noise(BatchObject *b, PyObject *const *args, Py_ssize
     Py_RETURN_NONE;
 }
 
+#ifdef MKV_NPYRANDOM
+/* The bitgen_t of a numpy BitGenerator (through its ``capsule``), or NULL with an error set. */
+static bitgen_t *bitgen_of(PyObject *bit_generator)
+{
+    PyObject *cap = PyObject_GetAttrString(bit_generator, "capsule");
+    if (cap == NULL)
+        return NULL;
+    bitgen_t *g = PyCapsule_GetPointer(cap, "BitGenerator");
+    Py_DECREF(cap);
+    return g;
+}
+#endif
+
 /* set_noise_source(i, bit_generator or None, std (10 float64), bias (10 float64)) -> bool: slot i
  * draws its own noise blocks from this numpy BitGenerator (the episode's SensorSuite._rng's)
  * from now on; True when bound. False (Python draws, through set_noise) when the extension was
@@ -1455,11 +1468,7 @@ static PyObject *batch_set_noise_source(BatchObject *b, PyObject *const *args, P
 #ifdef MKV_NPYRANDOM
     if (args[1] == Py_None)
         Py_RETURN_FALSE;
-    PyObject *cap = PyObject_GetAttrString(args[1], "capsule");
-    if (cap == NULL)
-        return NULL;
-    void *g = PyCapsule_GetPointer(cap, "BitGenerator");
-    Py_DECREF(cap);
+    void *g = bitgen_of(args[1]);
     if (g == NULL)
         return NULL;
     int shared = 0;
@@ -1499,11 +1508,7 @@ static PyObject *fs_normals(PyObject *self, PyObject *const *args, Py_ssize_t na
     Py_ssize_t k = PyLong_AsSsize_t(args[1]);
     if (k == -1 && PyErr_Occurred())
         return NULL;
-    PyObject *cap = PyObject_GetAttrString(args[0], "capsule");
-    if (cap == NULL)
-        return NULL;
-    bitgen_t *g = PyCapsule_GetPointer(cap, "BitGenerator");
-    Py_DECREF(cap);
+    bitgen_t *g = bitgen_of(args[0]);
     if (g == NULL)
         return NULL;
     PyObject *out = PyList_New(k > 0 ? k : 0);
