@@ -103,8 +103,9 @@ def kernel_steps_per_second(env_id: str, steps: int, num_envs: int, threads: int
 def vector_split(num_envs: int, steps: int, env_id: str = "MKV-v0") -> dict[str, float]:
     """Microseconds per robot-step of the native vector env (one thread, random actions, resets
     included) in its parts: the kernel call (physics + sensing, tracking, scoring, info
-    numbers), the resets, and the rest (Python once per batch: autoreset, truncation, copies of
-    the results, Gymnasium's info dict)."""
+    numbers), the resets, and the rest (once per batch: the compiled ``Batch.collect`` making the
+    result arrays, truncation, autoreset flags and Gymnasium's info dict, and the Python
+    around it)."""
     envs = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point")
     v = envs.unwrapped
     envs.reset(seed=0)
@@ -257,7 +258,7 @@ def main(argv=None) -> None:
     print(f"  physics alone (the floor, measured above)          {floor:6.2f}")
     print(f"  kernel call (physics + sensing, tracking, scoring)  {vs['kernel']:6.2f}")
     print(f"  resets (amortised; Python: pymunk world, draws)     {vs['reset']:6.2f}")
-    print(f"  Python once per batch (autoreset, copies, infos)    {vs['rest']:6.2f}")
+    print(f"  once per batch (Batch.collect: copies, infos; Python) {vs['rest']:6.2f}")
     print(f"  total                                               {vs['total']:6.2f}")
     print("\nwhere an MKV-v0 step's time goes (us per step, timed around the calls):")
     for name, us in where_the_single_step_goes(min(s, 30_000)):
