@@ -258,7 +258,7 @@ def main(argv=None) -> None:
     print(f"  physics alone (the floor, measured above)          {floor:6.2f}")
     print(f"  kernel call (physics + sensing, tracking, scoring)  {vs['kernel']:6.2f}")
     print(f"  resets (amortised; Python: pymunk world, draws)     {vs['reset']:6.2f}")
-    print(f"  once per batch (Batch.collect: copies, infos; Python) {vs['rest']:6.2f}")
+    print(f"  once per batch (Batch.collect + Python around it)   {vs['rest']:6.2f}")
     print(f"  total                                               {vs['total']:6.2f}")
     print("\nwhere an MKV-v0 step's time goes (us per step, timed around the calls):")
     for name, us in where_the_single_step_goes(min(s, 30_000)):
