@@ -1012,7 +1012,7 @@ static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
 /* The current job's robots, claimed one by one by the threads. Each thread has a home group, a
  * fixed contiguous share of the robots, so each robot's memory (its Chipmunk space, shapes,
  * contact buffers) mostly stays in one core's caches (threads taking robots in turn measured
- * 1.24x on two cores against 1.5x for contiguous shares; see benchmarks/env_speed.py); a thread
+ * only 1.24x on two cores, contiguous shares more; see benchmarks/env_speed.py); a thread
  * that has finished its group takes the unclaimed robots of the others (the calling thread is
  * late when it resets the envs that ended while the workers step). Which thread steps a robot
  * never changes its result: each is claimed exactly once (an atomic counter per group). */
