@@ -263,8 +263,11 @@ def push(env, batch, slot: int) -> None:
     values.append(getattr(env, "_phi", 0.0))
     if s._block is not None:
         batch.set_noise(slot, s._block)
-    if NOISE_IN_C:  # the slot draws its next blocks from the episode's generator itself
-        batch.set_noise_source(slot, s._rng.bit_generator if s._rng is not None else None,
+    if NOISE_IN_C:  # the slot draws its next blocks from the episode's generator itself (a
+        # Generator's standard normal only: anything else, e.g. a legacy RandomState, is drawn
+        # by Python as the reference draws it)
+        gen = s._rng.bit_generator if isinstance(s._rng, np.random.Generator) else None
+        batch.set_noise_source(slot, gen,
                                np.asarray(s._std, dtype=np.float64),
                                np.asarray(s._bias, dtype=np.float64))
     batch.load(slot, values, s._row, list(getattr(env, "_cells", ())))
