@@ -32,6 +32,19 @@ if AVAILABLE:
         "cpShapeSetFriction", "cpShapeSetElasticity", "cpSpaceAddShape", "cpSpaceRemoveShape",
         "cpShapeGetSpace", "cpShapeFree", "cpShapeGetBody", "cpSpaceShapeQuery",
         "cpShapeSetHashID"))
+    #: Resets in C (``Batch.set_reset``) build worlds with these, and set the contact handlers'
+    #: fields at these offsets of Chipmunk's ``cpCollisionHandler``.
+    RESET = hasattr(_fastsim, "bind_reset")
+    if RESET:
+        _fastsim.bind_reset(*_addresses(
+            "cpSpaceNew", "cpSpaceFree", "cpSpaceSetIterations", "cpSpaceSetDamping", "cpBodyNew",
+            "cpBodyNewStatic", "cpBodyFree", "cpSpaceAddBody", "cpSpaceRemoveBody",
+            "cpBodySetPosition", "cpBodySetAngle", "cpShapeSetFilter",
+            "cpSpaceReindexShapesForBody", "cpSpaceAddCollisionHandler"))
+        HANDLER_OFFSETS = tuple(_ffi.offsetof("cpCollisionHandler", f)
+                                for f in ("beginFunc", "separateFunc", "userData"))
+else:  # pragma: no cover
+    RESET = False
 
 
 def install_contacts(world) -> None:
@@ -99,3 +112,88 @@ def overlaps(world) -> bool:
                              [int(_ffi.cast("uintptr_t", s._shape)) for s in robot.shapes])
 
 
+
+
+# ---------------------------------------------------------------------- worlds built in C
+def _free_space(cp_space) -> None:
+    """pymunk.Space's own finaliser (``spacefree`` in pymunk/space.py), for a space made in C."""
+    lib = _cp
+    shapes: list = []
+    h = _ffi.new_handle(shapes)
+    lib.cpSpaceEachShape(cp_space, lib.ext_cpSpaceShapeIteratorFunc, h)
+    for cp_shape in shapes:
+        lib.cpSpaceRemoveShape(lib.cpShapeGetSpace(cp_shape), cp_shape)
+        lib.cpShapeSetBody(cp_shape, _ffi.NULL)
+    constraints: list = []
+    h = _ffi.new_handle(constraints)
+    lib.cpSpaceEachConstraint(cp_space, lib.ext_cpSpaceConstraintIteratorFunc, h)
+    for c in constraints:
+        lib.cpSpaceRemoveConstraint(lib.cpConstraintGetSpace(c), c)
+    bodies: list = []
+    h = _ffi.new_handle(bodies)
+    lib.cpSpaceEachBody(cp_space, lib.ext_cpSpaceBodyIteratorFunc, h)
+    for cp_body in bodies:
+        lib.cpSpaceRemoveBody(lib.cpBodyGetSpace(cp_body), cp_body)
+    lib.cpSpaceFree(cp_space)
+
+
+def _free_body(cp_body) -> None:
+    """pymunk.Body's own finaliser (``freebody`` in pymunk/body.py), for a body made in C."""
+    lib = _cp
+    lib.cpBodyEachShape(cp_body, lib.ext_cpBodyShapeIteratorFunc, _ffi.NULL)
+    lib.cpBodyEachConstraint(cp_body, lib.ext_cpBodyConstraintIteratorFunc, _ffi.NULL)
+    cp_space = lib.cpBodyGetSpace(cp_body)
+    if cp_space != _ffi.NULL:
+        lib.cpSpaceRemoveBody(cp_space, cp_body)
+    lib.cpBodyFree(cp_body)
+
+
+def wrap_space(address: int):
+    """A ``pymunk.Space`` for a cpSpace made in C (it owns and frees it from now on), as
+    ``pymunk.Space()`` sets one up."""
+    import pymunk
+
+    space = pymunk.Space.__new__(pymunk.Space)
+    space.threaded = False
+    space._space = _ffi.gc(_ffi.cast("cpSpace *", address), _free_space)
+    space._handlers = {}
+    space._post_step_callbacks = {}
+    space._removed_shapes = {}
+    space._shapes = {}
+    space._bodies = {}
+    space._static_body = None
+    space._constraints = {}
+    space._locked = False
+    space._add_later = set()
+    space._remove_later = {}
+    space._bodies_to_check = set()
+    return space
+
+
+def wrap_body(address: int, space, static: bool = False):
+    """A ``pymunk.Body`` for a cpBody made in C and already in ``space``'s cpSpace (it owns and
+    frees it from now on): ``space.static_body`` when ``static``, else one of ``space.bodies``."""
+    import pymunk
+
+    body = pymunk.Body.__new__(pymunk.Body)
+    body._body = _ffi.gc(_ffi.cast("cpBody *", address), _free_body)
+    body._space = weakref.ref(space)
+    body._constraints = weakref.WeakKeyDictionary()
+    body._shapes = {}
+    body._data_handle = _ffi.new_handle(body)
+    _cp.cpBodySetUserData(body._body, body._data_handle)
+    if static:
+        space._static_body = body
+    else:
+        space._bodies[body] = None
+    return body
+
+
+def wrap_shape(cls, address: int, body, space):
+    """A pymunk shape of class ``cls`` for a cpShape made in C and already in ``space`` (it owns
+    and frees it from now on), as :func:`adopt_static` wraps the obstacles."""
+    shape = cls.__new__(cls)
+    shape._init(body, _ffi.cast("cpShape *", address))
+    shape._space = weakref.ref(space)
+    space._shapes[shape] = None
+    return shape

@@ -697,7 +697,45 @@ enum {
 static const char O_FMT[O_LEN] = {'f', 'd', '?', '?', '?', '?', 'd', 'q', 'q', 'q', '?', 'd', 'q', '?'};
 static const int O_WIDTH[O_LEN] = {NCH, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1};
 
-enum { ERR_NONE, ERR_NONFINITE, ERR_CELL, ERR_MEMORY, ERR_UNBOUND };
+enum { ERR_NONE, ERR_NONFINITE, ERR_CELL, ERR_MEMORY, ERR_UNBOUND, ERR_NOPOSE };
+
+typedef struct {
+    void *state;
+    uint64_t (*next_uint64)(void *st);
+    uint32_t (*next_uint32)(void *st);
+    double (*next_double)(void *st);
+    uint64_t (*next_raw)(void *st);
+} np_bitgen;
+
+enum {
+    L_MARGIN, L_TRIES, L_BOX0, L_BOX1, L_CYL0, L_CYL1, L_WALL0, L_WALL1, L_ARM0, L_ARM1, L_GAP0,
+    L_GAP1, L_DEPTH0, L_DEPTH1, L_CGAP0, L_CGAP1, L_PATCH0, L_PATCH1, L_WALL_R, L_CDF, L_LEN = L_CDF + 5
+};
+
+typedef struct { double x, y, r; } circle;
+
+static inline double uni(np_bitgen *g, double a, double b) { return a + (b - a) * g->next_double(g->state); }
+
+static inline void bounding_wall(const double *w, double wall_r, circle *c)
+{
+    c->x = 0.5 * (w[0] + w[2]);
+    c->y = 0.5 * (w[1] + w[3]);
+    c->r = 0.5 * py_hypot(w[2] - w[0], w[3] - w[1]) + wall_r;
+}
+
+/* math.hypot(dx, dy) < R, as Python computes it, but hypot only where it could matter: the
+ * squared distance (relative error < 1e-15) decides when it is more than 1e-9 away from R^2. */
+static inline int near(double dx, double dy, double R)
+{
+    double d2 = dx * dx + dy * dy, R2 = R * R;
+    if (isfinite(d2) && isfinite(R2) && R > 0.0 && d2 > 1e-200 && R2 > 1e-200) {
+        if (d2 < R2 * (1.0 - 1e-9))
+            return 1;
+        if (d2 > R2 * (1.0 + 1e-9))
+            return 0;
+    }
+    return py_hypot(dx, dy) < R;
+}
 
 typedef struct {
     void *body, *space;
@@ -714,7 +752,29 @@ typedef struct {
     void *gen;      /* the episode's numpy bitgen_t (noise drawn in C), or NULL */
     PyObject *gen_keep; /* its BitGenerator: kept alive while bound */
     double nstd[NCH], nbias[NCH];
+    /* The world the kernel built itself at the slot's last reset (reset_slot), until Python
+     * adopts it (Batch.adopt): while cworld is 1 the space, bodies and shapes are the slot's. */
+    int cworld;
+    void *sbody;          /* its static body */
+    void *rshapes[4];     /* the robot's shapes */
+    void **sshapes;       /* the obstacles' shapes */
+    Py_ssize_t nsshapes, sscap;
+    double *lay;          /* its layout: walls (4 numbers each), boxes (5), cylinders (3) */
+    long nwall, nbox, ncyl;
+    size_t laycap;
+    int64_t own_counts[5]; /* its contact counts (World.contacts once adopted) */
+    double start[3];      /* its start pose */
+    PyObject *retired;    /* a Python world's counts array a reset let go (released under the GIL) */
 } Slot;
+
+/* A reset's constants (Batch.set_reset, from mkv_env.kernel.reset_constants): the arena, the
+ * obstacles, the space, the start-pose search and the robot's body and shapes. */
+enum {
+    R_W, R_H, R_NCLUTTER, R_NPATCH, R_PSCALE, R_WALL_R, R_OBS_FRIC, R_OBS_ELAST, R_OBS_TYPE,
+    R_ITER, R_DAMP, R_MARGIN, R_CLEAR, R_TRIES, R_ATTEMPTS, R_MASS, R_MOMENT, R_FRIC,
+    R_TYPES, R_CHASSIS = R_TYPES + 4, R_FL = R_CHASSIS + 8, R_FR = R_FL + 4, R_RB = R_FR + 4,
+    R_BUMP_R = R_RB + 4, R_GROUP, R_H_BEGIN, R_H_SEP, R_H_DATA, R_LEN
+};
 
 typedef struct BatchObject BatchObject;
 
@@ -748,7 +808,16 @@ struct BatchObject {
     int running;       /* a job started by step_start and not yet finished */
     Py_buffer job_acts, job_mask;
     int job_have_mask;
+    /* resets in C (Batch.set_reset): the env's constants, and the slots the job resets */
+    double R[R_LEN], L[L_LEN];
+    int reset_ready;
+    const uint8_t *resets;
+    Py_buffer job_reset;
+    int job_have_reset;
 };
+
+static int reset_slot(BatchObject *b, Py_ssize_t i);
+static void free_cworld(Slot *s);
 
 /* ---------------------------------------------------------------- the cell set of MKV-v1 */
 static inline uint64_t cell_hash(uint64_t k)
@@ -1019,6 +1088,10 @@ static int step_slot(BatchObject *b, Py_ssize_t i, long drive, long steer)
 static inline void step_robot(BatchObject *b, Py_ssize_t i)
 {
     const int64_t *a = b->acts;
+    if (b->resets != NULL && b->resets[i]) {
+        reset_slot(b, i);
+        return;
+    }
     if (b->active != NULL && !b->active[i])
         return;
     /* [drive, steer] in {0,1,2}: motor commands a0 - 1 and 1 - a1 (steer 0 = left = +1) */
@@ -1147,6 +1220,9 @@ static PyObject *raise_slot_error(Slot *s, Py_ssize_t i)
     case ERR_UNBOUND:
         PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
         break;
+    case ERR_NOPOSE:
+        PyErr_SetString(PyExc_RuntimeError, "could not find a free start pose; reduce n_clutter");
+        break;
     default:
         PyErr_NoMemory();
     }
@@ -1196,6 +1272,10 @@ static void batch_dealloc(BatchObject *b)
             PyBuffer_Release(&b->out[k]);
     if (b->slots) {
         for (Py_ssize_t i = 0; i < b->n; i++) {
+            free_cworld(&b->slots[i]);
+            free(b->slots[i].lay);
+            free(b->slots[i].sshapes);
+            Py_XDECREF(b->slots[i].retired);
             free(b->slots[i].patches);
             free(b->slots[i].cells);
             Py_XDECREF(b->slots[i].keep);
@@ -1353,6 +1433,8 @@ static PyObject *batch_bind(BatchObject *b, PyObject *const *args, Py_ssize_t na
         free(pt);
         return NULL;
     }
+    /* (while a job runs, only slots it neither steps nor resets are bound: step_start) */
+    free_cworld(s); /* a world the kernel built and Python never adopted */
     free(s->patches);
     s->patches = pt;
     s->npatch = np_;
@@ -1624,10 +1706,12 @@ static PyObject *batch_read(BatchObject *b, PyObject *idx)
 
 /* Validate a job's buffers and find the active slots that need noise. Returns 0 with the job's
  * buffers held in b->job_* (and *need a new list, or NULL), or -1 with an error set. */
-static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject **need)
+static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject *resets,
+                       PyObject **need)
 {
-    Py_buffer *av = &b->job_acts, *mv = &b->job_mask;
+    Py_buffer *av = &b->job_acts, *mv = &b->job_mask, *rv = &b->job_reset;
     *need = NULL;
+    b->job_have_reset = 0;
     if (!b->have_out) {
         PyErr_SetString(PyExc_RuntimeError, "step kernel: outputs() not set");
         return -1;
@@ -1654,15 +1738,32 @@ static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject 
             goto fail;
         }
     }
+    if (resets != NULL && resets != Py_None) {
+        if (PyObject_GetBuffer(resets, rv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
+            goto fail;
+        b->job_have_reset = 1;
+        if (rv->itemsize != 1 || rv->len != b->n || rv->format == NULL ||
+            strcmp(rv->format, "?") != 0) {
+            PyErr_Format(PyExc_ValueError, "resets must be bool of shape (%zd,)", b->n);
+            goto fail;
+        }
+    }
     const int64_t *a = av->buf;
     const uint8_t *act = b->job_have_mask ? mv->buf : NULL;
+    const uint8_t *rst = b->job_have_reset ? rv->buf : NULL;
+    for (Py_ssize_t i = 0; rst && i < b->n; i++)
+        if (rst[i] && (!b->reset_ready || b->slots[i].gen == NULL)) {
+            PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd cannot be reset in C "
+                         "(no reset constants or no bit generator bound)", i);
+            goto fail;
+        }
     for (Py_ssize_t i = 0; i < 2 * b->n; i++)
         if (a[i] < 0 || a[i] > 2) {
             PyErr_Format(PyExc_ValueError, "action value %lld out of {0, 1, 2}", (long long)a[i]);
             goto fail;
         }
     for (Py_ssize_t i = 0; i < b->n; i++) {
-        if (act && !act[i])
+        if ((act && !act[i]) || (rst && rst[i]))
             continue;
         if (b->slots[i].body == NULL) {
             PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
@@ -1683,13 +1784,17 @@ static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject 
         goto fail;
     b->acts = a;
     b->active = act;
+    b->resets = rst;
     return 0;
 fail:
     Py_CLEAR(*need);
     PyBuffer_Release(av);
     if (b->job_have_mask)
         PyBuffer_Release(mv);
+    if (b->job_have_reset)
+        PyBuffer_Release(rv);
     b->job_have_mask = 0;
+    b->job_have_reset = 0;
     return -1;
 }
 
@@ -1698,9 +1803,13 @@ static void release_job(BatchObject *b)
     PyBuffer_Release(&b->job_acts);
     if (b->job_have_mask)
         PyBuffer_Release(&b->job_mask);
+    if (b->job_have_reset)
+        PyBuffer_Release(&b->job_reset);
     b->job_have_mask = 0;
+    b->job_have_reset = 0;
     b->acts = NULL;
     b->active = NULL;
+    b->resets = NULL;
 }
 
 /* After a job: errors, and reward 0 / not terminated for the inactive slots. */
@@ -1719,6 +1828,7 @@ static PyObject *conclude_job(BatchObject *b)
             OUT(b, O_REW, double)[i] = 0.0;
             OUT(b, O_TERM, uint8_t)[i] = 0;
         }
+        Py_CLEAR(b->slots[i].retired);
     }
     release_job(b);
     Py_XINCREF(result);
@@ -1731,11 +1841,11 @@ static PyObject *conclude_job(BatchObject *b)
 static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     PyObject *need;
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "step() takes 2 arguments");
+    if (nargs != 2 && nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "step() takes 2 or 3 arguments");
         return NULL;
     }
-    if (prepare_job(b, args[0], args[1], &need) < 0)
+    if (prepare_job(b, args[0], args[1], nargs == 3 ? args[2] : NULL, &need) < 0)
         return NULL;
     if (need != NULL) {
         release_job(b);
@@ -1755,11 +1865,11 @@ static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t na
 static PyObject *batch_step_start(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     PyObject *need;
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "step_start() takes 2 arguments");
+    if (nargs != 2 && nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "step_start() takes 2 or 3 arguments");
         return NULL;
     }
-    if (prepare_job(b, args[0], args[1], &need) < 0)
+    if (prepare_job(b, args[0], args[1], nargs == 3 ? args[2] : NULL, &need) < 0)
         return NULL;
     if (need != NULL) {
         release_job(b);
@@ -1957,7 +2067,17 @@ static PyObject *batch_get_threads(BatchObject *b, void *closure)
     return PyLong_FromLong(b->nthreads);
 }
 
+static PyObject *batch_set_reset(BatchObject *b, PyObject *const *args, Py_ssize_t nargs);
+static PyObject *batch_can_reset(BatchObject *b, PyObject *idx);
+static PyObject *batch_adopt(BatchObject *b, PyObject *const *args, Py_ssize_t nargs);
+
 static PyMethodDef batch_methods[] = {
+    {"set_reset", (PyCFunction)(void (*)(void))batch_set_reset, METH_FASTCALL,
+     "set_reset(R, layout_constants): the constants of resets in C (MKV-v0, MKV-v1)."},
+    {"can_reset", (PyCFunction)batch_can_reset, METH_O,
+     "can_reset(i) -> True when a step may reset slot i in C."},
+    {"adopt", (PyCFunction)(void (*)(void))batch_adopt, METH_FASTCALL,
+     "adopt(i, counts) -> the world slot i built (pointers, layout, start), or None."},
     {"outputs", (PyCFunction)(void (*)(void))batch_outputs, METH_FASTCALL,
      "outputs(obs, rew, term, stuck, bumped, collision, distance, jams, escapes, collisions, "
      "in_jam, pose, cells, escaped): the buffers every step writes."},
@@ -1982,9 +2102,9 @@ static PyMethodDef batch_methods[] = {
     {"step1", (PyCFunction)(void (*)(void))batch_step1, METH_FASTCALL,
      "step1(i, drive, steer) -> info tuple, or None when slot i needs noise first."},
     {"step", (PyCFunction)(void (*)(void))batch_step, METH_FASTCALL,
-     "step(actions, active) -> None, or the slots that need noise first."},
+     "step(actions, active[, resets]) -> None, or the slots that need noise first."},
     {"step_start", (PyCFunction)(void (*)(void))batch_step_start, METH_FASTCALL,
-     "step_start(actions, active) -> None, or the slots that need noise first."},
+     "step_start(actions, active[, resets]) -> None, or the slots that need noise first."},
     {"step_finish", (PyCFunction)batch_step_finish, METH_NOARGS,
      "step_finish(): join the started step and wait for its end."},
     {"physics", (PyCFunction)(void (*)(void))batch_physics, METH_FASTCALL,
@@ -2068,30 +2188,6 @@ static PyObject *fs_pymod(PyObject *self, PyObject *const *args, Py_ssize_t narg
  * lo/hi, dead-end depth lo/hi, clutter gap lo/hi, patch side lo/hi, wall radius, then the 5
  * cumulative kind probabilities (box, cylinder, wall, corner, dead end).
  * Returns (boxes, cylinders, walls, patches): lists of float tuples (walls without the arena's). */
-typedef struct {
-    void *state;
-    uint64_t (*next_uint64)(void *st);
-    uint32_t (*next_uint32)(void *st);
-    double (*next_double)(void *st);
-    uint64_t (*next_raw)(void *st);
-} np_bitgen;
-
-enum {
-    L_MARGIN, L_TRIES, L_BOX0, L_BOX1, L_CYL0, L_CYL1, L_WALL0, L_WALL1, L_ARM0, L_ARM1, L_GAP0,
-    L_GAP1, L_DEPTH0, L_DEPTH1, L_CGAP0, L_CGAP1, L_PATCH0, L_PATCH1, L_WALL_R, L_CDF, L_LEN = L_CDF + 5
-};
-
-typedef struct { double x, y, r; } circle;
-
-static inline double uni(np_bitgen *g, double a, double b) { return a + (b - a) * g->next_double(g->state); }
-
-static inline void bounding_wall(const double *w, double wall_r, circle *c)
-{
-    c->x = 0.5 * (w[0] + w[2]);
-    c->y = 0.5 * (w[1] + w[3]);
-    c->r = 0.5 * py_hypot(w[2] - w[0], w[3] - w[1]) + wall_r;
-}
-
 static PyObject *tuple_of(const double *v, int n)
 {
     PyObject *t = PyTuple_New(n);
@@ -2118,56 +2214,19 @@ static int append_tuple(PyObject *list, const double *v, int n)
     return rc;
 }
 
-/* math.hypot(dx, dy) < R, as Python computes it, but hypot only where it could matter: the
- * squared distance (relative error < 1e-15) decides when it is more than 1e-9 away from R^2. */
-static inline int near(double dx, double dy, double R)
-{
-    double d2 = dx * dx + dy * dy, R2 = R * R;
-    if (isfinite(d2) && isfinite(R2) && R > 0.0 && d2 > 1e-200 && R2 > 1e-200) {
-        if (d2 < R2 * (1.0 - 1e-9))
-            return 1;
-        if (d2 > R2 * (1.0 + 1e-9))
-            return 0;
-    }
-    return py_hypot(dx, dy) < R;
-}
+/* The layout's obstacles into C arrays (each appended after those already there): walls (4
+ * numbers), boxes (5), cylinders (3), patches (5). */
+typedef struct {
+    double *walls, *boxes, *cyls, *patches;
+    long nw, nb, nc, np;
+} LayoutOut;
 
-static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* generate_layout's draws and geometry. circles: the nc reserved circles, with room for
+ * 3 * n_clutter more. */
+static void layout_core(np_bitgen *g, double W, double H, long n_clutter, long n_patches,
+                        double patch_scale, circle *circles, Py_ssize_t nc, const double *L,
+                        LayoutOut *o)
 {
-    if (nargs != 8) {
-        PyErr_SetString(PyExc_TypeError, "generate_layout() takes 8 arguments");
-        return NULL;
-    }
-    np_bitgen *g = PyCapsule_GetPointer(args[0], "BitGenerator");
-    if (g == NULL)
-        return NULL;
-    double W = PyFloat_AsDouble(args[1]), H = PyFloat_AsDouble(args[2]);
-    long n_clutter = PyLong_AsLong(args[3]), n_patches = PyLong_AsLong(args[4]);
-    double patch_scale = PyFloat_AsDouble(args[5]);
-    if (PyErr_Occurred())
-        return NULL;
-    double L[L_LEN];
-    if (get_doubles(args[7], L, L_LEN, "layout constants") < 0)
-        return NULL;
-    PyObject *res = PySequence_Fast(args[6], "reserved must be a sequence");
-    if (res == NULL)
-        return NULL;
-    Py_ssize_t nres = PySequence_Fast_GET_SIZE(res);
-    Py_ssize_t cap = nres + 3 * (n_clutter > 0 ? n_clutter : 0) + 4;
-    circle *circles = PyMem_Malloc((size_t)cap * sizeof(circle));
-    PyObject *boxes = PyList_New(0), *cyls = PyList_New(0), *walls = PyList_New(0);
-    PyObject *patches = PyList_New(0), *out = NULL;
-    if (circles == NULL || !boxes || !cyls || !walls || !patches) {
-        PyErr_NoMemory();
-        goto done;
-    }
-    Py_ssize_t nc = 0;
-    for (Py_ssize_t k = 0; k < nres; k++) {
-        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(res, k), "ddd", &circles[nc].x,
-                              &circles[nc].y, &circles[nc].r))
-            goto done;
-        nc++;
-    }
     const double m = L[L_MARGIN], wr = L[L_WALL_R];
     const long tries = (long)L[L_TRIES];
     for (long item = 0; item < n_clutter; item++) {
@@ -2242,9 +2301,12 @@ static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ss
             if (hit)
                 continue;
             for (int j = 0; j < ni; j++) {
-                PyObject *dst = kind == 0 ? boxes : kind == 1 ? cyls : walls;
-                if (append_tuple(dst, spec[j], kind == 0 ? 5 : kind == 1 ? 3 : 4) < 0)
-                    goto done;
+                if (kind == 0)
+                    memcpy(o->boxes + 5 * o->nb++, spec[j], 5 * sizeof(double));
+                else if (kind == 1)
+                    memcpy(o->cyls + 3 * o->nc++, spec[j], 3 * sizeof(double));
+                else
+                    memcpy(o->walls + 4 * o->nw++, spec[j], 4 * sizeof(double));
                 circles[nc++] = b[j];
             }
             break;
@@ -2255,13 +2317,78 @@ static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ss
         double ph = uni(g, L[L_PATCH0], L[L_PATCH1]);
         double x0 = uni(g, 0, W - pw);
         double y0 = uni(g, 0, H - ph);
-        double p[5] = {x0, y0, x0 + pw, y0 + ph, patch_scale};
-        if (append_tuple(patches, p, 5) < 0)
-            goto done;
+        double *p = o->patches + 5 * o->np++;
+        p[0] = x0; p[1] = y0; p[2] = x0 + pw; p[3] = y0 + ph; p[4] = patch_scale;
     }
-    out = PyTuple_Pack(4, boxes, cyls, walls, patches);
+}
+
+/* A list of n tuples of w floats. */
+static PyObject *tuples_of(const double *v, long n, int w)
+{
+    PyObject *out = PyList_New(0);
+    if (out == NULL)
+        return NULL;
+    for (long k = 0; k < n; k++)
+        if (append_tuple(out, v + (size_t)w * (size_t)k, w) < 0) {
+            Py_DECREF(out);
+            return NULL;
+        }
+    return out;
+}
+
+static PyObject *fs_generate_layout(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "generate_layout() takes 8 arguments");
+        return NULL;
+    }
+    np_bitgen *g = PyCapsule_GetPointer(args[0], "BitGenerator");
+    if (g == NULL)
+        return NULL;
+    double W = PyFloat_AsDouble(args[1]), H = PyFloat_AsDouble(args[2]);
+    long n_clutter = PyLong_AsLong(args[3]), n_patches = PyLong_AsLong(args[4]);
+    double patch_scale = PyFloat_AsDouble(args[5]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (n_clutter < 0)
+        n_clutter = 0;
+    if (n_patches < 0)
+        n_patches = 0;
+    double L[L_LEN];
+    if (get_doubles(args[7], L, L_LEN, "layout constants") < 0)
+        return NULL;
+    PyObject *res = PySequence_Fast(args[6], "reserved must be a sequence");
+    if (res == NULL)
+        return NULL;
+    Py_ssize_t nres = PySequence_Fast_GET_SIZE(res);
+    Py_ssize_t cap = nres + 3 * n_clutter + 4;
+    circle *circles = PyMem_Malloc((size_t)cap * sizeof(circle));
+    size_t nd = (size_t)(12 * n_clutter + 5 * n_clutter + 3 * n_clutter + 5 * n_patches + 1);
+    double *buf = PyMem_Malloc(nd * sizeof(double));
+    PyObject *boxes = NULL, *cyls = NULL, *walls = NULL, *patches = NULL, *out = NULL;
+    if (circles == NULL || buf == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_ssize_t nc = 0;
+    for (Py_ssize_t k = 0; k < nres; k++) {
+        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(res, k), "ddd", &circles[nc].x,
+                              &circles[nc].y, &circles[nc].r))
+            goto done;
+        nc++;
+    }
+    LayoutOut o = {buf, buf + 12 * n_clutter, buf + 17 * n_clutter, buf + 20 * n_clutter,
+                   0, 0, 0, 0};
+    layout_core(g, W, H, n_clutter, n_patches, patch_scale, circles, nc, L, &o);
+    boxes = tuples_of(o.boxes, o.nb, 5);
+    cyls = tuples_of(o.cyls, o.nc, 3);
+    walls = tuples_of(o.walls, o.nw, 4);
+    patches = tuples_of(o.patches, o.np, 5);
+    if (boxes && cyls && walls && patches)
+        out = PyTuple_Pack(4, boxes, cyls, walls, patches);
 done:
     PyMem_Free(circles);
+    PyMem_Free(buf);
     Py_DECREF(res);
     Py_XDECREF(boxes);
     Py_XDECREF(cyls);
@@ -2597,6 +2724,446 @@ static PyObject *fs_overlaps(PyObject *self, PyObject *const *args, Py_ssize_t n
     return PyBool_FromLong(d.hit);
 }
 
+
+/* ---------------------------------------------------------------- resets in C */
+/* A vector env's autoreset of MKV-v0 / MKV-v1 on the worker threads: MKVEnv._reset_raw for a
+ * continuing episode generator, in C: the layout (generate_layout's draws), the World (the same
+ * Chipmunk calls, in the same order, as World.__init__ with fast_contacts and Robot.__init__
+ * make through pymunk, so the same hash ids, the same spatial index and the same bits), the
+ * start pose (random_free_pose's draws and point queries, _place), the sensors' and tracker's
+ * reset and the first observation. The world stays the slot's until Python asks for it
+ * (Batch.adopt, mkv_env.kernel.adopt_world), which hands every object to pymunk. */
+typedef void *(*space_new_fn)(void);
+typedef void (*free_fn)(void *);
+typedef void (*space_set_int_fn)(void *, int);
+typedef void *(*body_new_fn)(double, double);
+typedef void *(*body_new_static_fn)(void);
+typedef void *(*space_add_body_fn)(void *, void *);
+typedef void (*space_body_fn)(void *, void *);
+typedef void (*shape_set_filter_fn)(void *, cpFilter);
+typedef void *(*add_handler_fn)(void *, uintptr_t, uintptr_t);
+
+static space_new_fn cp_space_new;
+static free_fn cp_space_free, cp_body_free;
+static space_set_int_fn cp_space_set_iterations;
+static set_double_fn cp_space_set_damping, cp_body_set_angle;
+static body_new_fn cp_body_new;
+static body_new_static_fn cp_body_new_static;
+static space_add_body_fn cp_space_add_body;
+static space_body_fn cp_space_remove_body, cp_space_reindex_body;
+static set_vect_fn cp_body_set_position;
+static shape_set_filter_fn cp_shape_set_filter;
+static add_handler_fn cp_add_handler;
+
+/* bind_reset(14 Chipmunk function addresses) */
+static PyObject *fs_bind_reset(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    void *p[14];
+    if (nargs != 14) {
+        PyErr_SetString(PyExc_TypeError, "bind_reset() takes 14 arguments");
+        return NULL;
+    }
+    if (get_pointers(args, 14, p) < 0)
+        return NULL;
+    cp_space_new = (space_new_fn)p[0];
+    cp_space_free = (free_fn)p[1];
+    cp_space_set_iterations = (space_set_int_fn)p[2];
+    cp_space_set_damping = (set_double_fn)p[3];
+    cp_body_new = (body_new_fn)p[4];
+    cp_body_new_static = (body_new_static_fn)p[5];
+    cp_body_free = (free_fn)p[6];
+    cp_space_add_body = (space_add_body_fn)p[7];
+    cp_space_remove_body = (space_body_fn)p[8];
+    cp_body_set_position = (set_vect_fn)p[9];
+    cp_body_set_angle = (set_double_fn)p[10];
+    cp_shape_set_filter = (shape_set_filter_fn)p[11];
+    cp_space_reindex_body = (space_body_fn)p[12];
+    cp_add_handler = (add_handler_fn)p[13];
+    Py_RETURN_NONE;
+}
+
+/* Free the world the slot built and still owns (a world Python adopted is pymunk's). Chipmunk
+ * calls "separate" for the contacts the removals end: they count on the slot's own counts. */
+static void free_cworld(Slot *s)
+{
+    if (!s->cworld)
+        return;
+    void *space = s->space;
+    for (int k = 0; k < 4; k++)
+        if (s->rshapes[k] != NULL) {
+            if (cp_shape_get_space(s->rshapes[k]) != NULL)
+                cp_space_remove_shape(space, s->rshapes[k]);
+            cp_shape_free(s->rshapes[k]);
+            s->rshapes[k] = NULL;
+        }
+    for (Py_ssize_t k = 0; k < s->nsshapes; k++) {
+        if (cp_shape_get_space(s->sshapes[k]) != NULL)
+            cp_space_remove_shape(space, s->sshapes[k]);
+        cp_shape_free(s->sshapes[k]);
+    }
+    s->nsshapes = 0;
+    if (s->body != NULL) {
+        cp_space_remove_body(space, s->body);
+        cp_body_free(s->body);
+    }
+    if (s->sbody != NULL) {
+        cp_space_remove_body(space, s->sbody);
+        cp_body_free(s->sbody);
+    }
+    cp_space_free(space);
+    s->space = s->body = s->sbody = NULL;
+    s->contacts = NULL;
+    s->cworld = 0;
+}
+
+/* One obstacle as add_static makes it: j = 0 wall (ax, ay, bx, by), 1 box (cx, cy, w, h, angle),
+ * 2 cylinder (cx, cy, r). */
+static void *static_shape(int j, const double *v, void *body, double wr)
+{
+    if (j == 0) { /* pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M) */
+        cpVect a = {v[0], v[1]}, b = {v[2], v[3]};
+        return cp_seg_new(body, a, b, wr);
+    }
+    if (j == 1) { /* pymunk.Poly(sb, verts, transform=translation.rotated) */
+        double cx = v[0], cy = v[1], w = v[2], h = v[3], ang = v[4];
+        /* Transform(tx=cx, ty=cy) @ Transform.rotation(ang), pymunk's arithmetic */
+        double c = cos(ang), s = sin(ang), ms = -s;
+        cpXform t = {1.0 * c + 0.0 * s + cx * 0, 0.0 * c + 1.0 * s + cy * 0,
+                     1.0 * ms + 0.0 * c + cx * 0, 0.0 * ms + 1.0 * c + cy * 0,
+                     1.0 * 0.0 + 0.0 * 0.0 + cx * 1, 0.0 * 0.0 + 1.0 * 0.0 + cy * 1};
+        cpVect verts[4] = {{-w / 2, -h / 2}, {w / 2, -h / 2}, {w / 2, h / 2}, {-w / 2, h / 2}};
+        return cp_poly_new(body, 4, verts, t, 0.0);
+    }
+    cpVect off = {v[0], v[1]}; /* pymunk.Circle(sb, r, (cx, cy)) */
+    return cp_circle_new(body, v[2], off);
+}
+
+/* The arena's walls, boxes and cylinders (World with fast_contacts: add_static, then the
+ * contact handlers of install_contacts), then the robot at (0, 0, 0) (Robot.__init__). */
+static int build_cworld(BatchObject *b, Slot *s)
+{
+    const double *R = b->R;
+    void *space = cp_space_new();
+    if (space == NULL)
+        return -1;
+    s->space = space;
+    s->cworld = 1;
+    s->body = s->sbody = NULL;
+    s->nsshapes = 0;
+    cp_space_set_iterations(space, (int)R[R_ITER]);
+    cp_space_set_damping(space, R[R_DAMP]);
+    s->sbody = cp_body_new_static(); /* Space.static_body */
+    if (s->sbody == NULL)
+        return -1;
+    cp_space_add_body(space, s->sbody);
+    Py_ssize_t total = s->nwall + s->nbox + s->ncyl;
+    if (total > s->sscap) {
+        void **t = realloc(s->sshapes, (size_t)total * sizeof(void *));
+        if (t == NULL)
+            return -1;
+        s->sshapes = t;
+        s->sscap = total;
+    }
+    const double *lay = s->lay;
+    const long counts[3] = {s->nwall, s->nbox, s->ncyl};
+    const int width[3] = {4, 5, 3};
+    for (int j = 0; j < 3; j++)
+        for (long k = 0; k < counts[j]; k++) {
+            void *shape = static_shape(j, lay, s->sbody, R[R_WALL_R]);
+            lay += width[j];
+            if (shape == NULL)
+                return -1;
+            s->sshapes[s->nsshapes++] = shape;
+        }
+    for (Py_ssize_t k = 0; k < s->nsshapes; k++) {
+        cp_shape_set_type(s->sshapes[k], (uintptr_t)R[R_OBS_TYPE]);
+        cp_shape_set_friction(s->sshapes[k], R[R_OBS_FRIC]);
+        cp_shape_set_elasticity(s->sshapes[k], R[R_OBS_ELAST]);
+    }
+    for (Py_ssize_t k = 0; k < s->nsshapes; k++)
+        cp_space_add_shape(space, s->sshapes[k]);
+    memset(s->own_counts, 0, sizeof s->own_counts);
+    s->contacts = s->own_counts;
+    for (int k = 0; k < 4; k++) {
+        char *h = cp_add_handler(space, (uintptr_t)R[R_TYPES + k], (uintptr_t)R[R_OBS_TYPE]);
+        if (h == NULL)
+            return -1;
+        void *begin = (void *)contact_begin, *separate = (void *)contact_separate;
+        void *data = s->own_counts;
+        memcpy(h + (size_t)R[R_H_BEGIN], &begin, sizeof begin);
+        memcpy(h + (size_t)R[R_H_SEP], &separate, sizeof separate);
+        memcpy(h + (size_t)R[R_H_DATA], &data, sizeof data);
+    }
+    void *body = cp_body_new(R[R_MASS], R[R_MOMENT]);
+    if (body == NULL)
+        return -1;
+    s->body = body;
+    cpVect origin = {0.0, 0.0};
+    cp_body_set_position(body, origin);
+    cp_body_set_angle(body, 0.0);
+    const double *c = R + R_CHASSIS;
+    cpVect verts[4] = {{c[0], c[1]}, {c[2], c[3]}, {c[4], c[5]}, {c[6], c[7]}};
+    cpXform identity = {1.0, 0.0, 0.0, 1.0, 0.0, 0.0};
+    s->rshapes[0] = cp_poly_new(body, 4, verts, identity, 0.0);
+    for (int k = 0; k < 3; k++) {
+        const double *sg = R + R_FL + 4 * k;
+        cpVect a = {sg[0], sg[1]}, e = {sg[2], sg[3]};
+        s->rshapes[1 + k] = cp_seg_new(body, a, e, R[R_BUMP_R]);
+    }
+    cpFilter f = {(uintptr_t)R[R_GROUP], 0xffffffffu, 0xffffffffu}; /* ROBOT_FILTER */
+    for (int k = 0; k < 4; k++) {
+        if (s->rshapes[k] == NULL)
+            return -1;
+        cp_shape_set_type(s->rshapes[k], (uintptr_t)R[R_TYPES + k]);
+        cp_shape_set_friction(s->rshapes[k], R[R_FRIC]);
+        cp_shape_set_elasticity(s->rshapes[k], 0.0);
+        cp_shape_set_filter(s->rshapes[k], f);
+    }
+    cp_space_add_body(space, body);
+    for (int k = 0; k < 4; k++)
+        cp_space_add_shape(space, s->rshapes[k]);
+    return 0;
+}
+
+/* MKVEnv._reset_raw (seed None) of slot i, in C; the first observation and the reset's info
+ * numbers go to row i of the outputs. Returns the slot's error code. */
+static int reset_slot(BatchObject *b, Py_ssize_t i)
+{
+    Slot *s = &b->slots[i];
+    const double *R = b->R;
+    np_bitgen *g = s->gen;
+    if (g == NULL || !b->reset_ready)
+        return s->err = ERR_UNBOUND;
+    if (s->cworld)
+        free_cworld(s);
+    else if (s->keep != NULL) { /* Python's world: Python frees it, and its counts */
+        s->retired = s->keep;
+        s->keep = NULL;
+    }
+    s->body = s->space = NULL;
+    s->contacts = NULL;
+    long nclutter = (long)R[R_NCLUTTER], npatch = (long)R[R_NPATCH];
+    size_t cap = (size_t)(12 * nclutter + 5 * nclutter + 3 * nclutter + 16);
+    if (cap > s->laycap) {
+        double *t = realloc(s->lay, cap * sizeof(double));
+        if (t == NULL)
+            return s->err = ERR_MEMORY;
+        s->lay = t;
+        s->laycap = cap;
+    }
+    double *pt = realloc(s->patches, (size_t)(npatch > 0 ? npatch : 1) * 5 * sizeof(double));
+    circle *circles = malloc((size_t)(3 * nclutter + 4) * sizeof(circle));
+    if (pt != NULL)
+        s->patches = pt;
+    if (pt == NULL || circles == NULL) {
+        free(circles);
+        return s->err = ERR_MEMORY;
+    }
+    const double W = R[R_W], H = R[R_H], m = R[R_MARGIN];
+    int found = 0;
+    double x = 0.0, y = 0.0, th = 0.0;
+    for (long attempt = 0; attempt < (long)R[R_ATTEMPTS] && !found; attempt++) {
+        /* generate_layout: the arena's walls first, then the clutter */
+        double *wl = s->lay;
+        const double arena[16] = {0, 0, W, 0, W, 0, W, H, W, H, 0, H, 0, H, 0, 0};
+        memcpy(wl, arena, sizeof arena);
+        LayoutOut o = {wl + 16, wl + 16 + 12 * nclutter, wl + 16 + 17 * nclutter, s->patches,
+                       0, 0, 0, 0};
+        layout_core(g, W, H, nclutter, npatch, R[R_PSCALE], circles, 0, b->L, &o);
+        /* pack walls, boxes, cylinders contiguously, as build_cworld reads them */
+        s->nwall = 4 + o.nw;
+        s->nbox = o.nb;
+        s->ncyl = o.nc;
+        memmove(wl + 4 * s->nwall, o.boxes, (size_t)o.nb * 5 * sizeof(double));
+        memmove(wl + 4 * s->nwall + 5 * o.nb, o.cyls, (size_t)o.nc * 3 * sizeof(double));
+        s->npatch = o.np;
+        if (build_cworld(b, s) < 0) {
+            free_cworld(s);
+            free(circles);
+            return s->err = ERR_MEMORY;
+        }
+        /* random_free_pose */
+        for (long t = 0; t < (long)R[R_TRIES]; t++) {
+            x = uni(g, m, W - m);
+            y = uni(g, m, H - m);
+            if (is_clear(s, x, y, R[R_CLEAR])) {
+                th = uni(g, -M_PI, M_PI);
+                found = 1;
+                break;
+            }
+        }
+        if (!found)
+            free_cworld(s);
+    }
+    free(circles);
+    if (!found)
+        return s->err = ERR_NOPOSE;
+    /* _place */
+    cpVect p = {x, y};
+    cp_body_set_position(s->body, p);
+    cp_body_set_angle(s->body, th);
+    cp_space_reindex_body(s->space, s->body);
+    /* a new Robot's WheelState and mu, SensorSuite.reset, MotionTracker.reset (not jammed),
+     * MKVEnvV1's empty cell set */
+    double *v = s->v;
+    memset(v, 0, sizeof s->v);
+    v[V_MU] = 1.0;
+    double tick = b->P[P_TICK];
+    v[V_TICK_D] = floor(0.0 / tick);
+    v[V_TICK_R] = floor(0.0 / tick);
+    cpVect pos = cp_get_p(s->body);
+    double heading = remainder(cp_get_a(s->body), 2.0 * M_PI);
+    v[V_X] = v[V_JAM_X] = pos.x;
+    v[V_Y] = v[V_JAM_Y] = pos.y;
+    v[V_HEAD] = heading;
+    v[V_EVENTS] = (double)s->contacts[0];
+    s->start[0] = pos.x;
+    s->start[1] = pos.y;
+    s->start[2] = heading;
+    cells_clear(s);
+    s->row = NOISE_ROWS;
+    s->err = 0;
+    if (read_sensors(b, i))
+        return s->err;
+    /* the reset's info numbers (MKVEnv._info(False, False)) */
+    const int64_t *c = s->contacts;
+    OUT(b, O_REW, double)[i] = 0.0;
+    OUT(b, O_TERM, uint8_t)[i] = 0;
+    OUT(b, O_STUCK, uint8_t)[i] = 0;
+    OUT(b, O_BUMPED, uint8_t)[i] = (uint8_t)(c[2] > 0 || c[3] > 0 || c[4] > 0);
+    OUT(b, O_COLL, uint8_t)[i] = 0;
+    OUT(b, O_DIST, double)[i] = v[V_DIST];
+    OUT(b, O_JAMS, int64_t)[i] = 0;
+    OUT(b, O_ESC, int64_t)[i] = 0;
+    OUT(b, O_COLLS, int64_t)[i] = 0;
+    OUT(b, O_IN_JAM, uint8_t)[i] = 0;
+    double *pose = OUT(b, O_POSE, double) + 3 * i;
+    pose[0] = pos.x;
+    pose[1] = pos.y;
+    pose[2] = heading;
+    OUT(b, O_CELLS, int64_t)[i] = s->ncells;
+    OUT(b, O_ESCAPED, uint8_t)[i] = 0;
+    return 0;
+}
+
+/* set_reset(R (R_LEN float64), layout constants (L_LEN float64)): what a reset in C needs (see
+ * mkv_env.kernel.reset_constants); only MKV-v0 and MKV-v1 envs are reset in C. */
+static PyObject *batch_set_reset(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "set_reset() takes 2 arguments");
+        return NULL;
+    }
+    if (b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: a step is running");
+        return NULL;
+    }
+    if (cp_space_new == NULL || cp_seg_new == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "bind_reset() / bind_shapes() have not been called");
+        return NULL;
+    }
+    double R[R_LEN];
+    if (get_doubles(args[0], R, R_LEN, "reset constants") < 0 ||
+        get_doubles(args[1], b->L, L_LEN, "layout constants") < 0)
+        return NULL;
+    if (!(R[R_NCLUTTER] >= 0 && R[R_NCLUTTER] <= 100000 && R[R_NPATCH] >= 0 &&
+          R[R_NPATCH] <= 100000)) {
+        PyErr_SetString(PyExc_ValueError, "reset constants out of range");
+        return NULL;
+    }
+    memcpy(b->R, R, sizeof R);
+    b->reset_ready = 1;
+    Py_RETURN_NONE;
+}
+
+/* can_reset(i) -> True when a job may reset slot i in C (constants set, a bit generator bound). */
+static PyObject *batch_can_reset(BatchObject *b, PyObject *idx)
+{
+    Slot *s = get_slot(b, idx, NULL);
+    if (s == NULL)
+        return NULL;
+    return PyBool_FromLong(b->reset_ready && s->gen != NULL);
+}
+
+/* adopt(i, counts (int64 x 5 array)) -> (space, static_body, body, robot shapes (4 addresses),
+ * obstacle shapes (capsule, as add_static's), walls (after the arena's 4), boxes, cylinders,
+ * patches, start pose (x, y, heading)), or None when slot i holds no world of its own: hands
+ * the world the slot built to Python (mkv_env.kernel.adopt_world wraps it in pymunk objects,
+ * which own and free it from then on). The contact counts move to ``counts``; the caller points
+ * the contact handlers at it (install_contacts) before the next step. */
+static PyObject *batch_adopt(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "adopt() takes 2 arguments");
+        return NULL;
+    }
+    Slot *s = get_slot(b, args[0], NULL);
+    if (s == NULL)
+        return NULL;
+    if (b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: a step is running");
+        return NULL;
+    }
+    if (!s->cworld)
+        Py_RETURN_NONE;
+    Py_buffer cv;
+    if (PyObject_GetBuffer(args[1], &cv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
+        return NULL;
+    int ok = cv.itemsize == 8 && cv.len == 40 && cv.format &&
+             (strcmp(cv.format, "q") == 0 || strcmp(cv.format, "l") == 0);
+    int64_t *counts = cv.buf;
+    PyBuffer_Release(&cv); /* kept alive by s->keep, never resized (an array.array) */
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "adopt: counts must be int64 x 5");
+        return NULL;
+    }
+    StaticShapes *ss = PyMem_Malloc(sizeof(StaticShapes) +
+                                    (size_t)(s->nsshapes ? s->nsshapes : 1) * sizeof(void *));
+    if (ss == NULL)
+        return PyErr_NoMemory();
+    ss->n = s->nsshapes;
+    memcpy(ss->shapes, s->sshapes, (size_t)s->nsshapes * sizeof(void *));
+    PyObject *cap = PyCapsule_New(ss, "mkv_env.static_shapes", static_free);
+    if (cap == NULL) {
+        PyMem_Free(ss);
+        return NULL;
+    }
+    ss->n = 0; /* owned by the capsule only once everything below is made */
+    const double *lay = s->lay;
+    PyObject *walls = tuples_of(lay + 16, s->nwall - 4, 4);
+    PyObject *boxes = tuples_of(lay + 4 * s->nwall, s->nbox, 5);
+    PyObject *cyls = tuples_of(lay + 4 * s->nwall + 5 * s->nbox, s->ncyl, 3);
+    PyObject *patches = tuples_of(s->patches, s->npatch, 5);
+    PyObject *out = NULL;
+    if (walls && boxes && cyls && patches)
+        out = Py_BuildValue("(NNN(NNNN)OOOOO(ddd))", PyLong_FromVoidPtr(s->space),
+                            PyLong_FromVoidPtr(s->sbody), PyLong_FromVoidPtr(s->body),
+                            PyLong_FromVoidPtr(s->rshapes[0]), PyLong_FromVoidPtr(s->rshapes[1]),
+                            PyLong_FromVoidPtr(s->rshapes[2]), PyLong_FromVoidPtr(s->rshapes[3]),
+                            cap, walls, boxes, cyls, patches, s->start[0], s->start[1],
+                            s->start[2]);
+    Py_XDECREF(walls);
+    Py_XDECREF(boxes);
+    Py_XDECREF(cyls);
+    Py_XDECREF(patches);
+    if (out == NULL) {
+        Py_DECREF(cap);
+        return NULL;
+    }
+    ss->n = s->nsshapes;
+    Py_DECREF(cap); /* out holds it */
+    memcpy(counts, s->own_counts, sizeof s->own_counts);
+    s->contacts = counts;
+    Py_INCREF(args[1]);
+    Py_XSETREF(s->keep, args[1]);
+    s->nsshapes = 0;
+    for (int k = 0; k < 4; k++)
+        s->rshapes[k] = NULL;
+    s->sbody = NULL;
+    s->cworld = 0;
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"bind", (PyCFunction)(void (*)(void))fs_bind, METH_FASTCALL,
      "bind(get_v, get_w, get_a, set_f, set_t, step, hypot): Chipmunk entry points."},
@@ -2627,6 +3194,8 @@ static PyMethodDef methods[] = {
      "normals(bit_generator, k) -> k standard normals drawn in C, or None (no numpy library)."},
     {"hypot", (PyCFunction)(void (*)(void))fs_hypot, METH_FASTCALL,
      "hypot(a, b): the kernel's copy of math.hypot."},
+    {"bind_reset", (PyCFunction)(void (*)(void))fs_bind_reset, METH_FASTCALL,
+     "bind_reset(14 Chipmunk function addresses) for resets in C."},
     {"pymod", (PyCFunction)(void (*)(void))fs_pymod, METH_FASTCALL,
      "pymod(a, b): the kernel's copy of Python's float %."},
     {NULL, NULL, 0, NULL}};
@@ -2657,7 +3226,8 @@ PyMODINIT_FUNC PyInit__fastsim(void)
         PyModule_AddIntConstant(m, "N_PARAMS", P_LEN) < 0 ||
         PyModule_AddIntConstant(m, "N_VALUES", V_LEN) < 0 ||
         PyModule_AddIntConstant(m, "NOISE_ROWS", NOISE_ROWS) < 0 ||
-        PyModule_AddIntConstant(m, "N_CONSTANTS", K_LEN) < 0) {
+        PyModule_AddIntConstant(m, "N_CONSTANTS", K_LEN) < 0 ||
+        PyModule_AddIntConstant(m, "N_RESET", R_LEN) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -221,7 +221,10 @@ class MKVEnv(gym.Env):
             self._set_observation(observation)
         self._tracker = MotionTracker(control_period_s, stuck_speed_mps, jam_steps,
                                       escape_distance_m, float(escape_forward_m))
-        self.world: World | None = None
+        self._world: World | None = None
+        #: True when the kernel slot reset this env in C (a native vector env's autoreset) and
+        #: Python has not yet asked for the world it built (:func:`mkv_env.kernel.adopt_world`).
+        self._c_world = False
         self.trail: list[tuple[float, float]] = []
         self._renderer = None
         self._last_action = NOOP_ACTION
@@ -235,6 +238,23 @@ class MKVEnv(gym.Env):
         self._dirty: list = []  # envs of a shared batch whose state Python took back
 
     # ------------------------------------------------------------------ state owners
+    @property
+    def world(self) -> World | None:
+        """The episode's arena and robot (pymunk objects); None before the first reset."""
+        if self._c_world:
+            self._adopt()
+        return self._world
+
+    @world.setter
+    def world(self, value: World | None) -> None:
+        self._world = value
+        self._c_world = False
+
+    def _adopt(self) -> None:
+        """Take over the world the kernel slot built at a reset in C."""
+        self._c_world = False
+        _kernel.adopt_world(self, self._batch, self._slot)
+
     @property
     def tracker(self) -> MotionTracker:
         """Ground-truth motion bookkeeping (distance, stuck, jams, escapes) of the episode."""
@@ -250,6 +270,8 @@ class MKVEnv(gym.Env):
     def _to_python(self) -> None:
         """Make the Python objects current (pull the kernel slot's state) and theirs to change:
         the next step pushes them back."""
+        if self._c_world:
+            self._adopt()
         if self._batch is not None and not self._py_owns:
             _kernel.pull(self, self._batch, self._slot)
             self._py_owns = True
@@ -272,6 +294,9 @@ class MKVEnv(gym.Env):
         return state
 
     def __setstate__(self, state):
+        if "world" in state:  # pickled before the world became a property
+            state["_world"] = state.pop("world")
+        state.setdefault("_c_world", False)
         self.__dict__.update(state)
         if self.kernel == "c" and self.world is not None:
             self._batch, self._out = _kernel.new_batch(self, 1)

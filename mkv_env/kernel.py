@@ -101,6 +101,11 @@ NOISE_IN_C = AVAILABLE and _noise_in_c()
 #: built with numpy's array API); else :class:`mkv_env.vector.MKVVectorEnv` does it in Python.
 COLLECT = AVAILABLE and hasattr(_fastsim.Batch, "collect")
 
+#: True when a native vector env can reset its MKV-v0 / MKV-v1 envs inside the kernel call, on
+#: the worker threads (``Batch.set_reset``): their worlds are built in C and handed to pymunk
+#: only when Python asks for them (:func:`adopt_world`). Needs the noise drawn in C.
+C_RESET = NOISE_IN_C and _chipmunk.RESET and hasattr(_fastsim.Batch, "adopt")
+
 #: The env classes' reward/termination rules, as the kernel numbers them.
 KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
 
@@ -244,13 +249,19 @@ _TRACK = ("x", "y", "heading", "distance_m", "last_step_m", "stuck_run", "jams",
 _TRACK_INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events"))
 
 
-def push(env, batch, slot: int) -> None:
-    """Copy ``env``'s Python state (world, wheels, sensors, tracker, reward state) into a slot,
-    and its parameters (reward weights, thresholds) into the batch when they changed since."""
+def sync_params(env, batch) -> None:
+    """Hand ``env``'s parameters (reward weights, thresholds) to ``batch`` when they changed
+    since they were last handed over."""
     p = params(env)
     if p != getattr(env, "_kernel_params", None):
         batch.set_params(p)
         env._kernel_params = p
+
+
+def push(env, batch, slot: int) -> None:
+    """Copy ``env``'s Python state (world, wheels, sensors, tracker, reward state) into a slot,
+    and its parameters (reward weights, thresholds) into the batch when they changed since."""
+    sync_params(env, batch)
     world = env.world
     robot = world.robot
     st, t, s = robot._state, env._tracker, env._sensors
@@ -293,3 +304,99 @@ def pull(env, batch, slot: int) -> None:
         s._block = np.frombuffer(noise, dtype=np.float64).reshape(NOISE_ROWS, -1).copy()
         s._noise = s._block.tolist()
     s._row = row
+
+
+# ---------------------------------------------------------------------- resets in C
+def reset_constants(env) -> array.array:
+    """The constants of a reset in C (``R_*`` in _fastsim.c) for envs configured like ``env``:
+    the arena, obstacles, space, start-pose search and the robot's body and shapes, each
+    computed as :class:`~mkv_env.world.World`, :class:`~mkv_env.robot.Robot` and
+    :func:`~mkv_env.world.random_free_pose` compute it."""
+    from mkv_env import world as w
+    from mkv_env.envs import LAYOUT_ATTEMPTS
+
+    p = env.robot_params
+    hl, hw = p.length_m / 2, p.width_m / 2
+    g, r = p.bumper_gap_m, 0.008
+    front, rear = hl + g, -hl - g
+    W = env.arena_size_m
+    group = _robot.ROBOT_FILTER.group
+    R = (W, W, env.n_clutter, env.n_patches, env.patch_friction, w.WALL_RADIUS_M,
+         w.OBSTACLE_FRICTION, w.OBSTACLE_ELASTICITY, _robot.OBSTACLE, 10, w.SPACE_DAMPING,
+         w.ROBOT_CLEARANCE_M + w.WALL_RADIUS_M, w.ROBOT_CLEARANCE_M, w.START_POSE_TRIES,
+         LAYOUT_ATTEMPTS, p.mass_kg, _robot.moment_of_inertia(p), p.chassis_friction,
+         _robot.CHASSIS, _robot.BUMP_FL, _robot.BUMP_FR, _robot.BUMP_REAR,
+         -hl, -hw, hl, -hw, hl, hw, -hl, hw,
+         front, 0.0, front - 0.03, hw, front, 0.0, front - 0.03, -hw, rear, -hw * 0.8, rear,
+         hw * 0.8, r, group, *_chipmunk.HANDLER_OFFSETS)
+    out = array.array("d", map(float, R))
+    assert len(out) == _fastsim.N_RESET
+    return out
+
+
+def setup_resets(env, batch) -> bool:
+    """Give ``batch`` the constants to reset envs configured like ``env`` in C; False (nothing
+    done) when it cannot: no :data:`C_RESET`, or an env class other than MKV-v0's and MKV-v1's
+    (MKVJam's start search and subclasses stay Python)."""
+    from mkv_env.envs import MKVEnv, MKVEnvV1
+
+    global _LAYOUT_CONSTANTS
+    if not C_RESET or type(env) not in (MKVEnv, MKVEnvV1) or env.render_mode is not None:
+        return False
+    if _LAYOUT_CONSTANTS is None:
+        _LAYOUT_CONSTANTS = _layout_constants()
+    batch.set_reset(reset_constants(env), _LAYOUT_CONSTANTS)
+    return True
+
+
+def adopt_world(env, batch, slot: int) -> bool:
+    """Hand the world slot ``slot`` built at its last reset in C to Python: ``env.world`` becomes
+    a :class:`~mkv_env.world.World` of pymunk objects wrapping the very same Chipmunk space,
+    bodies and shapes (so stepping on, in C or Python, gives the same bits), and the env's
+    episode bookkeeping is that of a fresh reset; the slot keeps the newest state (``pull``
+    brings it to Python on demand). False when the slot holds no world of its own."""
+    import pymunk
+
+    from mkv_env.actions import NOOP_ACTION
+    from mkv_env.world import Layout, World
+
+    counts = array.array("q", bytes(40))
+    got = batch.adopt(slot, counts)
+    if got is None:
+        return False
+    space_p, static_p, body_p, shape_ps, static_cap, walls, boxes, cylinders, patches, start = got
+    space = _chipmunk.wrap_space(space_p)
+    sb = _chipmunk.wrap_body(static_p, space, static=True)
+    W = H = env.arena_size_m
+    lay = Layout(W, H)
+    lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
+    lay.walls += walls
+    lay.boxes, lay.cylinders, lay.patches = boxes, cylinders, patches
+    world = World.__new__(World)
+    world.layout, world.robot_params, world.space = lay, env.robot_params, space
+    world.fast_contacts, world._static, world.contacts = True, static_cap, counts
+    _chipmunk.install_contacts(world)
+    robot = _robot.Robot.__new__(_robot.Robot)
+    robot.params = env.robot_params
+    robot.body = _chipmunk.wrap_body(body_p, space)
+    robot.shapes = tuple(_chipmunk.wrap_shape(cls, ptr, robot.body, space) for cls, ptr in zip(
+        (pymunk.Poly, pymunk.Segment, pymunk.Segment, pymunk.Segment), shape_ps, strict=True))
+    robot._state = _robot.WheelState()
+    robot._sync = None
+    robot._mu_scale = 1.0
+    robot.kernel = env._robot_kernel
+    robot._ptrs = None
+    robot._precompute()
+    world.robot = robot
+    del sb  # (the space keeps it as its static_body)
+    env._world = world
+    env._tracker.reset(start, False, 0)
+    env._sensors._rng = env.np_random
+    env._sensors._row = NOISE_ROWS
+    env._sensors._last_ticks = (0, 0)
+    if hasattr(env, "_cells"):
+        env._cells = set()
+    env.trail = [start[:2]]
+    env._last_action = NOOP_ACTION
+    robot._sync = env._to_python
+    return True

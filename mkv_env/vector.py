@@ -8,8 +8,11 @@ tracks it and scores it, writing observations, rewards, flags and the info numbe
 preallocated arrays, with the GIL released and, with ``num_threads=K``, on K threads (each with
 a home group of robots, taking the others' unclaimed robots when done; results do not depend on
 K). A second C call (``Batch.collect``) turns those buffers into the step's fresh result arrays,
-truncation, autoreset flags and Gymnasium's info dict; Python then only resets the envs that
-ended (while the worker threads step the others). Env ``i`` of a vector env reset with ``seed``
+truncation, autoreset flags and Gymnasium's info dict. The envs of ``MKV-v0`` and ``MKV-v1``
+that ended are reset inside the kernel call too, on the worker threads (their new worlds are
+built in C and handed to pymunk only when Python asks for ``env.world``:
+:func:`mkv_env.kernel.adopt_world`); those of the jam ids are reset by Python, while the worker
+threads step the others. Env ``i`` of a vector env reset with ``seed``
 follows the same trajectory, bit for bit, as a single env reset with ``seed + i`` and given the
 same actions (``tests/mkv_env/test_vector.py``); ``kernel="python"`` runs the reference
 implementation (each robot's step in Python) instead.
@@ -154,6 +157,9 @@ class MKVVectorEnv(VectorEnv):
             self._has_scenario = hasattr(first, "scenario")
             self._scenarios = np.full(n, None, dtype=object)
             self._active = np.ones(n, dtype=bool)
+            self._idle = np.zeros(n, dtype=bool)
+            # autoresets in C (MKV-v0, MKV-v1 without rendering): see kernel.setup_resets
+            self._c_reset = _kernel.setup_resets(first, self._batch)
 
     # ------------------------------------------------------------------ per-env info dicts
     @property
@@ -256,9 +262,13 @@ class MKVVectorEnv(VectorEnv):
         mode = self.autoreset_mode
         # (count_nonzero: ndarray.any costs several times more on a few robots)
         resetting = mode == AutoresetMode.NEXT_STEP and np.count_nonzero(self._autoreset) > 0
+        b, envs, out = self._batch, self.envs, self._out
+        c_idx, c_mask = (), None
         if resetting:
             active = np.logical_not(self._autoreset, out=self._active)
             reset_idx = np.flatnonzero(self._autoreset).tolist()
+            if self._c_reset:  # reset in the kernel call (the others by Python, below)
+                c_idx, c_mask, reset_idx = self._c_resets(reset_idx)
         else:
             active, reset_idx = None, ()
         if self._dirty:  # Python code took some envs' state back: hand it to the kernel again
@@ -266,20 +276,23 @@ class MKVVectorEnv(VectorEnv):
                 if env._py_owns and env.world is not None:
                     env._push()
             self._dirty.clear()
-        b, envs, out = self._batch, self.envs, self._out
         # With worker threads, the envs ending last step are reset while the workers step the
         # others (their slots are not stepped this step: nothing is shared).
         overlap = bool(reset_idx) and self.num_threads > 1
         run = b.step_start if overlap else b.step
+        extra = () if c_mask is None else (c_mask,)
         try:
-            need = run(acts, active)
+            need = run(acts, active, *extra)
         except ValueError:  # the kernel checks the values before it steps anything
             raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) of "
                              "[drive, steer] with each in {0, 1, 2}") from None
         while need is not None:  # robots that used up their noise block and cannot draw it
             for i in need:       # in C (kernel.NOISE_IN_C): the next, as the reference draws it
                 b.set_noise(i, envs[i]._sensors.draw_block())
-            need = run(acts, active)
+            need = run(acts, active, *extra)
+        for i in c_idx:  # reset in C: their Python objects are stale until asked for
+            envs[i]._c_world = True
+            envs[i]._py_owns = False
         early = []
         if overlap:
             try:
@@ -330,6 +343,8 @@ class MKVVectorEnv(VectorEnv):
         if self.render_mode is not None:
             self._trails(active)
         info: dict[str, Any] = {}
+        for i in c_idx:
+            elapsed[i] = 0
         for i, o, d in early:
             obs[i] = o
             elapsed[i] = 0
@@ -346,6 +361,19 @@ class MKVVectorEnv(VectorEnv):
                 final_cols = {k: v.copy() for k, v in cols.items()}
                 for i in done:
                     final_obs[i] = obs[i].copy()
+                c_idx, c_mask, py_idx = (self._c_resets(done.tolist()) if self._c_reset
+                                         else ((), None, done))
+                if c_idx:  # one more kernel call: these envs reset in C, on the threads
+                    need = b.step(acts, self._idle, c_mask)
+                    assert need is None  # (no robot is stepped)
+                    obs[c_idx] = out["obs"][c_idx]
+                    for name, _, k in self._col_spec:
+                        cols[name][c_idx] = out[_kernel.OUTPUTS[k][0]][c_idx]
+                    for i in c_idx:
+                        envs[i]._c_world = True
+                        envs[i]._py_owns = False
+                        elapsed[i] = 0
+                for i in py_idx:
                     obs[i], d = envs[i].reset()
                     elapsed[i] = 0
                     self._put(cols, i, d)
@@ -367,6 +395,22 @@ class MKVVectorEnv(VectorEnv):
         if final_lazy is None:
             self._final_env_infos = [None] * n
         return obs, rewards, terminated, truncated, info
+
+    def _c_resets(self, idx: list[int]) -> tuple:
+        """Of the envs ``idx`` to reset, those the kernel resets in C (its bit generator bound to
+        the slot): (their indices, their bool mask or None, the rest, for Python). Reward
+        weights changed on one since its last reset reach the kernel now, as a reset's push
+        would hand them over."""
+        can = self._batch.can_reset
+        mine = [i for i in idx if can(i)]
+        if not mine:
+            return (), None, idx
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[mine] = True
+        for i in mine:
+            _kernel.sync_params(self.envs[i], self._batch)
+        rest = [i for i in idx if not mask[i]] if len(mine) < len(idx) else ()
+        return mine, mask, rest
 
     def _put(self, cols: dict, i: int, d: dict) -> None:
         """Env i's info dict ``d`` (from a reset) into row i of the columns."""
