@@ -814,6 +814,7 @@ struct BatchObject {
     const uint8_t *resets;
     Py_buffer job_reset;
     int job_have_reset;
+    uint8_t *scratch; /* vstep's active mask */
 };
 
 static int reset_slot(BatchObject *b, Py_ssize_t i);
@@ -1265,6 +1266,7 @@ static void batch_dealloc(BatchObject *b)
             pthread_join(b->workers[g].th, NULL);
     }
     free(b->workers);
+    free(b->scratch);
     pthread_mutex_destroy(&b->mu);
     pthread_cond_destroy(&b->cv);
     if (b->have_out)
@@ -1915,57 +1917,14 @@ static PyObject *out_copy(BatchObject *b, int k)
  * autoreset (bool n, or None) = terminated | truncated; cols = {name: copy of output index} for
  * each (name, mask_name, index) of spec; info = cols plus {mask_name: fresh all-True bool n}
  * when want_info (Gymnasium's vector info of robots that all report every key). */
-static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+/* collect's work on raw buffers: el (int64 n), act (bool n or NULL), ar (bool n to write the
+ * autoreset flags into, or NULL), rst (bool n or NULL: slots reset this step, elapsed 0). */
+static PyObject *collect_core(BatchObject *b, int64_t *el, long long max_steps, const uint8_t *act,
+                              uint8_t *ar, const uint8_t *rst, PyObject *spec, int want)
 {
-    if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError, "collect() takes 6 arguments");
-        return NULL;
-    }
-    if (!b->have_out || b->running) {
-        PyErr_SetString(PyExc_RuntimeError, "step kernel: no outputs, or a step is running");
-        return NULL;
-    }
     Py_ssize_t n = b->n;
-    long long max_steps = PyLong_AsLongLong(args[1]);
-    if (max_steps == -1 && PyErr_Occurred())
-        return NULL;
-    int want = PyObject_IsTrue(args[5]);
-    if (want < 0)
-        return NULL;
-    if (!PyTuple_Check(args[4])) {
-        PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
-        return NULL;
-    }
-    Py_buffer ev, av, rv;
-    int have_a = 0, have_r = 0;
     PyObject *result = NULL, *obs = NULL, *rew = NULL, *term = NULL, *trunc = NULL;
     PyObject *cols = NULL, *info = NULL;
-    if (PyObject_GetBuffer(args[0], &ev, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
-        return NULL;
-    if (ev.itemsize != 8 || ev.len != n * 8 || ev.format == NULL ||
-        (strcmp(ev.format, "q") != 0 && strcmp(ev.format, "l") != 0)) {
-        PyErr_Format(PyExc_ValueError, "elapsed must be int64 of shape (%zd,)", n);
-        goto done;
-    }
-    if (args[2] != Py_None) {
-        if (PyObject_GetBuffer(args[2], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
-            goto done;
-        have_a = 1;
-        if (av.len != n || av.format == NULL || strcmp(av.format, "?") != 0) {
-            PyErr_Format(PyExc_ValueError, "active must be bool of shape (%zd,)", n);
-            goto done;
-        }
-    }
-    if (args[3] != Py_None) {
-        if (PyObject_GetBuffer(args[3], &rv,
-                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
-            goto done;
-        have_r = 1;
-        if (rv.len != n || rv.format == NULL || strcmp(rv.format, "?") != 0) {
-            PyErr_Format(PyExc_ValueError, "autoreset must be bool of shape (%zd,)", n);
-            goto done;
-        }
-    }
     obs = out_copy(b, O_OBS);
     rew = out_copy(b, O_REW);
     term = out_copy(b, O_TERM);
@@ -1976,19 +1935,19 @@ static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t
     if (obs == NULL || rew == NULL || term == NULL || trunc == NULL || cols == NULL ||
         (want && info == NULL))
         goto done;
-    int64_t *el = ev.buf;
-    const uint8_t *act = have_a ? av.buf : NULL;
     const uint8_t *te = PyArray_DATA((PyArrayObject *)term);
     uint8_t *tr = PyArray_DATA((PyArrayObject *)trunc);
     for (Py_ssize_t i = 0; i < n; i++) {
         int moved = act == NULL || act[i];
         el[i] += moved;
+        if (rst != NULL && rst[i])
+            el[i] = 0;
         tr[i] = (uint8_t)(moved && max_steps >= 0 && el[i] >= max_steps);
-        if (have_r)
-            ((uint8_t *)rv.buf)[i] = (uint8_t)(te[i] | tr[i]);
+        if (ar != NULL)
+            ar[i] = (uint8_t)(te[i] | tr[i]);
     }
-    for (Py_ssize_t k = 0; k < PyTuple_GET_SIZE(args[4]); k++) {
-        PyObject *item = PyTuple_GET_ITEM(args[4], k), *name, *mname;
+    for (Py_ssize_t k = 0; k < PyTuple_GET_SIZE(spec); k++) {
+        PyObject *item = PyTuple_GET_ITEM(spec, k), *name, *mname;
         int idx;
         if (!PyArg_ParseTuple(item, "UUi", &name, &mname, &idx))
             goto done;
@@ -2024,11 +1983,209 @@ done:
     Py_XDECREF(trunc);
     Py_XDECREF(cols);
     Py_XDECREF(info);
+    return result;
+}
+
+/* An int64 (n,) or bool (n,) buffer of a vector env, writable or not; -1 with an error set. */
+static int vec_buffer(PyObject *obj, Py_buffer *v, Py_ssize_t n, int boolean, int writable,
+                      const char *what)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, v, flags) < 0)
+        return -1;
+    const char *f = v->format;
+    int ok = boolean ? (v->len == n && f != NULL && strcmp(f, "?") == 0)
+                     : (v->itemsize == 8 && v->len == n * 8 && f != NULL &&
+                        (strcmp(f, "q") == 0 || strcmp(f, "l") == 0));
+    if (!ok) {
+        PyBuffer_Release(v);
+        PyErr_Format(PyExc_ValueError, "%s must be %s of shape (%zd,)", what,
+                     boolean ? "bool" : "int64", n);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "collect() takes 6 arguments");
+        return NULL;
+    }
+    if (!b->have_out || b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: no outputs, or a step is running");
+        return NULL;
+    }
+    Py_ssize_t n = b->n;
+    long long max_steps = PyLong_AsLongLong(args[1]);
+    if (max_steps == -1 && PyErr_Occurred())
+        return NULL;
+    int want = PyObject_IsTrue(args[5]);
+    if (want < 0)
+        return NULL;
+    if (!PyTuple_Check(args[4])) {
+        PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
+        return NULL;
+    }
+    Py_buffer ev, av, rv;
+    int have_a = 0, have_r = 0;
+    PyObject *result = NULL;
+    if (vec_buffer(args[0], &ev, n, 0, 1, "elapsed") < 0)
+        return NULL;
+    if (args[2] != Py_None) {
+        if (vec_buffer(args[2], &av, n, 1, 0, "active") < 0)
+            goto done;
+        have_a = 1;
+    }
+    if (args[3] != Py_None) {
+        if (vec_buffer(args[3], &rv, n, 1, 1, "autoreset") < 0)
+            goto done;
+        have_r = 1;
+    }
+    result = collect_core(b, ev.buf, max_steps, have_a ? av.buf : NULL,
+                          have_r ? rv.buf : NULL, NULL, args[4], want);
+done:
     PyBuffer_Release(&ev);
     if (have_a)
         PyBuffer_Release(&av);
     if (have_r)
         PyBuffer_Release(&rv);
+    return result;
+}
+
+/* vstep(actions, elapsed, autoreset, max_steps, spec, want_info) -> (obs, rewards, terminated,
+ * truncated, cols, info or None, reset slots (list) or None, any autoreset pending (bool)), or
+ * None when this step needs the general path: a native vector env's whole NEXT_STEP step in one
+ * call (MKVVectorEnv._step_kernel's fast path, for envs the kernel resets itself). The slots
+ * flagged in autoreset are reset in C (not stepped: reward 0, not done, elapsed 0), every other
+ * slot is stepped with ``actions``; then collect's bookkeeping, autoreset rewritten in place.
+ * None (nothing done) when actions are not an int64 (n, 2) array, a flagged slot cannot be reset
+ * in C, or a slot needs noise drawn by Python. */
+static PyObject *batch_vstep(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "vstep() takes 6 arguments");
+        return NULL;
+    }
+    if (!b->have_out || b->running) {
+        PyErr_SetString(PyExc_RuntimeError, "step kernel: no outputs, or a step is running");
+        return NULL;
+    }
+    Py_ssize_t n = b->n;
+    long long max_steps = PyLong_AsLongLong(args[3]);
+    if (max_steps == -1 && PyErr_Occurred())
+        return NULL;
+    int want = PyObject_IsTrue(args[5]);
+    if (want < 0)
+        return NULL;
+    if (!PyTuple_Check(args[4])) {
+        PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
+        return NULL;
+    }
+    Py_buffer av, ev, rv;
+    if (PyObject_GetBuffer(args[0], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        PyErr_Clear();
+        Py_RETURN_NONE;
+    }
+    if (av.itemsize != 8 || av.len != n * 16 || av.format == NULL ||
+        (strcmp(av.format, "q") != 0 && strcmp(av.format, "l") != 0) || av.ndim != 2 ||
+        av.shape == NULL || av.shape[0] != n || av.shape[1] != 2) {
+        PyBuffer_Release(&av);
+        Py_RETURN_NONE;
+    }
+    if (vec_buffer(args[1], &ev, n, 0, 1, "elapsed") < 0) {
+        PyBuffer_Release(&av);
+        return NULL;
+    }
+    if (vec_buffer(args[2], &rv, n, 1, 1, "autoreset") < 0) {
+        PyBuffer_Release(&av);
+        PyBuffer_Release(&ev);
+        return NULL;
+    }
+    PyObject *result = Py_None, *resets = Py_None, *out = NULL;
+    Py_INCREF(Py_None);
+    Py_INCREF(Py_None);
+    const int64_t *a = av.buf;
+    uint8_t *ar = rv.buf;
+    int any = 0;
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (ar[i]) {
+            any = 1;
+            if (!b->reset_ready || b->slots[i].gen == NULL)
+                goto release; /* Python resets it: the general path */
+        }
+    for (Py_ssize_t i = 0; i < 2 * n; i++)
+        if (a[i] < 0 || a[i] > 2) {
+            PyErr_Format(PyExc_ValueError, "action value %lld out of {0, 1, 2}", (long long)a[i]);
+            goto fail;
+        }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (ar[i])
+            continue;
+        if (b->slots[i].body == NULL) {
+            PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
+            goto fail;
+        }
+        if (needs_noise(&b->slots[i]))
+            goto release;
+    }
+    if (any) {
+        if (b->scratch == NULL && (b->scratch = malloc((size_t)(n > 0 ? n : 1))) == NULL) {
+            PyErr_NoMemory();
+            goto fail;
+        }
+        for (Py_ssize_t i = 0; i < n; i++)
+            b->scratch[i] = !ar[i];
+        Py_DECREF(resets);
+        if ((resets = PyList_New(0)) == NULL)
+            goto fail;
+        for (Py_ssize_t i = 0; i < n; i++)
+            if (ar[i]) {
+                PyObject *k = PyLong_FromSsize_t(i);
+                if (k == NULL || PyList_Append(resets, k) < 0) {
+                    Py_XDECREF(k);
+                    goto fail;
+                }
+                Py_DECREF(k);
+            }
+    }
+    if (start_workers(b) < 0)
+        goto fail;
+    b->acts = a;
+    b->active = any ? b->scratch : NULL;
+    b->resets = any ? ar : NULL;
+    b->job_have_mask = b->job_have_reset = 0;
+    Py_BEGIN_ALLOW_THREADS
+    launch_job(b);
+    finish_job(b);
+    Py_END_ALLOW_THREADS
+    const uint8_t *active = b->active;
+    PyObject *err = conclude_job(b); /* (clears acts/active/resets; releases nothing of ours) */
+    if (err == NULL)
+        goto fail;
+    Py_DECREF(err);
+    out = collect_core(b, ev.buf, max_steps, active, ar, any ? ar : NULL, args[4], want);
+    if (out == NULL)
+        goto fail;
+    /* collect_core rewrote ar (the flags for the next step); the slots reset this step are in
+     * ``resets`` */
+    int pending = 0;
+    for (Py_ssize_t i = 0; i < n; i++)
+        pending |= ar[i];
+    Py_DECREF(result);
+    result = Py_BuildValue("(OOOOOOOO)", PyTuple_GET_ITEM(out, 0), PyTuple_GET_ITEM(out, 1),
+                           PyTuple_GET_ITEM(out, 2), PyTuple_GET_ITEM(out, 3),
+                           PyTuple_GET_ITEM(out, 4), PyTuple_GET_ITEM(out, 5), resets,
+                           pending ? Py_True : Py_False);
+    Py_DECREF(out);
+    goto release;
+fail:
+    Py_CLEAR(result);
+release:
+    Py_XDECREF(resets);
+    PyBuffer_Release(&av);
+    PyBuffer_Release(&ev);
+    PyBuffer_Release(&rv);
     return result;
 }
 #endif
@@ -2091,6 +2248,9 @@ static PyMethodDef batch_methods[] = {
      "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
     {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},
 #ifdef MKV_NUMPY
+    {"vstep", (PyCFunction)(void (*)(void))batch_vstep, METH_FASTCALL,
+     "vstep(actions, elapsed, autoreset, max_steps, spec, want_info) -> a vector env's whole "
+     "step (resets in C included), or None when it needs the general path."},
     {"collect", (PyCFunction)(void (*)(void))batch_collect, METH_FASTCALL,
      "collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, "
      "terminated, truncated, cols, info): a vector env's bookkeeping after step()."},

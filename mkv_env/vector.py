@@ -160,6 +160,11 @@ class MKVVectorEnv(VectorEnv):
             self._idle = np.zeros(n, dtype=bool)
             # autoresets in C (MKV-v0, MKV-v1 without rendering): see kernel.setup_resets
             self._c_reset = _kernel.setup_resets(first, self._batch)
+            # the whole NEXT_STEP step in one call (Batch.vstep) where nothing needs Python
+            self._fast = (getattr(self._batch, "vstep", None)
+                          if self._c_reset and self._collect is not None
+                          and mode == AutoresetMode.NEXT_STEP else None)
+            self._pending = True  # autoresets may be due at the next step (params to sync)
 
     # ------------------------------------------------------------------ per-env info dicts
     @property
@@ -257,6 +262,11 @@ class MKVVectorEnv(VectorEnv):
 
     def _step_kernel(self, actions):
         """One step of every robot through the compiled kernel (see the module doc)."""
+        if self._fast is not None and not self._dirty:
+            out = self._step_fast(actions)
+            if out is not None:
+                return out
+        self._pending = True
         n = self.num_envs
         acts = self._actions(actions)
         mode = self.autoreset_mode
@@ -395,6 +405,31 @@ class MKVVectorEnv(VectorEnv):
         if final_lazy is None:
             self._final_env_infos = [None] * n
         return obs, rewards, terminated, truncated, info
+
+    def _step_fast(self, actions):
+        """The whole step in one kernel call (``Batch.vstep``): stepping, the autoresets in C,
+        the result arrays and the info; None when this step needs the general path."""
+        if self._pending:  # reward weights changed on an env due to reset reach the kernel
+            for i in np.flatnonzero(self._autoreset).tolist():
+                _kernel.sync_params(self.envs[i], self._batch)
+        try:
+            r = self._fast(actions, self._elapsed, self._autoreset, self._max_steps,
+                           self._col_spec, self.vector_infos)
+        except ValueError:
+            raise ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
+                             "of [drive, steer] with each in {0, 1, 2}") from None
+        if r is None:
+            return None
+        obs, rewards, terminated, truncated, cols, info, reset, self._pending = r
+        if reset is not None:
+            envs = self.envs
+            for i in reset:  # reset in C: their Python objects are stale until asked for
+                envs[i]._c_world = True
+                envs[i]._py_owns = False
+        self._lazy_infos = (cols, self._everyone)
+        self._lazy_final = None
+        self._final_env_infos = [None] * self.num_envs
+        return obs, rewards, terminated, truncated, info if info is not None else {}
 
     def _c_resets(self, idx: list[int]) -> tuple:
         """Of the envs ``idx`` to reset, those the kernel resets in C (its bit generator bound to
