@@ -815,6 +815,9 @@ struct BatchObject {
     Py_buffer job_reset;
     int job_have_reset;
     uint8_t *scratch; /* vstep's active mask */
+    /* the last info spec (name, mask name, output index) parsed by collect_alloc, kept */
+    PyObject *spec, *spec_name[O_LEN], *spec_mname[O_LEN];
+    int spec_idx[O_LEN], spec_n;
 };
 
 static int reset_slot(BatchObject *b, Py_ssize_t i);
@@ -1267,6 +1270,7 @@ static void batch_dealloc(BatchObject *b)
     }
     free(b->workers);
     free(b->scratch);
+    Py_XDECREF(b->spec);
     pthread_mutex_destroy(&b->mu);
     pthread_cond_destroy(&b->cv);
     if (b->have_out)
@@ -1898,15 +1902,13 @@ static PyObject *batch_step_finish(BatchObject *b, PyObject *unused)
 
 #ifdef MKV_NUMPY
 /* A fresh numpy copy of output buffer k (shape (n,) or (n, width)). */
-static PyObject *out_copy(BatchObject *b, int k)
+/* A fresh numpy array shaped like output buffer k ((n,) or (n, width)); filled later. */
+static PyObject *out_new(BatchObject *b, int k)
 {
     static const int types[256] = {['f'] = NPY_FLOAT32, ['d'] = NPY_FLOAT64, ['?'] = NPY_BOOL,
                                    ['q'] = NPY_INT64};
     npy_intp dims[2] = {b->n, O_WIDTH[k]};
-    PyObject *a = PyArray_SimpleNew(O_WIDTH[k] > 1 ? 2 : 1, dims, types[(int)O_FMT[k]]);
-    if (a != NULL)
-        memcpy(PyArray_DATA((PyArrayObject *)a), b->out[k].buf, (size_t)b->out[k].len);
-    return a;
+    return PyArray_SimpleNew(O_WIDTH[k] > 1 ? 2 : 1, dims, types[(int)O_FMT[k]]);
 }
 
 /* collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, terminated,
@@ -1917,27 +1919,102 @@ static PyObject *out_copy(BatchObject *b, int k)
  * autoreset (bool n, or None) = terminated | truncated; cols = {name: copy of output index} for
  * each (name, mask_name, index) of spec; info = cols plus {mask_name: fresh all-True bool n}
  * when want_info (Gymnasium's vector info of robots that all report every key). */
-/* collect's work on raw buffers: el (int64 n), act (bool n or NULL), ar (bool n to write the
- * autoreset flags into, or NULL), rst (bool n or NULL: slots reset this step, elapsed 0). */
-static PyObject *collect_core(BatchObject *b, int64_t *el, long long max_steps, const uint8_t *act,
-                              uint8_t *ar, const uint8_t *rst, PyObject *spec, int want)
+/* A step's result arrays, made (collect_alloc, with the GIL) before they are filled from the
+ * output buffers (collect_fill, which touches no Python object: vstep makes them while the worker
+ * threads step). arr[k] is the array of output k, or NULL when the step does not return it. */
+typedef struct {
+    PyObject *arr[O_LEN], *trunc, *cols, *info;
+} Collected;
+
+static void collect_clear(Collected *c)
 {
-    Py_ssize_t n = b->n;
-    PyObject *result = NULL, *obs = NULL, *rew = NULL, *term = NULL, *trunc = NULL;
-    PyObject *cols = NULL, *info = NULL;
-    obs = out_copy(b, O_OBS);
-    rew = out_copy(b, O_REW);
-    term = out_copy(b, O_TERM);
-    npy_intp dim = n;
-    trunc = PyArray_SimpleNew(1, &dim, NPY_BOOL);
-    cols = PyDict_New();
-    info = want ? PyDict_New() : NULL;
-    if (obs == NULL || rew == NULL || term == NULL || trunc == NULL || cols == NULL ||
-        (want && info == NULL))
-        goto done;
-    const uint8_t *te = PyArray_DATA((PyArrayObject *)term);
-    uint8_t *tr = PyArray_DATA((PyArrayObject *)trunc);
-    for (Py_ssize_t i = 0; i < n; i++) {
+    for (int k = 0; k < O_LEN; k++)
+        Py_CLEAR(c->arr[k]);
+    Py_CLEAR(c->trunc);
+    Py_CLEAR(c->cols);
+    Py_CLEAR(c->info);
+}
+
+static int collect_alloc(BatchObject *b, PyObject *spec, int want, Collected *c)
+{
+    memset(c, 0, sizeof *c);
+    npy_intp dim = b->n;
+    if (!PyTuple_Check(spec)) {
+        PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
+        return -1;
+    }
+    c->arr[O_OBS] = out_new(b, O_OBS);
+    c->arr[O_REW] = out_new(b, O_REW);
+    c->arr[O_TERM] = out_new(b, O_TERM);
+    c->trunc = PyArray_SimpleNew(1, &dim, NPY_BOOL);
+    c->cols = PyDict_New();
+    c->info = want ? PyDict_New() : NULL;
+    if (!c->arr[O_OBS] || !c->arr[O_REW] || !c->arr[O_TERM] || !c->trunc || !c->cols ||
+        (want && !c->info))
+        goto fail;
+    if (spec != b->spec) { /* parse it once (a vector env passes the same tuple every step) */
+        Py_ssize_t m = PyTuple_GET_SIZE(spec);
+        if (m > O_LEN) {
+            PyErr_SetString(PyExc_ValueError, "spec has too many columns");
+            goto fail;
+        }
+        Py_CLEAR(b->spec);
+        for (Py_ssize_t k = 0; k < m; k++) {
+            PyObject *name, *mname;
+            int idx;
+            if (!PyArg_ParseTuple(PyTuple_GET_ITEM(spec, k), "UUi", &name, &mname, &idx))
+                goto fail;
+            if (idx < 0 || idx >= O_LEN) {
+                PyErr_SetString(PyExc_ValueError, "output index out of range");
+                goto fail;
+            }
+            b->spec_name[k] = name; /* borrowed: the tuple (kept in b->spec) holds them */
+            b->spec_mname[k] = mname;
+            b->spec_idx[k] = idx;
+        }
+        b->spec_n = (int)m;
+        Py_INCREF(spec);
+        b->spec = spec;
+    }
+    for (int k = 0; k < b->spec_n; k++) {
+        PyObject *name = b->spec_name[k], *mname = b->spec_mname[k];
+        int idx = b->spec_idx[k];
+        if (c->arr[idx] == NULL && (c->arr[idx] = out_new(b, idx)) == NULL)
+            goto fail;
+        PyObject *col = c->arr[idx];
+        if (PyDict_SetItem(c->cols, name, col) < 0 ||
+            (want && PyDict_SetItem(c->info, name, col) < 0))
+            goto fail;
+        if (want) {
+            PyObject *m = PyArray_SimpleNew(1, &dim, NPY_BOOL);
+            if (m == NULL)
+                goto fail;
+            memset(PyArray_DATA((PyArrayObject *)m), 1, (size_t)b->n);
+            int bad = PyDict_SetItem(c->info, mname, m) < 0;
+            Py_DECREF(m);
+            if (bad)
+                goto fail;
+        }
+    }
+    return 0;
+fail:
+    collect_clear(c);
+    return -1;
+}
+
+/* Fill the arrays from the output buffers; el (int64 n) += 1 for the stepped slots (act, bool n,
+ * or NULL for all), 0 for the slots reset (rst, or NULL); truncation; ar (or NULL) = the
+ * autoreset flags (terminated | truncated). */
+static void collect_fill(BatchObject *b, Collected *c, int64_t *el, long long max_steps,
+                         const uint8_t *act, uint8_t *ar, const uint8_t *rst)
+{
+    for (int k = 0; k < O_LEN; k++)
+        if (c->arr[k] != NULL)
+            memcpy(PyArray_DATA((PyArrayObject *)c->arr[k]), b->out[k].buf,
+                   (size_t)b->out[k].len);
+    const uint8_t *te = PyArray_DATA((PyArrayObject *)c->arr[O_TERM]);
+    uint8_t *tr = PyArray_DATA((PyArrayObject *)c->trunc);
+    for (Py_ssize_t i = 0; i < b->n; i++) {
         int moved = act == NULL || act[i];
         el[i] += moved;
         if (rst != NULL && rst[i])
@@ -1946,44 +2023,15 @@ static PyObject *collect_core(BatchObject *b, int64_t *el, long long max_steps, 
         if (ar != NULL)
             ar[i] = (uint8_t)(te[i] | tr[i]);
     }
-    for (Py_ssize_t k = 0; k < PyTuple_GET_SIZE(spec); k++) {
-        PyObject *item = PyTuple_GET_ITEM(spec, k), *name, *mname;
-        int idx;
-        if (!PyArg_ParseTuple(item, "UUi", &name, &mname, &idx))
-            goto done;
-        if (idx < 0 || idx >= O_LEN) {
-            PyErr_SetString(PyExc_ValueError, "output index out of range");
-            goto done;
-        }
-        PyObject *col = idx == O_OBS ? (Py_INCREF(obs), obs)
-                      : idx == O_TERM ? (Py_INCREF(term), term) : out_copy(b, idx);
-        if (col == NULL)
-            goto done;
-        int bad = PyDict_SetItem(cols, name, col) < 0 ||
-                  (want && PyDict_SetItem(info, name, col) < 0);
-        Py_DECREF(col);
-        if (bad)
-            goto done;
-        if (want) {
-            PyObject *m = PyArray_SimpleNew(1, &dim, NPY_BOOL);
-            if (m == NULL)
-                goto done;
-            memset(PyArray_DATA((PyArrayObject *)m), 1, (size_t)n);
-            bad = PyDict_SetItem(info, mname, m) < 0;
-            Py_DECREF(m);
-            if (bad)
-                goto done;
-        }
-    }
-    result = PyTuple_Pack(6, obs, rew, term, trunc, cols, want ? info : Py_None);
-done:
-    Py_XDECREF(obs);
-    Py_XDECREF(rew);
-    Py_XDECREF(term);
-    Py_XDECREF(trunc);
-    Py_XDECREF(cols);
-    Py_XDECREF(info);
-    return result;
+}
+
+/* (obs, rewards, terminated, truncated, cols, info or None); c is cleared. */
+static PyObject *collect_result(Collected *c)
+{
+    PyObject *r = PyTuple_Pack(6, c->arr[O_OBS], c->arr[O_REW], c->arr[O_TERM], c->trunc,
+                               c->cols, c->info ? c->info : Py_None);
+    collect_clear(c);
+    return r;
 }
 
 /* An int64 (n,) or bool (n,) buffer of a vector env, writable or not; -1 with an error set. */
@@ -2042,8 +2090,11 @@ static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t
             goto done;
         have_r = 1;
     }
-    result = collect_core(b, ev.buf, max_steps, have_a ? av.buf : NULL,
-                          have_r ? rv.buf : NULL, NULL, args[4], want);
+    Collected c;
+    if (collect_alloc(b, args[4], want, &c) < 0)
+        goto done;
+    collect_fill(b, &c, ev.buf, max_steps, have_a ? av.buf : NULL, have_r ? rv.buf : NULL, NULL);
+    result = collect_result(&c);
 done:
     PyBuffer_Release(&ev);
     if (have_a)
@@ -2155,19 +2206,27 @@ static PyObject *batch_vstep(BatchObject *b, PyObject *const *args, Py_ssize_t n
     b->active = any ? b->scratch : NULL;
     b->resets = any ? ar : NULL;
     b->job_have_mask = b->job_have_reset = 0;
-    Py_BEGIN_ALLOW_THREADS
+    /* the workers start; this thread makes the result arrays meanwhile, then joins them */
     launch_job(b);
+    Collected c;
+    int made = collect_alloc(b, args[4], want, &c);
+    Py_BEGIN_ALLOW_THREADS
     finish_job(b);
     Py_END_ALLOW_THREADS
     const uint8_t *active = b->active;
     PyObject *err = conclude_job(b); /* (clears acts/active/resets; releases nothing of ours) */
-    if (err == NULL)
+    if (err == NULL || made < 0) {
+        Py_XDECREF(err);
+        if (made == 0)
+            collect_clear(&c);
         goto fail;
+    }
     Py_DECREF(err);
-    out = collect_core(b, ev.buf, max_steps, active, ar, any ? ar : NULL, args[4], want);
+    collect_fill(b, &c, ev.buf, max_steps, active, ar, any ? ar : NULL);
+    out = collect_result(&c);
     if (out == NULL)
         goto fail;
-    /* collect_core rewrote ar (the flags for the next step); the slots reset this step are in
+    /* collect_fill rewrote ar (the flags for the next step); the slots reset this step are in
      * ``resets`` */
     int pending = 0;
     for (Py_ssize_t i = 0; i < n; i++)

@@ -133,6 +133,8 @@ class MKVVectorEnv(VectorEnv):
         self.num_threads = 1
         self._batch = None
         self._collect = None
+        self._fast = None  # Batch.vstep where it serves (below)
+        self._pending = True
         if self.kernel != "c" and num_threads != 1:
             raise ValueError("num_threads > 1 needs the compiled step kernel (kernel='c'); the "
                              "Python reference steps its robots one by one")
@@ -164,7 +166,6 @@ class MKVVectorEnv(VectorEnv):
             self._fast = (getattr(self._batch, "vstep", None)
                           if self._c_reset and self._collect is not None
                           and mode == AutoresetMode.NEXT_STEP else None)
-            self._pending = True  # autoresets may be due at the next step (params to sync)
 
     # ------------------------------------------------------------------ per-env info dicts
     @property
@@ -250,6 +251,21 @@ class MKVVectorEnv(VectorEnv):
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
 
     def step(self, actions):
+        fast = self._fast  # the common case first: the whole step in one kernel call
+        if fast is not None and self._started and not self._pending and not self._dirty:
+            try:
+                r = fast(actions, self._elapsed, self._autoreset, self._max_steps,
+                         self._col_spec, self.vector_infos)
+            except ValueError:
+                raise ValueError(f"invalid actions {actions!r}: expected shape "
+                                 f"({self.num_envs}, 2) of [drive, steer] with each in "
+                                 "{0, 1, 2}") from None
+            if r is not None:
+                obs, rewards, terminated, truncated, cols, info, _, self._pending = r
+                self._lazy_infos = (cols, self._everyone)
+                self._lazy_final = None
+                self._final_env_infos = [None] * self.num_envs
+                return obs, rewards, terminated, truncated, {} if info is None else info
         if not self._started:
             raise gym.error.ResetNeeded("call reset() before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.count_nonzero(self._autoreset):
