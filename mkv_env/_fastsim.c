@@ -2793,6 +2793,28 @@ static int tuple_doubles(PyObject *t, double *out, int n)
     return PyErr_Occurred() ? -1 : 0;
 }
 
+/* One obstacle as add_static makes it: j = 0 wall (ax, ay, bx, by), 1 box (cx, cy, w, h, angle),
+ * 2 cylinder (cx, cy, r). */
+static void *static_shape(int j, const double *v, void *body, double wr)
+{
+    if (j == 0) { /* pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M) */
+        cpVect a = {v[0], v[1]}, b = {v[2], v[3]};
+        return cp_seg_new(body, a, b, wr);
+    }
+    if (j == 1) { /* pymunk.Poly(sb, verts, transform=translation.rotated) */
+        double cx = v[0], cy = v[1], w = v[2], h = v[3], ang = v[4];
+        /* Transform(tx=cx, ty=cy) @ Transform.rotation(ang), pymunk's arithmetic */
+        double c = cos(ang), s = sin(ang), ms = -s;
+        cpXform t = {1.0 * c + 0.0 * s + cx * 0, 0.0 * c + 1.0 * s + cy * 0,
+                     1.0 * ms + 0.0 * c + cx * 0, 0.0 * ms + 1.0 * c + cy * 0,
+                     1.0 * 0.0 + 0.0 * 0.0 + cx * 1, 0.0 * 0.0 + 1.0 * 0.0 + cy * 1};
+        cpVect verts[4] = {{-w / 2, -h / 2}, {w / 2, -h / 2}, {w / 2, h / 2}, {-w / 2, h / 2}};
+        return cp_poly_new(body, 4, verts, t, 0.0);
+    }
+    cpVect off = {v[0], v[1]}; /* pymunk.Circle(sb, r, (cx, cy)) */
+    return cp_circle_new(body, v[2], off);
+}
+
 /* add_static(space, static_body, walls, boxes, cylinders, consts(wall_r, friction, elasticity,
  *            collision_type, first_hashid)) -> capsule owning the shapes. first_hashid >= 0
  * gives the shapes the hash ids first_hashid, first_hashid + 1, ... (a pickled world's). */
@@ -2835,30 +2857,9 @@ static PyObject *fs_add_static(PyObject *self, PyObject *const *args, Py_ssize_t
         for (Py_ssize_t k = 0; k < PySequence_Fast_GET_SIZE(lists[j]); k++) {
             PyObject *item = PySequence_Fast_GET_ITEM(lists[j], k);
             double v[5];
-            void *shape;
-            if (j == 0) { /* pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M) */
-                if (tuple_doubles(item, v, 4) < 0)
-                    goto fail_cap;
-                cpVect a = {v[0], v[1]}, b = {v[2], v[3]};
-                shape = cp_seg_new(body, a, b, wr);
-            } else if (j == 1) { /* pymunk.Poly(sb, verts, transform=translation.rotated) */
-                if (tuple_doubles(item, v, 5) < 0)
-                    goto fail_cap;
-                double cx = v[0], cy = v[1], w = v[2], h = v[3], ang = v[4];
-                /* Transform(tx=cx, ty=cy) @ Transform.rotation(ang), pymunk's arithmetic */
-                double c = cos(ang), s = sin(ang), ms = -s;
-                cpXform t = {1.0 * c + 0.0 * s + cx * 0, 0.0 * c + 1.0 * s + cy * 0,
-                             1.0 * ms + 0.0 * c + cx * 0, 0.0 * ms + 1.0 * c + cy * 0,
-                             1.0 * 0.0 + 0.0 * 0.0 + cx * 1, 0.0 * 0.0 + 1.0 * 0.0 + cy * 1};
-                cpVect verts[4] = {{-w / 2, -h / 2}, {w / 2, -h / 2}, {w / 2, h / 2},
-                                   {-w / 2, h / 2}};
-                shape = cp_poly_new(body, 4, verts, t, 0.0);
-            } else { /* pymunk.Circle(sb, r, (cx, cy)) */
-                if (tuple_doubles(item, v, 3) < 0)
-                    goto fail_cap;
-                cpVect off = {v[0], v[1]};
-                shape = cp_circle_new(body, v[2], off);
-            }
+            if (tuple_doubles(item, v, j == 0 ? 4 : j == 1 ? 5 : 3) < 0)
+                goto fail_cap;
+            void *shape = static_shape(j, v, body, wr);
             if (shape == NULL) {
                 PyErr_NoMemory();
                 goto fail_cap;
@@ -3033,28 +3034,6 @@ static void free_cworld(Slot *s)
     s->space = s->body = s->sbody = NULL;
     s->contacts = NULL;
     s->cworld = 0;
-}
-
-/* One obstacle as add_static makes it: j = 0 wall (ax, ay, bx, by), 1 box (cx, cy, w, h, angle),
- * 2 cylinder (cx, cy, r). */
-static void *static_shape(int j, const double *v, void *body, double wr)
-{
-    if (j == 0) { /* pymunk.Segment(sb, (ax, ay), (bx, by), WALL_RADIUS_M) */
-        cpVect a = {v[0], v[1]}, b = {v[2], v[3]};
-        return cp_seg_new(body, a, b, wr);
-    }
-    if (j == 1) { /* pymunk.Poly(sb, verts, transform=translation.rotated) */
-        double cx = v[0], cy = v[1], w = v[2], h = v[3], ang = v[4];
-        /* Transform(tx=cx, ty=cy) @ Transform.rotation(ang), pymunk's arithmetic */
-        double c = cos(ang), s = sin(ang), ms = -s;
-        cpXform t = {1.0 * c + 0.0 * s + cx * 0, 0.0 * c + 1.0 * s + cy * 0,
-                     1.0 * ms + 0.0 * c + cx * 0, 0.0 * ms + 1.0 * c + cy * 0,
-                     1.0 * 0.0 + 0.0 * 0.0 + cx * 1, 0.0 * 0.0 + 1.0 * 0.0 + cy * 1};
-        cpVect verts[4] = {{-w / 2, -h / 2}, {w / 2, -h / 2}, {w / 2, h / 2}, {-w / 2, h / 2}};
-        return cp_poly_new(body, 4, verts, t, 0.0);
-    }
-    cpVect off = {v[0], v[1]}; /* pymunk.Circle(sb, r, (cx, cy)) */
-    return cp_circle_new(body, v[2], off);
 }
 
 /* The arena's walls, boxes and cylinders (World with fast_contacts: add_static, then the

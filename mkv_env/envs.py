@@ -18,14 +18,12 @@ from mkv_env.jams import SCENARIOS, build_scenario
 from mkv_env.params import RobotParams, channel_specs
 from mkv_env.sensors import SensorSuite
 from mkv_env.tracker import MotionTracker
-from mkv_env.world import World, generate_layout, random_free_pose
+from mkv_env.world import LAYOUT_ATTEMPTS, World, generate_layout, random_free_pose
 
 #: Observation modes (``gym.make(id, observation=...)``): the sensor readings, the same mapped to
 #: [-1, 1], or the shape-from-motion features of the latter (see ``MKVEnv._set_observation``).
 OBSERVATIONS = ("raw", "rescaled", "features")
 
-LAYOUT_ATTEMPTS = 20
-"""Fresh layouts tried per reset of ``MKV-v0`` before giving up on a free start pose."""
 JAM_ATTEMPTS = 50
 """Scenario geometries tried per reset of ``MKVJam-v0`` before the jam counts as unbuildable."""
 JAM_DRIVE_MAX_STEPS = 40

@@ -26,6 +26,14 @@ Either way the draws happen in the reference's order.
 State moves between Python and C at well-defined points only: a reset ``push``es the Python
 objects' state into the slot; reading ``env.tracker``, ``env.sensors`` or ``robot.state`` after C
 steps ``pull``s it back (and hands ownership to Python until the next step pushes it again).
+
+A native vector env of MKV-v0 or MKV-v1 resets its envs inside the kernel call too
+(:data:`C_RESET`, :func:`setup_resets`): the slot draws the layout and start pose from the
+episode's generator and builds the Chipmunk space, obstacles, contact handlers and robot with the
+calls pymunk makes, in pymunk's order (so the same hash ids, spatial index and bits), on the worker
+thread that resets it. The slot owns that world until Python reads ``env.world`` (or the tracker,
+sensors, a pickle): then :func:`adopt_world` wraps the very same Chipmunk objects in pymunk
+objects, which own them from then on.
 """
 
 from __future__ import annotations
@@ -313,7 +321,6 @@ def reset_constants(env) -> array.array:
     computed as :class:`~mkv_env.world.World`, :class:`~mkv_env.robot.Robot` and
     :func:`~mkv_env.world.random_free_pose` compute it."""
     from mkv_env import world as w
-    from mkv_env.envs import LAYOUT_ATTEMPTS
 
     p = env.robot_params
     hl, hw = p.length_m / 2, p.width_m / 2
@@ -324,7 +331,7 @@ def reset_constants(env) -> array.array:
     R = (W, W, env.n_clutter, env.n_patches, env.patch_friction, w.WALL_RADIUS_M,
          w.OBSTACLE_FRICTION, w.OBSTACLE_ELASTICITY, _robot.OBSTACLE, 10, w.SPACE_DAMPING,
          w.ROBOT_CLEARANCE_M + w.WALL_RADIUS_M, w.ROBOT_CLEARANCE_M, w.START_POSE_TRIES,
-         LAYOUT_ATTEMPTS, p.mass_kg, _robot.moment_of_inertia(p), p.chassis_friction,
+         w.LAYOUT_ATTEMPTS, p.mass_kg, _robot.moment_of_inertia(p), p.chassis_friction,
          _robot.CHASSIS, _robot.BUMP_FL, _robot.BUMP_FR, _robot.BUMP_REAR,
          -hl, -hw, hl, -hw, hl, hw, -hl, hw,
          front, 0.0, front - 0.03, hw, front, 0.0, front - 0.03, -hw, rear, -hw * 0.8, rear,
@@ -336,12 +343,11 @@ def reset_constants(env) -> array.array:
 
 def setup_resets(env, batch) -> bool:
     """Give ``batch`` the constants to reset envs configured like ``env`` in C; False (nothing
-    done) when it cannot: no :data:`C_RESET`, or an env class other than MKV-v0's and MKV-v1's
-    (MKVJam's start search and subclasses stay Python)."""
-    from mkv_env.envs import MKVEnv, MKVEnvV1
-
+    done) when it cannot: no :data:`C_RESET`, or rendering (the trails are kept in Python).
+    Only for the classes of MKV-v0 and MKV-v1 (the caller checks: MKVJam's start search and
+    subclasses stay Python)."""
     global _LAYOUT_CONSTANTS
-    if not C_RESET or type(env) not in (MKVEnv, MKVEnvV1) or env.render_mode is not None:
+    if not C_RESET or env.render_mode is not None:
         return False
     if _LAYOUT_CONSTANTS is None:
         _LAYOUT_CONSTANTS = _layout_constants()

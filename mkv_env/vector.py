@@ -161,7 +161,8 @@ class MKVVectorEnv(VectorEnv):
             self._active = np.ones(n, dtype=bool)
             self._idle = np.zeros(n, dtype=bool)
             # autoresets in C (MKV-v0, MKV-v1 without rendering): see kernel.setup_resets
-            self._c_reset = _kernel.setup_resets(first, self._batch)
+            self._c_reset = (env_cls in (MKVEnv, MKVEnvV1)
+                             and _kernel.setup_resets(first, self._batch))
             # the whole NEXT_STEP step in one call (Batch.vstep) where nothing needs Python
             self._fast = (getattr(self._batch, "vstep", None)
                           if self._c_reset and self._collect is not None

@@ -35,6 +35,8 @@ ROBOT_CLEARANCE_M = 0.26
 """Free radius required around a start position [m] (robot circumradius 0.19 m + margin)."""
 START_POSE_TRIES = 200
 """Random positions tried per layout for a clear start pose."""
+LAYOUT_ATTEMPTS = 20
+"""Fresh layouts tried per reset of ``MKV-v0`` before giving up on a free start pose."""
 OBSTACLE_FRICTION = 0.6
 """Coulomb friction coefficient of obstacles and walls (against the chassis and bumpers)."""
 OBSTACLE_ELASTICITY = 0.0
