@@ -1710,6 +1710,17 @@ static PyObject *batch_read(BatchObject *b, PyObject *idx)
     Py_RETURN_TRUE;
 }
 
+/* Append i to the list *list (made when NULL). 0, or -1 with an error set. */
+static int append_index(PyObject **list, Py_ssize_t i)
+{
+    if (*list == NULL && (*list = PyList_New(0)) == NULL)
+        return -1;
+    PyObject *k = PyLong_FromSsize_t(i);
+    int rc = k == NULL ? -1 : PyList_Append(*list, k);
+    Py_XDECREF(k);
+    return rc;
+}
+
 /* Validate a job's buffers and find the active slots that need noise. Returns 0 with the job's
  * buffers held in b->job_* (and *need a new list, or NULL), or -1 with an error set. */
 static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject *resets,
@@ -1775,16 +1786,8 @@ static int prepare_job(BatchObject *b, PyObject *acts, PyObject *mask, PyObject 
             PyErr_Format(PyExc_RuntimeError, "step kernel slot %zd has no world: call reset()", i);
             goto fail;
         }
-        if (needs_noise(&b->slots[i])) {
-            if (*need == NULL && (*need = PyList_New(0)) == NULL)
-                goto fail;
-            PyObject *k = PyLong_FromSsize_t(i);
-            if (k == NULL || PyList_Append(*need, k) < 0) {
-                Py_XDECREF(k);
-                goto fail;
-            }
-            Py_DECREF(k);
-        }
+        if (needs_noise(&b->slots[i]) && append_index(need, i) < 0)
+            goto fail;
     }
     if (start_workers(b) < 0)
         goto fail;
@@ -2054,27 +2057,38 @@ static int vec_buffer(PyObject *obj, Py_buffer *v, Py_ssize_t n, int boolean, in
     return 0;
 }
 
-static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+/* The arguments collect() and vstep() share: their count, no step running, max_steps (args[im]),
+ * want_info (args[iw]) and spec (args[is], a tuple). 0, or -1 with an error set. */
+static int vec_args(BatchObject *b, const char *name, PyObject *const *args, Py_ssize_t nargs,
+                    int im, int iw, int is, long long *max_steps, int *want)
 {
     if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError, "collect() takes 6 arguments");
-        return NULL;
+        PyErr_Format(PyExc_TypeError, "%s() takes 6 arguments", name);
+        return -1;
     }
     if (!b->have_out || b->running) {
         PyErr_SetString(PyExc_RuntimeError, "step kernel: no outputs, or a step is running");
-        return NULL;
+        return -1;
     }
-    Py_ssize_t n = b->n;
-    long long max_steps = PyLong_AsLongLong(args[1]);
-    if (max_steps == -1 && PyErr_Occurred())
-        return NULL;
-    int want = PyObject_IsTrue(args[5]);
-    if (want < 0)
-        return NULL;
-    if (!PyTuple_Check(args[4])) {
+    *max_steps = PyLong_AsLongLong(args[im]);
+    if (*max_steps == -1 && PyErr_Occurred())
+        return -1;
+    if ((*want = PyObject_IsTrue(args[iw])) < 0)
+        return -1;
+    if (!PyTuple_Check(args[is])) {
         PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
-        return NULL;
+        return -1;
     }
+    return 0;
+}
+
+static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t n = b->n;
+    long long max_steps;
+    int want;
+    if (vec_args(b, "collect", args, nargs, 1, 5, 4, &max_steps, &want) < 0)
+        return NULL;
     Py_buffer ev, av, rv;
     int have_a = 0, have_r = 0;
     PyObject *result = NULL;
@@ -2114,25 +2128,11 @@ done:
  * in C, or a slot needs noise drawn by Python. */
 static PyObject *batch_vstep(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError, "vstep() takes 6 arguments");
-        return NULL;
-    }
-    if (!b->have_out || b->running) {
-        PyErr_SetString(PyExc_RuntimeError, "step kernel: no outputs, or a step is running");
-        return NULL;
-    }
     Py_ssize_t n = b->n;
-    long long max_steps = PyLong_AsLongLong(args[3]);
-    if (max_steps == -1 && PyErr_Occurred())
+    long long max_steps;
+    int want;
+    if (vec_args(b, "vstep", args, nargs, 3, 5, 4, &max_steps, &want) < 0)
         return NULL;
-    int want = PyObject_IsTrue(args[5]);
-    if (want < 0)
-        return NULL;
-    if (!PyTuple_Check(args[4])) {
-        PyErr_SetString(PyExc_TypeError, "spec must be a tuple");
-        return NULL;
-    }
     Py_buffer av, ev, rv;
     if (PyObject_GetBuffer(args[0], &av, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
         PyErr_Clear();
@@ -2187,18 +2187,10 @@ static PyObject *batch_vstep(BatchObject *b, PyObject *const *args, Py_ssize_t n
         }
         for (Py_ssize_t i = 0; i < n; i++)
             b->scratch[i] = !ar[i];
-        Py_DECREF(resets);
-        if ((resets = PyList_New(0)) == NULL)
-            goto fail;
+        Py_CLEAR(resets);
         for (Py_ssize_t i = 0; i < n; i++)
-            if (ar[i]) {
-                PyObject *k = PyLong_FromSsize_t(i);
-                if (k == NULL || PyList_Append(resets, k) < 0) {
-                    Py_XDECREF(k);
-                    goto fail;
-                }
-                Py_DECREF(k);
-            }
+            if (ar[i] && append_index(&resets, i) < 0)
+                goto fail;
     }
     if (start_workers(b) < 0)
         goto fail;
@@ -2751,30 +2743,33 @@ static void static_free(PyObject *cap)
     PyMem_Free(ss);
 }
 
-/* bind_shapes(13 Chipmunk function addresses) */
-static PyObject *fs_bind_shapes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* Store Chipmunk function addresses (Python ints) into the function pointers ``slots``. */
+static PyObject *bind_table(PyObject *const *args, Py_ssize_t nargs, void **slots[], int count,
+                            const char *name)
 {
-    void *p[13];
-    if (nargs != 13) {
-        PyErr_SetString(PyExc_TypeError, "bind_shapes() takes 13 arguments");
+    void *p[32];
+    if (nargs != count || count > 32) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %d arguments", name, count);
         return NULL;
     }
-    if (get_pointers(args, 13, p) < 0)
+    if (get_pointers(args, count, p) < 0)
         return NULL;
-    cp_seg_new = (seg_new_fn)p[0];
-    cp_poly_new = (poly_new_fn)p[1];
-    cp_circle_new = (circle_new_fn)p[2];
-    cp_shape_set_type = (shape_set_u_fn)p[3];
-    cp_shape_set_friction = (shape_set_d_fn)p[4];
-    cp_shape_set_elasticity = (shape_set_d_fn)p[5];
-    cp_space_add_shape = (space_add_shape_fn)p[6];
-    cp_space_remove_shape = (space_remove_shape_fn)p[7];
-    cp_shape_get_space = (shape_get_ptr_fn)p[8];
-    cp_shape_free = (shape_free_fn)p[9];
-    cp_shape_get_body = (shape_get_ptr_fn)p[10];
-    cp_space_shape_query = (space_shape_query_fn)p[11];
-    cp_shape_set_hashid = (shape_set_u_fn)p[12];
+    for (int k = 0; k < count; k++)
+        *slots[k] = p[k];
     Py_RETURN_NONE;
+}
+
+/* bind_shapes(13 Chipmunk function addresses, in this order) */
+static PyObject *fs_bind_shapes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    void **slots[] = {
+        (void **)&cp_seg_new, (void **)&cp_poly_new, (void **)&cp_circle_new,
+        (void **)&cp_shape_set_type, (void **)&cp_shape_set_friction,
+        (void **)&cp_shape_set_elasticity, (void **)&cp_space_add_shape,
+        (void **)&cp_space_remove_shape, (void **)&cp_shape_get_space, (void **)&cp_shape_free,
+        (void **)&cp_shape_get_body, (void **)&cp_space_shape_query,
+        (void **)&cp_shape_set_hashid};
+    return bind_table(args, nargs, slots, 13, "bind_shapes");
 }
 
 static int tuple_doubles(PyObject *t, double *out, int n)
@@ -2975,31 +2970,17 @@ static set_vect_fn cp_body_set_position;
 static shape_set_filter_fn cp_shape_set_filter;
 static add_handler_fn cp_add_handler;
 
-/* bind_reset(14 Chipmunk function addresses) */
+/* bind_reset(14 Chipmunk function addresses, in this order) */
 static PyObject *fs_bind_reset(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    void *p[14];
-    if (nargs != 14) {
-        PyErr_SetString(PyExc_TypeError, "bind_reset() takes 14 arguments");
-        return NULL;
-    }
-    if (get_pointers(args, 14, p) < 0)
-        return NULL;
-    cp_space_new = (space_new_fn)p[0];
-    cp_space_free = (free_fn)p[1];
-    cp_space_set_iterations = (space_set_int_fn)p[2];
-    cp_space_set_damping = (set_double_fn)p[3];
-    cp_body_new = (body_new_fn)p[4];
-    cp_body_new_static = (body_new_static_fn)p[5];
-    cp_body_free = (free_fn)p[6];
-    cp_space_add_body = (space_add_body_fn)p[7];
-    cp_space_remove_body = (space_body_fn)p[8];
-    cp_body_set_position = (set_vect_fn)p[9];
-    cp_body_set_angle = (set_double_fn)p[10];
-    cp_shape_set_filter = (shape_set_filter_fn)p[11];
-    cp_space_reindex_body = (space_body_fn)p[12];
-    cp_add_handler = (add_handler_fn)p[13];
-    Py_RETURN_NONE;
+    void **slots[] = {
+        (void **)&cp_space_new, (void **)&cp_space_free, (void **)&cp_space_set_iterations,
+        (void **)&cp_space_set_damping, (void **)&cp_body_new, (void **)&cp_body_new_static,
+        (void **)&cp_body_free, (void **)&cp_space_add_body, (void **)&cp_space_remove_body,
+        (void **)&cp_body_set_position, (void **)&cp_body_set_angle,
+        (void **)&cp_shape_set_filter, (void **)&cp_space_reindex_body,
+        (void **)&cp_add_handler};
+    return bind_table(args, nargs, slots, 14, "bind_reset");
 }
 
 /* Free the world the slot built and still owns (a world Python adopted is pymunk's). Chipmunk
