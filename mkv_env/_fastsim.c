@@ -1123,6 +1123,21 @@ static void run_group(BatchObject *b, int g)
     }
 }
 
+/* One turn of a wait loop: the first turns spin on the CPU's pause instruction (a few
+ * microseconds: back-to-back steps resume at once), later ones yield the core. */
+static inline void wait_a_little(int spin)
+{
+    if (spin < 256) {
+#if defined(__x86_64__) || defined(__i386__)
+        __builtin_ia32_pause();
+#elif defined(__aarch64__)
+        __asm__ __volatile__("yield");
+#endif
+    } else {
+        sched_yield();
+    }
+}
+
 static void *worker_main(void *arg)
 {
     Worker *w = arg;
@@ -1135,7 +1150,7 @@ static void *worker_main(void *arg)
             gen = __atomic_load_n(&b->gen, __ATOMIC_ACQUIRE);
             if (gen != seen || __atomic_load_n(&b->stop, __ATOMIC_ACQUIRE))
                 break;
-            sched_yield();
+            wait_a_little(spin);
         }
         pthread_mutex_lock(&b->mu);
         while (b->gen == seen && !b->stop)
@@ -1205,8 +1220,8 @@ static void finish_job(BatchObject *b)
 {
     run_group(b, 0);
     if (b->nthreads > 1)
-        while (atomic_load_explicit(&b->pending, memory_order_acquire) > 0)
-            sched_yield();
+        for (int spin = 0; atomic_load_explicit(&b->pending, memory_order_acquire) > 0; spin++)
+            wait_a_little(spin);
 }
 
 static void release_job(BatchObject *b);
