@@ -18,9 +18,10 @@ rms of least squares and each route's ratio to it, and whether ``calib fit`` wou
 
 ``--diagnose`` adds, per set, where the joint route's error comes from (true pose labels): the
 pose fit's chosen optimum against the one reached from the *true* directions of the unknown poses
-(a search failure would show as a lower cost there); the best an affine forward model can do
-(fitted with all 12 loads known, then the 8 unknown directions re-inferred from it); and a full
-quadratic forward model started from the true directions (identifiable or not).
+(a search failure would show as a lower cost there); the best an affine forward model and one
+with two shared quadratic forms can do (fitted with all 12 loads known, then the 8 unknown
+directions re-inferred from it on their spheres); and a full quadratic forward model started from
+the true directions (identifiable or not).
 """
 
 from __future__ import annotations
@@ -75,6 +76,51 @@ class _QuadraticForward(rig_mod.ForwardModel):
         return None, R
 
 
+def _reinferred(loads, means, kn, rank: int, seed: int = 0):
+    """The pose loads a forward model fitted with *every* load known gives back for the poses
+    not in ``kn``: each direction re-inferred on the sphere of its weighed magnitude, channels
+    weighted by the model's own residual spread. ``rank`` 0: affine; r > 0: plus r shared
+    traceless quadratic forms of the load with a gain per channel (fitted by alternating least
+    squares)."""
+    from scipy.optimize import least_squares
+
+    P = len(loads)
+    g = float(np.median(np.linalg.norm(loads, axis=1)))
+    X = np.column_stack([loads, np.ones(P)])
+    T = _traceless(loads, g)
+    C = np.random.default_rng(seed).standard_normal((5, rank))
+    for _ in range(200 if rank else 0):  # forms C given the gains, gains given the forms
+        Bb = np.linalg.lstsq(np.column_stack([X, T @ C]), means, rcond=None)[0]
+        R = means - X @ Bb[:4]
+        C = np.linalg.lstsq(np.kron(Bb[4:].T, T), R.reshape(-1, order="F"),
+                            rcond=None)[0].reshape(5, rank, order="F")
+    B = np.linalg.lstsq(np.column_stack([X, T @ C]), means, rcond=None)[0]
+
+    def model(m):
+        m = np.atleast_2d(m)
+        return np.column_stack([m, np.ones(len(m)), _traceless(m, g) @ C]) @ B
+
+    w = 1.0 / np.maximum((means - model(loads)).std(axis=0), 1e-12)
+    est = loads.copy()
+    for j in np.setdiff1d(np.arange(P), kn):
+        mag = np.linalg.norm(loads[j])
+
+        def fun(th, j=j, mag=mag):
+            u = [np.cos(th[0]) * np.cos(th[1]), np.cos(th[0]) * np.sin(th[1]), np.sin(th[0])]
+            return (model(mag * np.asarray(u))[0] - means[j]) * w
+
+        best = None
+        for s in range(12):  # starts spread over the sphere
+            u = np.random.default_rng(s).standard_normal(3)
+            u /= np.linalg.norm(u)
+            r = least_squares(fun, [np.arcsin(u[2]), np.arctan2(u[1], u[0])])
+            if best is None or r.cost < best.cost:
+                best = r
+        a, b = best.x
+        est[j] = mag * np.array([np.cos(a) * np.cos(b), np.cos(a) * np.sin(b), np.sin(a)])
+    return est
+
+
 def diagnose(Z, M, pose, tr, te, loads, means, kn, base) -> str:
     """One line: where the joint route's error comes from on this set (see the docstring)."""
     def ratio(pose_loads):
@@ -91,16 +137,11 @@ def diagnose(Z, M, pose, tr, te, loads, means, kn, base) -> str:
         fm.bend = bend
         t = fm.solve(truth, fin["g"], W2)
         parts.append(f"{name} from true directions {ratio(t['M']):.2f}x cost {t['cost']:.3g}")
-    # the affine model's limit: fitted with every load known, directions re-inferred from it
-    X = np.column_stack([loads, np.ones(len(loads))])
-    B = np.linalg.lstsq(X, means, rcond=None)[0]
-    A, o = B[:3].T, B[3]
-    est = loads.copy()
-    for j in np.setdiff1d(np.arange(len(loads)), kn):
-        d = np.linalg.lstsq(A, means[j] - o, rcond=None)[0]
-        est[j] = np.linalg.norm(loads[j]) * d / np.linalg.norm(d)
-    parts.append(f"affine fitted on all 12 loads {ratio(est):.2f}x "
-                 f"(pose loads off by up to {np.abs(est - loads).max():.2f} N)")
+    # the models' limits: fitted with every load known, the unknown directions re-inferred
+    for name, rank in (("affine", 0), ("rank-2 quadratic", 2)):
+        est = _reinferred(loads, means, kn, rank)
+        parts.append(f"{name} fitted on all 12 loads {ratio(est):.2f}x "
+                     f"(pose loads off by up to {np.abs(est - loads).max():.2f} N)")
     q = _QuadraticForward(pd, float(np.median(np.linalg.norm(loads[kn], axis=1))))
     t = q.solve(truth, q.magnitude, W2)
     parts.append(f"full quadratic from true directions {ratio(t['M']):.2f}x "
