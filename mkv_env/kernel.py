@@ -323,19 +323,15 @@ def reset_constants(env) -> array.array:
     from mkv_env import world as w
 
     p = env.robot_params
-    hl, hw = p.length_m / 2, p.width_m / 2
-    g, r = p.bumper_gap_m, 0.008
-    front, rear = hl + g, -hl - g
+    verts, bumpers, r = _robot.shape_geometry(p)
     W = env.arena_size_m
-    group = _robot.ROBOT_FILTER.group
     R = (W, W, env.n_clutter, env.n_patches, env.patch_friction, w.WALL_RADIUS_M,
-         w.OBSTACLE_FRICTION, w.OBSTACLE_ELASTICITY, _robot.OBSTACLE, 10, w.SPACE_DAMPING,
-         w.ROBOT_CLEARANCE_M + w.WALL_RADIUS_M, w.ROBOT_CLEARANCE_M, w.START_POSE_TRIES,
-         w.LAYOUT_ATTEMPTS, p.mass_kg, _robot.moment_of_inertia(p), p.chassis_friction,
-         _robot.CHASSIS, _robot.BUMP_FL, _robot.BUMP_FR, _robot.BUMP_REAR,
-         -hl, -hw, hl, -hw, hl, hw, -hl, hw,
-         front, 0.0, front - 0.03, hw, front, 0.0, front - 0.03, -hw, rear, -hw * 0.8, rear,
-         hw * 0.8, r, group, *_chipmunk.HANDLER_OFFSETS)
+         w.OBSTACLE_FRICTION, w.OBSTACLE_ELASTICITY, _robot.OBSTACLE, w.SPACE_ITERATIONS,
+         w.SPACE_DAMPING, w.ROBOT_CLEARANCE_M + w.WALL_RADIUS_M, w.ROBOT_CLEARANCE_M,
+         w.START_POSE_TRIES, w.LAYOUT_ATTEMPTS, p.mass_kg, _robot.moment_of_inertia(p),
+         p.chassis_friction, _robot.CHASSIS, _robot.BUMP_FL, _robot.BUMP_FR, _robot.BUMP_REAR,
+         *(c for v in verts for c in v), *(c for seg in bumpers for pt in seg for c in pt), r,
+         _robot.ROBOT_FILTER.group, *_chipmunk.HANDLER_OFFSETS)
     out = array.array("d", map(float, R))
     assert len(out) == _fastsim.N_RESET
     return out
@@ -372,7 +368,7 @@ def adopt_world(env, batch, slot: int) -> bool:
         return False
     space_p, static_p, body_p, shape_ps, static_cap, walls, boxes, cylinders, patches, start = got
     space = _chipmunk.wrap_space(space_p)
-    sb = _chipmunk.wrap_body(static_p, space, static=True)
+    _chipmunk.wrap_body(static_p, space, static=True)  # (kept as space.static_body)
     W = H = env.arena_size_m
     lay = Layout(W, H)
     lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
@@ -394,7 +390,6 @@ def adopt_world(env, batch, slot: int) -> bool:
     robot._ptrs = None
     robot._precompute()
     world.robot = robot
-    del sb  # (the space keeps it as its static_body)
     env._world = world
     env._tracker.reset(start, False, 0)
     env._sensors._rng = env.np_random

@@ -101,6 +101,23 @@ def kernel_constants(p: RobotParams) -> array.array:
     return k
 
 
+BUMPER_RADIUS_M = 0.008
+"""Radius of the three bumper segments [m]."""
+
+
+def shape_geometry(p: RobotParams) -> tuple:
+    """The robot's shapes in its body frame: the chassis polygon's 4 vertices, then the front-left,
+    front-right and rear bumper segments as ((ax, ay), (bx, by)), and the bumpers' radius (what
+    :class:`Robot` builds, and what a reset in C builds: mkv_env.kernel.reset_constants)."""
+    hl, hw = p.length_m / 2, p.width_m / 2
+    g = p.bumper_gap_m
+    front, rear = hl + g, -hl - g
+    chassis = ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))
+    bumpers = (((front, 0.0), (front - 0.03, hw)), ((front, 0.0), (front - 0.03, -hw)),
+               ((rear, -hw * 0.8), (rear, hw * 0.8)))
+    return chassis, bumpers, BUMPER_RADIUS_M
+
+
 class Robot:
     """The MK-V chassis in a pymunk space, with its wheel and motor model.
 
@@ -112,16 +129,12 @@ class Robot:
 
     def __init__(self, space: pymunk.Space, params: RobotParams, position, heading: float):
         p = self.params = params
-        hl, hw = p.length_m / 2, p.width_m / 2
         self.body = pymunk.Body(p.mass_kg, moment_of_inertia(p))
         self.body.position = position
         self.body.angle = heading
-        chassis = pymunk.Poly(self.body, [(-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw)], radius=0.0)
-        g, r = p.bumper_gap_m, 0.008
-        front, rear = hl + g, -hl - g
-        fl = pymunk.Segment(self.body, (front, 0.0), (front - 0.03, hw), r)
-        fr = pymunk.Segment(self.body, (front, 0.0), (front - 0.03, -hw), r)
-        rb = pymunk.Segment(self.body, (rear, -hw * 0.8), (rear, hw * 0.8), r)
+        verts, bumpers, r = shape_geometry(p)
+        chassis = pymunk.Poly(self.body, list(verts), radius=0.0)
+        fl, fr, rb = (pymunk.Segment(self.body, a, b, r) for a, b in bumpers)
         self.shapes = (chassis, fl, fr, rb)
         for s, ctype in zip(self.shapes, (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR), strict=True):
             if _cp is not None:  # the calls pymunk's property setters make, without their wrappers

@@ -252,21 +252,10 @@ class MKVVectorEnv(VectorEnv):
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
 
     def step(self, actions):
-        fast = self._fast  # the common case first: the whole step in one kernel call
-        if fast is not None and self._started and not self._pending and not self._dirty:
-            try:
-                r = fast(actions, self._elapsed, self._autoreset, self._max_steps,
-                         self._col_spec, self.vector_infos)
-            except ValueError:
-                raise ValueError(f"invalid actions {actions!r}: expected shape "
-                                 f"({self.num_envs}, 2) of [drive, steer] with each in "
-                                 "{0, 1, 2}") from None
-            if r is not None:
-                obs, rewards, terminated, truncated, cols, info, _, self._pending = r
-                self._lazy_infos = (cols, self._everyone)
-                self._lazy_final = None
-                self._final_env_infos = [None] * self.num_envs
-                return obs, rewards, terminated, truncated, {} if info is None else info
+        if self._fast is not None and self._started and not self._dirty:
+            out = self._step_fast(actions)  # the common case: the whole step in one call
+            if out is not None:
+                return out
         if not self._started:
             raise gym.error.ResetNeeded("call reset() before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.count_nonzero(self._autoreset):
@@ -279,10 +268,6 @@ class MKVVectorEnv(VectorEnv):
 
     def _step_kernel(self, actions):
         """One step of every robot through the compiled kernel (see the module doc)."""
-        if self._fast is not None and not self._dirty:
-            out = self._step_fast(actions)
-            if out is not None:
-                return out
         self._pending = True
         n = self.num_envs
         acts = self._actions(actions)
@@ -311,15 +296,12 @@ class MKVVectorEnv(VectorEnv):
         try:
             need = run(acts, active, *extra)
         except ValueError:  # the kernel checks the values before it steps anything
-            raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) of "
-                             "[drive, steer] with each in {0, 1, 2}") from None
+            raise self._bad_actions(actions) from None
         while need is not None:  # robots that used up their noise block and cannot draw it
             for i in need:       # in C (kernel.NOISE_IN_C): the next, as the reference draws it
                 b.set_noise(i, envs[i]._sensors.draw_block())
             need = run(acts, active, *extra)
-        for i in c_idx:  # reset in C: their Python objects are stale until asked for
-            envs[i]._c_world = True
-            envs[i]._py_owns = False
+        self._reset_in_c(c_idx)
         early = []
         if overlap:
             try:
@@ -396,10 +378,8 @@ class MKVVectorEnv(VectorEnv):
                     obs[c_idx] = out["obs"][c_idx]
                     for name, _, k in self._col_spec:
                         cols[name][c_idx] = out[_kernel.OUTPUTS[k][0]][c_idx]
-                    for i in c_idx:
-                        envs[i]._c_world = True
-                        envs[i]._py_owns = False
-                        elapsed[i] = 0
+                    self._reset_in_c(c_idx)
+                    elapsed[c_idx] = 0
                 for i in py_idx:
                     obs[i], d = envs[i].reset()
                     elapsed[i] = 0
@@ -433,20 +413,27 @@ class MKVVectorEnv(VectorEnv):
             r = self._fast(actions, self._elapsed, self._autoreset, self._max_steps,
                            self._col_spec, self.vector_infos)
         except ValueError:
-            raise ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
-                             "of [drive, steer] with each in {0, 1, 2}") from None
+            raise self._bad_actions(actions) from None
         if r is None:
             return None
         obs, rewards, terminated, truncated, cols, info, reset, self._pending = r
         if reset is not None:
-            envs = self.envs
-            for i in reset:  # reset in C: their Python objects are stale until asked for
-                envs[i]._c_world = True
-                envs[i]._py_owns = False
+            self._reset_in_c(reset)
         self._lazy_infos = (cols, self._everyone)
         self._lazy_final = None
         self._final_env_infos = [None] * self.num_envs
-        return obs, rewards, terminated, truncated, info if info is not None else {}
+        return obs, rewards, terminated, truncated, {} if info is None else info
+
+    def _reset_in_c(self, idx) -> None:
+        """Envs ``idx`` were reset in C: their Python objects are stale until asked for."""
+        envs = self.envs
+        for i in idx:
+            envs[i]._c_world = True
+            envs[i]._py_owns = False
+
+    def _bad_actions(self, actions) -> ValueError:
+        return ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
+                          "of [drive, steer] with each in {0, 1, 2}")
 
     def _c_resets(self, idx: list[int]) -> tuple:
         """Of the envs ``idx`` to reset, those the kernel resets in C (its bit generator bound to
@@ -513,8 +500,7 @@ class MKVVectorEnv(VectorEnv):
                 whole = a.astype(np.int64)
                 if np.array_equal(whole, a):  # floats must be whole numbers
                     return whole
-        raise ValueError(f"invalid actions {actions!r}: expected shape ({n}, 2) "
-                         "of [drive, steer] with each in {0, 1, 2}")
+        raise self._bad_actions(actions)
 
     def _step_reference(self, actions):
         """One step of every robot in Python, each scored by its own env's code."""
@@ -622,8 +608,7 @@ class MKVVectorEnv(VectorEnv):
             flat = a.ravel().tolist()
             if set(flat) <= _VALID:  # floats must be whole numbers: 1.0 == 1 is in the set
                 return [int(x) - OFF for x in flat[0::2]], [OFF - int(x) for x in flat[1::2]]
-        raise ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
-                         "of [drive, steer] with each in {0, 1, 2}")
+        raise self._bad_actions(actions)
 
     def _move(self, idx: list[int], drives: list[int], steers: list[int]) -> None:
         """One control period of physics for the envs ``idx`` (all robots' commands given),

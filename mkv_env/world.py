@@ -41,6 +41,8 @@ OBSTACLE_FRICTION = 0.6
 """Coulomb friction coefficient of obstacles and walls (against the chassis and bumpers)."""
 OBSTACLE_ELASTICITY = 0.0
 """Restitution of obstacles: bumps do not bounce."""
+SPACE_ITERATIONS = 10
+"""Chipmunk solver iterations per step."""
 SPACE_DAMPING = 0.6
 """Fraction of velocity kept per second by every body: the rolling resistance of the caster and
 wheels (40 % of the speed lost per second)."""
@@ -260,7 +262,8 @@ class World:
             obstacle shapes touching that part now; ``contacts[0]`` counts contact events.
     """
 
-    def __init__(self, layout: Layout, robot_params: RobotParams, pose, iterations: int = 10,
+    def __init__(self, layout: Layout, robot_params: RobotParams, pose,
+                 iterations: int = SPACE_ITERATIONS,
                  robot_kernel: str | None = None, fast_contacts: bool = False):
         self.layout = layout
         self.robot_params = robot_params
