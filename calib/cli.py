@@ -52,10 +52,10 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--cv", choices=("poses",),
                    help="poses: leave-one-pose-out error over the known poses (joint, "
                    "least_squares), in the summary and diagnostics['cv_poses']")
-    f.add_argument("--model", choices=("affine", "quadratic", "auto"), default=None,
-                   help="least_squares and joint on static poses: affine, plus a square per "
-                   "channel, or auto (default: the lower leave-one-pose-out error of the "
-                   "identifiable ones)")
+    f.add_argument("--model", choices=("affine", "channel", "quadratic", "auto"), default=None,
+                   help="least_squares and joint on static poses: affine, every channel "
+                   "straightened by its own square, a free square per channel, or auto "
+                   "(default: the lowest leave-one-pose-out error of the identifiable ones)")
     f.add_argument("--drift", choices=("none", "linear", "auto"), default=None,
                    help="least_squares and joint on static poses: a load drift linear in the "
                    "row order, fitted and then dropped (default auto, as --model)")

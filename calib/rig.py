@@ -313,8 +313,53 @@ def _tangents(U: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2], axis=1)
 
 
+def sphere_grid(n: int, r: int) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (r = 3: a Fibonacci lattice) or the
+    circle (r = 2)."""
+    i = np.arange(n) + 0.5
+    if r == 2:
+        a = 2 * np.pi * i / n
+        return np.column_stack([np.cos(a), np.sin(a)])
+    polar = np.arccos(1 - 2 * i / n)
+    azim = np.pi * (1 + 5**0.5) * i
+    return np.column_stack([np.cos(azim) * np.sin(polar), np.sin(azim) * np.sin(polar),
+                            np.cos(polar)])
+
+
+#: Directions tried per unknown pose by the rig fit's global re-inference (:meth:`ForwardModel.
+#: alternate`): about 5 degrees apart on the sphere.
+SPHERE_GRID = 2000
+#: Starts of the rig fit with every unknown direction drawn uniformly on the sphere, besides the
+#: named ones: each is alternated to a pose-by-pose optimum (cheap), and the
+#: :data:`RANDOM_REFINED` best distinct ones are refined jointly by LM.
+RANDOM_STARTS = 12
+RANDOM_REFINED = 2
+#: Two alternated starts are distinct when some pose's directions differ by more than this.
+DISTINCT_DEG = 10.0
+
+
+def _wls(X, Y, W):
+    """Weighted least squares of every column of Y (P, p) on its own design X (P, k) or (p, P,
+    k), weights W (P, p); returns the coefficients (p, k) and the weighted residuals (P, p)."""
+    Xc = np.broadcast_to(X, (Y.shape[1],) + X.shape[-2:]) if X.ndim == 2 else X
+    Xw = Xc * W.T[:, :, None]
+    yw = (Y * W).T
+    scale = np.maximum(np.sqrt((Xw**2).sum(axis=1)), 1e-300)  # column scaling
+    Xs = Xw / scale[:, None, :]
+    G = np.einsum("cpk,cpl->ckl", Xs, Xs)
+    h = np.einsum("cpk,cp->ck", Xs, yw)
+    try:
+        b = np.linalg.solve(G, h[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        b = np.stack([np.linalg.lstsq(Xs[c], yw[c], rcond=None)[0] for c in range(len(Xs))])
+    coef = b / scale
+    resid = yw - np.einsum("cpk,ck->cp", Xw, coef)
+    return coef, resid.T
+
+
 class ForwardModel:
-    """zbar_j = A m_j + o by variable projection over the unknown directions and g."""
+    """zbar_j = A m_j + o by variable projection over the unknown directions and g; with
+    ``bend`` each channel also gets ``b_c (a_c . m)^2``."""
 
     def __init__(self, pd: PoseData, magnitude=None):
         self.pd = pd
@@ -334,25 +379,71 @@ class ForwardModel:
 
     bend = False  # per-channel bending term (a_c . m)^2 in the forward model
 
-    def linear(self, M, W):
-        """Weighted least squares per channel of the pose means on [M 1]; (B (r+1, p), resid).
-        With ``bend`` each channel also gets ``b_c (a_c . m)^2``, a_c from the affine pass (the
-        residuals are then those of the bent model; B stays the affine part)."""
+    def coefficients(self, M, W):
+        """The per-channel model fitted to the pose means at loads M, weights W: a dict with
+        ``B`` ((r+1, p): the affine pass), ``resid`` (weighted residuals of the model, (P, p))
+        and for ``bend`` ``a`` (p, r), ``S`` and ``bent`` ((p, r+2): affine part and bend
+        gain of each channel)."""
         pd = self.pd
         X = np.column_stack([M, np.ones(pd.P)])
-        B = np.empty((X.shape[1], pd.p))
-        for c in range(pd.p):
-            B[:, c] = np.linalg.lstsq(X * W[:, c : c + 1], pd.means[:, c] * W[:, c],
-                                      rcond=None)[0]
+        coef, resid = _wls(X, pd.means, W)
+        out = {"B": coef.T, "resid": resid}
+        if self.bend:
+            a = coef[:, : pd.r]
+            s2 = (M @ a.T) ** 2  # (P, p)
+            S = np.maximum(s2.max(axis=0), 1e-300)
+            Xc = np.concatenate([np.broadcast_to(X, (pd.p,) + X.shape),
+                                 (s2 / S).T[:, :, None]], axis=2)
+            bent, out["resid"] = _wls(Xc, pd.means, W)
+            out.update(a=a, S=S, bent=bent)
+        return out
+
+    def linear(self, M, W):
+        """Weighted least squares per channel of the pose means on [M 1]; (B (r+1, p), resid).
+        With ``bend`` the residuals are those of the bent model; B stays the affine part."""
+        c = self.coefficients(M, W)
+        return c["B"], c["resid"]
+
+    def predict(self, coef, M):
+        """The model's pose means (n, p) at loads M (n, r)."""
         if not self.bend:
-            return B, (pd.means - X @ B) * W
-        R = np.empty_like(pd.means)
-        for c in range(pd.p):
-            s2 = (M @ B[: pd.r, c]) ** 2
-            Xc = np.column_stack([X, s2 / max(float(np.max(s2)), 1e-300)])
-            bc = np.linalg.lstsq(Xc * W[:, c : c + 1], pd.means[:, c] * W[:, c], rcond=None)[0]
-            R[:, c] = (pd.means[:, c] - Xc @ bc) * W[:, c]
-        return B, R
+            return M @ coef["B"][:-1] + coef["B"][-1]
+        b = coef["bent"]
+        r = self.pd.r
+        return M @ b[:, :r].T + b[:, r] + b[:, r + 1] * (M @ coef["a"].T) ** 2 / coef["S"]
+
+    def reinfer(self, M, W, g):
+        """Every unknown pose's load moved to the direction on the sphere of radius g (a grid of
+        :data:`SPHERE_GRID`) that the model fitted at M explains best: a global step per pose."""
+        coef = self.coefficients(M, W)
+        grid = g * sphere_grid(SPHERE_GRID, self.pd.r)
+        pred = self.predict(coef, grid)
+        out = M.copy()
+        for j in self.pd.unknown:
+            cost = (((self.pd.means[j] - pred) * W[j]) ** 2).sum(axis=1)
+            out[j] = grid[int(np.argmin(cost))]
+        return out
+
+    def cost(self, U, g, W) -> float:
+        """The weighted cost with the unknown poses at unit directions U and magnitude g."""
+        M = np.zeros((self.pd.P, self.pd.r))
+        M[self.pd.known_pose] = self.pd.known_M
+        M[self.pd.unknown] = g * U
+        return float((self.coefficients(M, W)["resid"] ** 2).sum())
+
+    def alternate(self, U, g, W, iters=25):
+        """Unit directions of the unknown poses after alternating the model fit and
+        :meth:`reinfer` from U (stops when no pose moves)."""
+        M = np.zeros((self.pd.P, self.pd.r))
+        M[self.pd.known_pose] = self.pd.known_M
+        M[self.pd.unknown] = g * U
+        for _ in range(iters):
+            new = self.reinfer(M, W, g)
+            if np.array_equal(new, M):
+                break
+            M = new
+        V = M[self.pd.unknown]
+        return V / np.linalg.norm(V, axis=1, keepdims=True)
 
     def solve(self, U0, g0, W, max_nfev=400):
         """LM from unit directions U0 (of the unknown poses) and magnitude g0."""
@@ -433,7 +524,8 @@ def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None =
 
 def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None = None,
                    known_samples: int | None = None, restarts: int = 2, seed: int = 0,
-                   starts: dict | None = None, known_sigma: float | None = None) -> dict:
+                   starts: dict | None = None, known_sigma: float | None = None,
+                   random_starts: int = RANDOM_STARTS) -> dict:
     """The pose-level joint fit (module docstring): forward model for the unknown pose loads,
     then least squares on every row with its pose's load.
 
@@ -461,15 +553,50 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
     g_default = float(magnitude) if magnitude is not None else float(np.median(known_mag))
     candidates = []
 
-    def add_start(name, U, g):
-        if U is None or not np.all(np.isfinite(U)):
+    solved = {}  # alternations end on grid points: equal ones are solved once
+
+    def refine(label, U0, g, model, weights, into):
+        key = (id(model), id(weights), g, np.round(U0, 12).tobytes())
+        if key in solved:
             return
         try:
-            res = fm.solve(U, g if np.isfinite(g) and g > 0 else g_default, W)
+            res = model.solve(U0, g, weights)
         except (np.linalg.LinAlgError, ValueError):
             return
-        res["start"] = name
-        candidates.append(res)
+        solved[key] = res
+        into.append({**res, "start": label})
+
+    def add_start(name, U, g, model=fm, weights=W, into=candidates):
+        """Refine a start by LM, and also its pose-by-pose alternation (:meth:`ForwardModel.
+        alternate`: a global step per pose, which LM's local steps cannot take)."""
+        if U is None or not np.all(np.isfinite(U)):
+            return
+        g = g if np.isfinite(g) and g > 0 else g_default
+        refine(name, U, g, model, weights, into)
+        try:
+            U1 = model.alternate(U, g, weights)
+        except (np.linalg.LinAlgError, ValueError):
+            return
+        refine(f"{name}, alternated", U1, g, model, weights, into)
+
+    def random_starts_refined(g, model=fm, weights=W, into=candidates, label=""):
+        """Directions drawn uniformly, alternated to pose-by-pose optima; the
+        :data:`RANDOM_REFINED` cheapest distinct ones refined by LM."""
+        pool = []
+        for i in range(random_starts):
+            try:
+                U1 = model.alternate(random_directions(), g, weights)
+                pool.append((model.cost(U1, g, weights), i, U1))
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+        kept = []
+        for _, i, U1 in sorted(pool, key=lambda t: t[:2]):
+            if len(kept) == RANDOM_REFINED:
+                break
+            if all(np.min(np.sum(U1 * V, axis=1)) < np.cos(np.radians(DISTINCT_DEG))
+                   for V in kept):
+                kept.append(U1)
+                refine(f"random start {i + 1}{label}, alternated", U1, g, model, weights, into)
 
     # 1. an affine forward map from the known poses alone (needs r + 1 affinely spanning loads)
     X = np.column_stack([pd.known_M, np.ones(len(pd.known_M))])
@@ -484,10 +611,17 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
         got = _directions_from(cal.apply(pd.means[pd.unknown]))
         if got:
             add_start(name, got[0], got[1])
+    rng = np.random.default_rng(seed)
+
+    def random_directions():
+        U = rng.standard_normal((len(pd.unknown), r))
+        return U / np.linalg.norm(U, axis=1, keepdims=True)
+
+    # 4. directions drawn uniformly: the alternation takes them to a pose-by-pose optimum
+    random_starts_refined(g_default)
     if not candidates:
         raise CalibrationError("no start of the rig fit gave finite pose directions")
     best = min(candidates, key=lambda c: c["cost"])
-    rng = np.random.default_rng(seed)
     for i in range(restarts):  # perturbed restarts: every unknown direction turned ~20 degrees
         U = best["U"] + rng.normal(scale=0.35, size=best["U"].shape)
         add_start(f"perturbed restart {i + 1}", U / np.linalg.norm(U, axis=1, keepdims=True),
@@ -499,7 +633,11 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
     n_par = (r + 1) + (2 * len(pd.unknown) + fm.fit_g) / pd.p
     v = (raw**2).sum(axis=0) / max(pd.P - n_par, 1.0)
     W2 = 1.0 / np.sqrt(v[None, :] + (pd.sigma**2)[None, :] / pd.counts[:, None])
-    final = fm.solve(best["U"], best["g"], W2)
+    reweighted = []
+    add_start("best start, reweighted", best["U"], best["g"], weights=W2, into=reweighted)
+    if not reweighted:
+        raise CalibrationError("the rig fit failed after reweighting its channels")
+    final = min(reweighted, key=lambda c: c["cost"])
     if not final["converged"] and best["converged"]:
         final = {**best, "converged": best["converged"]}
     # a channel that bends with its own signal (printed flexures, capacitive gaps): the nested
@@ -515,7 +653,10 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
 
         fb = ForwardModel(pd, magnitude)
         fb.bend = True
-        cand = fb.solve(final["U"], final["g"], W2)
+        bent = []
+        add_start("final, bent", final["U"], final["g"], model=fb, weights=W2, into=bent)
+        random_starts_refined(final["g"], model=fb, weights=W2, into=bent, label=" (bent)")
+        cand = min(bent, key=lambda c: c["cost"]) if bent else {"converged": False}
         if cand["converged"] and cand["cost"] < final["cost"]:
             F = ((final["cost"] - cand["cost"]) / pd.p) / (cand["cost"] / dof1)
             p_value = float(f_dist.sf(F, pd.p, dof1))
