@@ -67,8 +67,8 @@ def fit_joint(
     :func:`calib.rig.find_poses`) or an array of pose labels per row; the Sampson-distance fit
     below is then one of its starts. ``poses=None`` always uses the Sampson-distance fit (as do
     streamed sources). ``cv=True`` adds ``diagnostics["cv_poses"]``: the leave-one-pose-out
-    error over the known poses (:func:`leave_one_pose_out`). ``model`` (affine, channel, quadratic, auto)
-    and ``drift`` (none, linear, auto) choose the rig fit's second stage
+    error over the known poses (:func:`leave_one_pose_out`). ``model`` (affine, channel,
+    quadratic, auto) and ``drift`` (none, linear, auto) choose the rig fit's second stage
     (:mod:`calib.models`); ``auto`` keeps the candidate with the lowest leave-one-pose-out error
     (``diagnostics["model_selection"]``); other than affine/none they need a static-pose log.
     ``robust=True`` (static-pose logs) leaves out rows more than 5 robust standard deviations

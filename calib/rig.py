@@ -19,8 +19,12 @@ components and 8 magnitudes). :func:`fit_rig` fits it in two stages:
    (feasible generalised least squares: a real sensor's misfit, nonlinearity, creep, hysteresis,
    is far larger than its sampling noise and differs by channel). Several starts (an affine map
    solved from the known poses, the Sampson-distance joint fit, the centered route aligned to
-   the known loads, perturbed restarts of the best); the lowest weighted cost is kept and every
-   start's cost is in the diagnostics.
+   the known loads, perturbed restarts of the best, directions drawn at random), each also
+   *alternated* before LM refines it: the model fitted at the current loads, then every unknown
+   pose moved to the best of :data:`SPHERE_GRID` directions on its sphere, until no pose moves
+   (a global step per pose, which LM's local steps cannot take: a direction stuck near the
+   mirror image of the truth). The lowest weighted cost is kept and every start's cost is in
+   the diagnostics.
 2. **Calibration.** Least squares on every row with its pose's load: the known loads where
    known, ``g u_j`` elsewhere; exactly what least squares with every load known does, with the
    estimated loads in place of the unknown ones. Fitting the rows (not the pose means) shrinks

@@ -39,7 +39,9 @@ def test_protocol_and_diagnosis_on_a_simulated_rig(tmp_path, capsys):
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if line.startswith("| 0 |"))
     ratios = [float(x) for x in re.findall(r"([\d.]+)x", row)]
-    assert len(ratios) == 3 and ratios[0] < 1.3  # a linear sensor: the joint route is near LS
+    # ratios: least squares under the channel model, joint, centered, paper
+    assert len(ratios) == 4 and ratios[1] < 1.3  # a linear sensor: the joint route is near LS
+    assert ratios[0] < 1.1  # and the channel model adds nothing to fit
     diag = next(line for line in out.splitlines() if line.startswith("set 0:"))
     got = dict(re.findall(r"(chosen \(\w+\)|affine from true directions|bent from true "
                           r"directions|affine fitted on all 12 loads) ([\d.]+)x", diag))
