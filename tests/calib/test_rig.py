@@ -134,14 +134,15 @@ def test_forward_model_solves_every_channel_as_lstsq_does(seed, bend, p):
     B, R = fm.linear(M, W)
     X = np.column_stack([M, np.ones(P)])
     for c in range(p):
-        b = np.linalg.lstsq(X * W[:, c:c + 1], pd.means[:, c] * W[:, c], rcond=None)[0]
+        w, y = W[:, c:c + 1], pd.means[:, c] * W[:, c]
+        b = np.linalg.lstsq(X * w, y, rcond=None)[0]
         assert np.allclose(B[:, c], b, rtol=1e-7, atol=1e-9)
-        if bend:
+        Xc = X
+        if bend:  # the bent model's design: plus the channel's own (a_c . m)^2, scaled to 1
             s2 = (M @ b[:3]) ** 2
-            X = np.column_stack([M, np.ones(P), s2 / s2.max()])
-        b = np.linalg.lstsq(X * W[:, c:c + 1], pd.means[:, c] * W[:, c], rcond=None)[0]
-        assert np.allclose(R[:, c], (pd.means[:, c] - X @ b) * W[:, c], atol=1e-7)
-        X = np.column_stack([M, np.ones(P)])
+            Xc = np.column_stack([X, s2 / s2.max()])
+        bc = np.linalg.lstsq(Xc * w, y, rcond=None)[0]
+        assert np.allclose(R[:, c], (pd.means[:, c] - Xc @ bc) * W[:, c], atol=1e-7)
     # the model's own prediction at the loads reproduces the residuals
     coef = fm.coefficients(M, W)
     assert np.allclose((pd.means - fm.predict(coef, M)) * W, coef["resid"], atol=1e-7)
