@@ -81,6 +81,26 @@ def test_find_poses_in_order_shuffled_and_not_on_a_motion_log():
     assert find_poses(motion.Z) is None
 
 
+def test_find_poses_joins_a_pose_s_settling_run_to_it():
+    # a real printed sensor read a steady but different value for the first 14 % of one pose
+    # (87 counts away) before it jumped to where it stayed: one pose, not two
+    rig = simulate_rig(8)
+    Z = rig.Z.copy()
+    rows = np.flatnonzero(rig.pose == 7)
+    settle = rows[: len(rows) // 7]
+    Z[settle] += 0.3 * (Z.max(axis=0) - Z.min(axis=0))  # a steady jump, far beyond noise
+    lab = find_poses(Z)
+    assert lab is not None and lab.max() + 1 == 12
+    assert np.all(lab[settle] == lab[rows[-1]])
+    for j in range(12):
+        assert len(np.unique(rig.pose[lab == j])) == 1
+    # a pose logged at a quarter of the others' length or more stays a pose of its own
+    keep = np.ones(len(Z), bool)
+    keep[rows[len(rows) // 3:]] = False  # pose 7 cut to a third of its rows
+    lab = find_poses(rig.Z[keep])
+    assert lab is not None and lab.max() + 1 == 12
+
+
 # ------------------------------------------------------------------------------ the fit
 
 
