@@ -92,7 +92,7 @@ def find_poses(Z) -> np.ndarray | None:
     threshold = 1.5 * np.sqrt(2 * chi2.isf(JUMP_PROBABILITY, p) / p)
     labels = _merge(Z / noise, _runs(np.flatnonzero(jump > threshold) + 1, n))
     labels = _fill_gaps(Z / noise, _cluster_runs(Z / noise, labels))
-    labels = _join_settling(labels)
+    labels = _join_settling(Z / noise, labels)
     if _is_static(labels):
         return labels
     if n <= MAX_CLUSTER_ROWS:
@@ -177,7 +177,7 @@ def _fill_gaps(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
 SETTLING_FRACTION = 0.25
 
 
-def _join_settling(labels: np.ndarray) -> np.ndarray:
+def _join_settling(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Short runs that are a neighbouring pose's settling join it.
 
     A rig's load changes when it moves; a printed or creeping sensor may read a steady but
@@ -185,9 +185,11 @@ def _join_settling(labels: np.ndarray) -> np.ndarray:
     real 8-channel printed sensor: 14 % of one pose's log, 87 counts away). That run is as
     steady as a pose, so the jump detector starts a new pose at both ends; as a pose of its own
     it would get a load direction of its own, which the rig did not apply. A pose with fewer
-    than :data:`SETTLING_FRACTION` of the median pose's rows, all in one run with no row left
-    out between it and a longer pose's run, is relabelled as that pose (the one that follows,
-    else the one before): the all-known fit labels those rows with the pose's load too."""
+    than :data:`SETTLING_FRACTION` of the median pose's rows, all in one run next to a longer
+    pose's run (rows left out between them aside), is relabelled as that pose: of the runs
+    before and after it, the one whose mean is nearer in noise units (a few readings that an
+    outlier cut off the start of their pose go back to it). The all-known fit labels those
+    rows with the pose's load too."""
     good = labels >= 0
     if good.sum() == 0:
         return labels
@@ -200,14 +202,15 @@ def _join_settling(labels: np.ndarray) -> np.ndarray:
     out = labels.copy()
     starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
     ends = np.r_[starts[1:], len(labels)]
-    runs = [(int(labels[a]), a, b) for a, b in zip(starts, ends, strict=True)]
+    runs = [(int(labels[a]), a, b) for a, b in zip(starts, ends, strict=True) if labels[a] >= 0]
     for i, (lab, a, b) in enumerate(runs):
-        if lab < 0 or not short[lab] or b - a != counts[lab]:
+        if not short[lab] or b - a != counts[lab]:
             continue  # a long pose, or a short one in several runs (a revisited pose)
-        for nb in (i + 1, i - 1):
-            if 0 <= nb < len(runs) and runs[nb][0] >= 0 and not short[runs[nb][0]]:
-                out[a:b] = runs[nb][0]
-                break
+        here = X[a:b].mean(axis=0)
+        near = [(np.linalg.norm(X[labels == runs[nb][0]].mean(axis=0) - here), runs[nb][0])
+                for nb in (i + 1, i - 1) if 0 <= nb < len(runs) and not short[runs[nb][0]]]
+        if near:
+            out[a:b] = min(near)[1]
     # renumber in order of first appearance
     ids = list(dict.fromkeys(out[out >= 0].tolist()))
     remap = np.full(labels.max() + 1, -1)
