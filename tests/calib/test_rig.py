@@ -94,6 +94,14 @@ def test_find_poses_joins_a_pose_s_settling_run_to_it():
     assert np.all(lab[settle] == lab[rows[-1]])
     for j in range(12):
         assert len(np.unique(rig.pose[lab == j])) == 1
+    # an outlier cut a pose's first 7 training rows off the rest; they sit right after the
+    # previous pose: they join the pose whose mean is nearer (their own), not the adjacent one
+    rig2 = simulate_rig(13, outliers=0.01)
+    tr, _ = rig2.split()
+    lab = find_poses(rig2.Z[tr])
+    assert lab is not None and lab.max() + 1 == 12
+    for j in range(12):
+        assert len(np.unique(rig2.pose[tr][lab == j])) == 1
     # a pose logged at a quarter of the others' length or more stays a pose of its own
     keep = np.ones(len(Z), bool)
     keep[rows[len(rows) // 3:]] = False  # pose 7 cut to a third of its rows
