@@ -585,3 +585,20 @@ def test_robust_leaves_out_spikes_and_helps_on_outlier_rigs():
             robust = held_out(rig, fit_joint(Z[tr], Zk, Mk, robust=True), te)
             clean = held_out(rig, fit_joint(rig.Z[tr], Zk, Mk), te)
             assert plain < 1.2 * clean and robust < 1.1 * plain, (plain, robust, clean)
+
+
+def test_known_consistency_uses_the_model_the_fit_chose():
+    # a bending sensor (15 % nonlinearity): the free fit under the bent model the fit chose
+    # wanders less from the (correct) known loads than an affine free fit does
+    from calib.rig import _known_consistency, rig_pose_loads
+
+    rig = simulate_rig(3, nonlinearity=0.15)
+    tr, _ = rig.split()
+    kn = choose_known_poses(rig.directions, 4)
+    means, _ = rig.pose_means(tr)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s1 = rig_pose_loads(rig.Z[tr], rig.pose[tr], means[kn], rig.stated_loads[kn])
+    assert s1["bend"]["used"]
+    affine = _known_consistency(s1["pd"], s1["final"], s1["W2"], bend=False)["fraction"]
+    assert s1["consistency"]["fraction"] < 0.5 * affine, (s1["consistency"], affine)
