@@ -485,7 +485,9 @@ def _plan(args) -> str:
     if "bound" in res:
         text += (f"; rms load error >= {res['bound']:.3g} (all known: "
                  f"{res['bound_all_known']:.3g}) in load units")
-    return text
+    return text + ("; the bound assumes a linear sensor: one that is not (a printed sensor "
+                   "whose channels bend) can do worse, measured 1.2-5.9x on a real one "
+                   "(docs/calib.md)")
 
 
 def _trials(args) -> str:

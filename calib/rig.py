@@ -174,7 +174,7 @@ def _fill_gaps(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 #: A pose logged for less than this fraction of the median pose's rows, in one run that directly
 #: precedes (or follows) a longer pose, is that pose's settling, not a pose of its own.
-SETTLING_FRACTION = 0.25
+SETTLING_FRACTION = 1 / 3
 
 
 def _join_settling(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -182,14 +182,14 @@ def _join_settling(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
     A rig's load changes when it moves; a printed or creeping sensor may read a steady but
     different value for its first moments in a pose and then jump to where it stays (seen in a
-    real 8-channel printed sensor: 14 % of one pose's log, 87 counts away). That run is as
-    steady as a pose, so the jump detector starts a new pose at both ends; as a pose of its own
-    it would get a load direction of its own, which the rig did not apply. A pose with fewer
-    than :data:`SETTLING_FRACTION` of the median pose's rows, all in one run next to a longer
-    pose's run (rows left out between them aside), is relabelled as that pose: of the runs
-    before and after it, the one whose mean is nearer in noise units (a few readings that an
-    outlier cut off the start of their pose go back to it). The all-known fit labels those
-    rows with the pose's load too."""
+    real 8-channel printed sensor: 14 % of one pose's log 87 counts away, 28 % of another's).
+    That run is as steady as a pose, so the jump detector starts a new pose at both ends; as a
+    pose of its own it would get a load direction of its own, which the rig did not apply. A
+    pose with fewer than :data:`SETTLING_FRACTION` of the median pose's rows, all in one run
+    next to a longer pose's run (rows left out between them aside), is relabelled as that pose:
+    of the runs before and after it, the one whose mean is nearer in noise units (a few readings
+    that an outlier cut off the start of their pose go back to it). The all-known fit labels
+    those rows with the pose's load too."""
     good = labels >= 0
     if good.sum() == 0:
         return labels
