@@ -172,8 +172,9 @@ def _fill_gaps(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return out
 
 
-#: A pose logged for less than this fraction of the median pose's rows, in one run that directly
-#: precedes (or follows) a longer pose, is that pose's settling, not a pose of its own.
+#: A pose logged for less than this fraction of the median pose's rows, in one run next to a
+#: longer pose's run, is a neighbouring pose's settling, not a pose of its own
+#: (:func:`_join_settling`).
 SETTLING_FRACTION = 1 / 3
 
 
