@@ -331,8 +331,9 @@ def _summary(args, cal, status) -> str:
         + (f", bootstrap {args.bootstrap}" if args.bootstrap else "")
         + (f", {d['joint']['n_poses']} poses found" if d.get("joint", {}).get("route") == "poses"
            else "")
-        + (f", model {d['model_selection']['chosen']} (by leave-one-pose-out error)"
-           if "model_selection" in d else "")
+        + (f", model {d['model_selection']['chosen']} "
+           + ("(not selected: known loads inconsistent)" if "skipped" in d["model_selection"]
+              else "(by leave-one-pose-out error)") if "model_selection" in d else "")
         + (f", leave-one-pose-out rms {d['cv_poses']['rms']:.4g} over "
            f"{d['cv_poses']['folds']} pose(s)" if "cv_poses" in d else "")
         + f"; {status}"

@@ -150,7 +150,16 @@ def fit_joint(
                                        f"{e}") from None
             return motion
         auto = model == "auto" or drift == "auto"
-        folds = _folds(Za, labels, known_Z, Mk, stage1, t) if (cv or auto) else []
+        skipped = None
+        if auto and not cv and _inconsistent(s1):
+            # the fit is refused anyway (calib.reliability): choosing a model by how well it
+            # predicts known loads that disagree with the readings means nothing, and the
+            # refits crawl (a sign typed wrong: 300 s against 14 s for the whole fit)
+            model = "affine" if model == "auto" else model
+            drift = "none" if drift == "auto" else drift
+            skipped = ("known loads inconsistent with the readings: the first model kept "
+                       "without leave-one-pose-out selection")
+        folds = _folds(Za, labels, known_Z, Mk, stage1, t) if (cv or auto) and not skipped else []
 
         def cv_of(m, d):
             return _fold_errors(folds, Za, m, d)
@@ -162,6 +171,9 @@ def fit_joint(
             cal.diagnostics["cv_poses"] = cv_of(model, drift)
         if table:
             cal.diagnostics["model_selection"] = table
+        elif skipped:
+            cal.diagnostics["model_selection"] = {"chosen": f"{model}/{drift}",
+                                                  "skipped": skipped}
         cal.diagnostics["joint"]["outlier_rows_rejected"] = n_rejected if robust else None
     m = motion.diagnostics
     cal.diagnostics["joint"]["sampson_fit"] = {
@@ -170,6 +182,14 @@ def fit_joint(
         if key in m:
             cal.diagnostics[key] = m[key]
     return cal
+
+
+def _inconsistent(s1: dict) -> bool:
+    """Whether the stage-1 fit's known loads fail :data:`calib.reliability.KNOWN_INCONSISTENT`."""
+    from .reliability import KNOWN_INCONSISTENT
+
+    frac = s1.get("consistency", {}).get("fraction", float("nan"))
+    return bool(np.isfinite(frac) and frac > KNOWN_INCONSISTENT)
 
 
 def _starts(Z, known_Z, known_M, dof, magnitude, motion):

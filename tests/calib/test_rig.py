@@ -306,10 +306,14 @@ def test_cli_unreliable_fit_exits_3_writes_nothing_unless_allowed(rig_csv, capsy
     assert main(base + ["--known", f["wrong"], "--allow-unreliable"]) == 0
     cap = capsys.readouterr()
     assert "UNRELIABLE" in cap.out and "calib: warning: unreliable:" in cap.err
-    rel = json.loads(out.read_text())["diagnostics"]["reliability"]
+    # known loads the readings contradict choose no model (no leave-one-pose-out refits)
+    assert "model affine/none (not selected: known loads inconsistent)" in cap.out
+    diag = json.loads(out.read_text())["diagnostics"]
+    rel = diag["reliability"]
     assert rel["reliable"] is False and rel["problems"]
+    assert "leave_one_pose_out_rms" not in diag["model_selection"]
     assert main(base + ["--known", f["known"]]) == 0
-    assert "; reliable" in capsys.readouterr().out
+    assert "(by leave-one-pose-out error); reliable" in capsys.readouterr().out
     assert json.loads(out.read_text())["diagnostics"]["reliability"]["reliable"] is True
 
 
