@@ -416,6 +416,26 @@ def _wls(X, Y, W):
     return coef, resid.T
 
 
+def _wls_batch(X, Y, W):
+    """:func:`_wls` for a batch of designs X (b, p, P, k) (one per channel and batch member):
+    coefficients (b, p, k) and weighted residuals (b, P, p). The same arithmetic, so a batch of
+    one gives :func:`_wls`'s numbers."""
+    Xw = X * W.T[None, :, :, None]
+    yw = (Y * W).T
+    scale = np.maximum(np.sqrt((Xw**2).sum(axis=2)), 1e-300)
+    Xs = Xw / scale[:, :, None, :]
+    G = np.einsum("bcpk,bcpl->bckl", Xs, Xs)
+    h = np.einsum("bcpk,cp->bck", Xs, yw)
+    try:
+        b = np.linalg.solve(G, h[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        b = np.stack([np.stack([np.linalg.lstsq(Xs[i, c], yw[c], rcond=None)[0]
+                                for c in range(Xs.shape[1])]) for i in range(len(Xs))])
+    coef = b / scale
+    resid = yw[None] - np.einsum("bcpk,bck->bcp", Xw, coef)
+    return coef, resid.transpose(0, 2, 1)
+
+
 class ForwardModel:
     """zbar_j = A m_j + o by variable projection over the unknown directions and g; with
     ``bend`` each channel also gets ``b_c (a_c . m)^2``."""
@@ -435,6 +455,18 @@ class ForwardModel:
         g = x[-1] if self.fit_g else self.magnitude
         M[pd.unknown] = g * V / np.linalg.norm(V, axis=1, keepdims=True)
         return M
+
+    def loads_batch(self, xs, U0, T):
+        """:meth:`loads` for every row of xs: (b, P, r)."""
+        pd = self.pd
+        nt = T.shape[1]
+        nu = len(pd.unknown)
+        Ms = np.zeros((len(xs), pd.P, pd.r))
+        Ms[:, pd.known_pose] = pd.known_M
+        V = U0 + np.einsum("bma,mad->bmd", xs[:, : nt * nu].reshape(len(xs), nu, nt), T)
+        g = xs[:, -1:, None] if self.fit_g else self.magnitude
+        Ms[:, pd.unknown] = g * V / np.linalg.norm(V, axis=2, keepdims=True)
+        return Ms
 
     bend = False  # per-channel bending term (a_c . m)^2 in the forward model
 
@@ -463,6 +495,20 @@ class ForwardModel:
         c = self.coefficients(M, W)
         return c["B"], c["resid"]
 
+    def residuals(self, Ms, W):
+        """The weighted residuals (b, P, p) of :meth:`coefficients` for a batch of loads Ms
+        (b, P, r) at once (LM's finite-difference Jacobian: one call for all its columns)."""
+        pd = self.pd
+        X = np.concatenate([Ms, np.ones(Ms.shape[:2] + (1,))], axis=2)
+        Xc = np.broadcast_to(X[:, None], (len(Ms), pd.p) + X.shape[1:])
+        coef, resid = _wls_batch(Xc, pd.means, W)
+        if self.bend:
+            s2 = np.einsum("bPr,bcr->bPc", Ms, coef[:, :, : pd.r]) ** 2  # (b, P, p)
+            S = np.maximum(s2.max(axis=1), 1e-300)
+            bendcol = (s2 / S[:, None, :]).transpose(0, 2, 1)[..., None]
+            _, resid = _wls_batch(np.concatenate([Xc, bendcol], axis=3), pd.means, W)
+        return resid
+
     def predict(self, coef, M):
         """The model's pose means (n, p) at loads M (n, r)."""
         if not self.bend:
@@ -478,9 +524,12 @@ class ForwardModel:
         grid = g * sphere_grid(SPHERE_GRID, self.pd.r)
         pred = self.predict(coef, grid)
         out = M.copy()
-        for j in self.pd.unknown:
-            cost = (((self.pd.means[j] - pred) * W[j]) ** 2).sum(axis=1)
-            out[j] = grid[int(np.argmin(cost))]
+        u = self.pd.unknown
+        # |W_j (zbar_j - pred)|^2 for every pose and grid point, expanded: (nu, grid)
+        W2 = W[u] ** 2
+        cost = (np.sum(W2 * self.pd.means[u] ** 2, axis=1)[:, None]
+                - 2 * (W2 * self.pd.means[u]) @ pred.T + W2 @ (pred**2).T)
+        out[u] = grid[np.argmin(cost, axis=1)]
         return out
 
     def _at(self, U, g):
@@ -513,10 +562,22 @@ class ForwardModel:
         if self.fit_g:
             x0[-1] = g0
 
-        def fun(x):
-            return self.linear(self.loads(x, U0, T), W)[1].ravel()
+        def batch(xs):  # residuals of every row of xs: (b, P * p)
+            return self.residuals(self.loads_batch(xs, U0, T), W).reshape(len(xs), -1)
 
-        sol = least_squares(fun, x0, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+        def fun(x):
+            return batch(x[None])[0]
+
+        def jac(x):
+            # scipy's forward differences ("2-point", relative step sqrt(eps)), every column
+            # in one batch
+            h = np.finfo(float).eps ** 0.5 * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0,
+                                                                                    np.abs(x))
+            dx = (x + h) - x
+            F = batch(np.vstack([x, x + np.diag(dx)]))
+            return ((F[1:] - F[0]) / dx[:, None]).T
+
+        sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12,
                             max_nfev=max_nfev * (len(x0) + 1))
         M = self.loads(sol.x, U0, T)
         U = M[self.pd.unknown]
