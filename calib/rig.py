@@ -43,6 +43,7 @@ import functools
 import numpy as np
 from scipy.optimize import least_squares
 
+from ._numdiff import batched_jacobian
 from ._validate import check_matrix
 from .result import Calibration, CalibrationError
 
@@ -568,17 +569,8 @@ class ForwardModel:
         def fun(x):
             return batch(x[None])[0]
 
-        def jac(x):
-            # scipy's forward differences ("2-point", relative step sqrt(eps)), every column
-            # in one batch
-            h = np.finfo(float).eps ** 0.5 * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0,
-                                                                                    np.abs(x))
-            dx = (x + h) - x
-            F = batch(np.vstack([x, x + np.diag(dx)]))
-            return ((F[1:] - F[0]) / dx[:, None]).T
-
-        sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                            max_nfev=max_nfev * (len(x0) + 1))
+        sol = least_squares(fun, x0, jac=batched_jacobian(batch), method="lm", xtol=1e-12,
+                            ftol=1e-12, gtol=1e-12, max_nfev=max_nfev * (len(x0) + 1))
         M = self.loads(sol.x, U0, T)
         U = M[self.pd.unknown]
         g = float(sol.x[-1]) if self.fit_g else float(self.magnitude)
