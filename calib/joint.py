@@ -185,8 +185,8 @@ def fit_joint(
 
 
 def _inconsistent(s1: dict) -> bool:
-    """Whether the stage-1 fit's known loads fail :data:`calib.reliability.KNOWN_INCONSISTENT`."""
-    from .reliability import KNOWN_INCONSISTENT
+    """Whether the stage-1 fit's known loads fail :data:`calib.rig.KNOWN_INCONSISTENT`."""
+    from .rig import KNOWN_INCONSISTENT
 
     frac = s1.get("consistency", {}).get("fraction", float("nan"))
     return bool(np.isfinite(frac) and frac > KNOWN_INCONSISTENT)

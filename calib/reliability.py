@@ -35,6 +35,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# rig fits: known loads inconsistent with the readings (defined beside the measure, which the
+# fit also uses)
+from .rig import KNOWN_INCONSISTENT
+
 #: Chi-square tail probability below which known residuals are implausible.
 CHI2_PROBABILITY = 1e-6
 #: ... and only when their rms also exceeds this fraction of the known loads' magnitude.
@@ -42,10 +46,6 @@ PRACTICAL_FRACTION = 0.02
 #: Any fit given known loads: calibrated known readings further than this fraction of the load
 #: (rms of the vector error) from the known loads are a failed fit.
 KNOWN_MISS = 0.25
-#: Rig fits: known loads further than this fraction of the load from a rotation of what the
-#: readings alone imply are inconsistent (simulated imperfect rigs: up to 12 % with 5 % creep
-#: and 3 % hysteresis, at most 3.4 % otherwise; two swapped known loads: median 17 %).
-KNOWN_INCONSISTENT = 0.15
 #: Other routes on static-pose logs: largest disagreement with the pose fit, in units of its
 #: own pose-level residual.
 CROSSCHECK_FACTOR = 10.0

@@ -386,6 +386,11 @@ def sphere_grid(n: int, r: int) -> np.ndarray:
     return out
 
 
+#: Rig fits: known loads further than this fraction of the load from a rotation of what the
+#: readings alone imply are inconsistent (simulated imperfect rigs: up to 12 % with 5 % creep
+#: and 3 % hysteresis, at most 3.4 % otherwise; two swapped known loads: median 17 %); such a
+#: fit is refused (:mod:`calib.reliability`) and chooses no model by held-out error.
+KNOWN_INCONSISTENT = 0.15
 #: Directions tried per unknown pose by the rig fit's global re-inference (:meth:`ForwardModel.
 #: alternate`): about 5 degrees apart on the sphere.
 SPHERE_GRID = 2000
