@@ -331,6 +331,8 @@ def _summary(args, cal, status) -> str:
         + (f", bootstrap {args.bootstrap}" if args.bootstrap else "")
         + (f", {d['joint']['n_poses']} poses found" if d.get("joint", {}).get("route") == "poses"
            else "")
+        + (f" (each channel a degree-{d['joint']['index_model']['degree']} polynomial of its own "
+           "signal)" if d.get("joint", {}).get("index_model", {}).get("used") else "")
         + (f", model {d['model_selection']['chosen']} "
            + ("(not selected: known loads inconsistent)" if "skipped" in d["model_selection"]
               else "(by leave-one-pose-out error)") if "model_selection" in d else "")

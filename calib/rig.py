@@ -253,6 +253,16 @@ def _is_static(labels: np.ndarray) -> bool:
 #: The forward model gets a bending term per channel when an F-test gives p below this.
 BEND_P = 0.01
 
+#: The index refinement (:class:`IndexModel`): polynomial degrees up to 1 + this are tried
+#: per channel, each kept when an F-test against the lower one gives p below :data:`BEND_P`.
+INDEX_DEGREE = 2
+#: Known loads whose magnitudes are within this relative spread are one weighed mass: the index
+#: refinement holds every pose's load at their magnitude.
+ONE_MASS = 0.05
+#: Rounds of feasible GLS reweighting of the index refinement (channel weights from the
+#: highest-degree fit's own residuals).
+INDEX_REWEIGHT = 2
+
 #: ``robust``: a row further than this many robust standard deviations (1.4826 MAD) from its
 #: pose's median on any channel is an outlier.
 OUTLIER_MADS = 5.0
@@ -584,6 +594,143 @@ class ForwardModel:
                 "nfev": int(sol.nfev), "M": M}
 
 
+class IndexModel:
+    """A forward model in which every channel is a polynomial of its own linear signal,
+
+        zbar_jc = o_c + u_jc + sum_{k=2..d+1} b_ck s_c (u_jc / s_c)^k,    u_jc = a_c . m_j / g,
+
+    (a Wiener model: a printed flexure, a gap or a gauge that stiffens or softens along the one
+    load direction it senses; ``s_c`` the channel's spread over the poses, for scaling). Unlike
+    the bending term of :class:`ForwardModel`, whose direction is frozen at the affine fit's,
+    ``a_c`` is fitted with the curvature and the loads. Fitted by LM over the unknown poses'
+    directions and every channel's (a_c, o_c, b_c) together, at a held magnitude ``g``. With
+    ``free`` every pose's direction is unknown (the known loads ignored): the consistency check.
+    On a real printed 8-channel sensor (docs/calib.md) it took the pose loads of the worst load
+    set from 5.9x to 1.8x least squares with every load known."""
+
+    def __init__(self, pd: PoseData, g: float, M0: np.ndarray, free: bool = False):
+        self.pd, self.g = pd, float(g)
+        self.free = free
+        self.unknown = np.arange(pd.P) if free else pd.unknown
+        U0 = M0[self.unknown]
+        self.U0 = U0 / np.linalg.norm(U0, axis=1, keepdims=True)
+        self.T = _tangents(self.U0)
+        self.ng = self.T.shape[1] * len(self.unknown)
+        self.scale = np.maximum(pd.means.std(axis=0), 1e-300)
+        self.M0 = M0
+
+    def loads_batch(self, xs):
+        """The loads (b, P, r) of direction steps xs[:, :ng]."""
+        pd = self.pd
+        nt = self.T.shape[1]
+        Ms = np.zeros((len(xs), pd.P, pd.r))
+        if not self.free:
+            Ms[:, pd.known_pose] = pd.known_M
+        V = self.U0 + np.einsum("bma,mad->bmd",
+                                xs[:, : self.ng].reshape(len(xs), len(self.unknown), nt), self.T)
+        Ms[:, self.unknown] = self.g * V / np.linalg.norm(V, axis=2, keepdims=True)
+        return Ms
+
+    def predict(self, Ms, theta, deg):
+        """Pose means (b, P, p) at loads Ms (b, P, r), channel parameters theta (b, p, r+1+deg)."""
+        r = self.pd.r
+        u = np.einsum("bPr,bcr->bPc", Ms / self.g, theta[:, :, :r])
+        pred = u + theta[:, None, :, r]
+        for k in range(deg):
+            pred = pred + theta[:, None, :, r + 1 + k] * self.scale * (u / self.scale) ** (k + 2)
+        return pred
+
+    def start(self, deg):
+        """Parameters at the start directions: the affine fit per channel, no curvature."""
+        pd = self.pd
+        X = np.column_stack([self.loads_batch(np.zeros((1, self.ng)))[0] / self.g,
+                             np.ones(pd.P)])
+        B = np.linalg.lstsq(X, pd.means, rcond=None)[0]
+        return np.r_[np.zeros(self.ng), np.column_stack([B.T, np.zeros((pd.p, deg))]).ravel()]
+
+    def grow(self, x, deg):
+        """Parameters of degree ``deg`` as a start of degree ``deg + 1`` (zero new term)."""
+        th = x[self.ng:].reshape(self.pd.p, -1)
+        return np.r_[x[: self.ng], np.column_stack([th, np.zeros(self.pd.p)]).ravel()]
+
+    def solve(self, deg, W, x0=None, max_nfev=20):
+        """LM from x0 (default :meth:`start`), at most ``max_nfev`` evaluations per parameter
+        (converged fits take under 2; known loads that contradict the readings can crawl for
+        200); a dict as :meth:`ForwardModel.solve`'s plus ``x``, ``deg`` and the weighted
+        residuals ``resid`` (P, p)."""
+        pd = self.pd
+        x0 = self.start(deg) if x0 is None else x0
+        k = pd.r + 1 + deg
+
+        def batch(xs):
+            Ms = self.loads_batch(xs)
+            th = xs[:, self.ng:].reshape(len(xs), pd.p, k)
+            return ((pd.means - self.predict(Ms, th, deg)) * W).reshape(len(xs), -1)
+
+        sol = least_squares(lambda x: batch(x[None])[0], x0, jac=batched_jacobian(batch),
+                            method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                            max_nfev=max_nfev * (len(x0) + 1))
+        M = self.loads_batch(sol.x[None])[0]
+        U = M[pd.unknown]
+        return {"U": U / np.linalg.norm(U, axis=1, keepdims=True), "g": self.g,
+                "cost": float(2 * sol.cost), "converged": bool(sol.status > 0),
+                "nfev": int(sol.nfev), "M": M, "x": sol.x, "deg": deg,
+                "resid": sol.fun.reshape(pd.P, pd.p)}
+
+    def reweighted(self, fit):
+        """Feasible GLS weights (P, p) from a fit's own residuals: each channel's pose-level
+        residual variance (over the residual degrees of freedom) plus each pose mean's sampling
+        variance."""
+        pd = self.pd
+        raw = fit["resid"] / fit["W"]
+        n_par = pd.r + 1 + fit["deg"] + self.ng / pd.p
+        v = (raw**2).sum(axis=0) / max(pd.P - n_par, 1.0)
+        return 1.0 / np.sqrt(v[None, :] + (pd.sigma**2)[None, :] / pd.counts[:, None])
+
+
+def _index_refinement(pd: PoseData, final: dict, g: float):
+    """The :class:`IndexModel` from the first stage's directions: weights by
+    :data:`INDEX_REWEIGHT` rounds of feasible GLS on the highest degree, then degrees 0..
+    :data:`INDEX_DEGREE` under those weights, each kept over the one below when an F-test gives
+    p < :data:`BEND_P`. Returns (diagnostics, the chosen fit, the model, its weights), or None
+    when no curvature is identifiable (too few poses)."""
+    from scipy.stats import f as f_dist
+
+    model = IndexModel(pd, g, final["M"])
+    n_res = pd.P * pd.p
+
+    def dof(d):
+        return n_res - pd.p * (pd.r + 1 + d) - model.ng
+
+    degs = [d for d in range(INDEX_DEGREE + 1) if dof(d) >= pd.p]
+    if len(degs) < 2:
+        return None
+    top = degs[-1]
+    W = np.broadcast_to(1.0 / model.scale, (pd.P, pd.p))
+    x = None
+    for _ in range(INDEX_REWEIGHT):
+        fit = model.solve(top, W, x)
+        x = fit["x"]
+        W = model.reweighted({**fit, "W": W})
+    fits, x = [], None
+    for d in degs:
+        fits.append(model.solve(d, W, x))
+        x = model.grow(fits[-1]["x"], d)
+    chosen, p_values = 0, []
+    for d in degs[1:]:
+        c0, c1 = fits[chosen]["cost"], fits[d]["cost"]
+        extra = pd.p * (d - chosen)
+        F = ((c0 - c1) / extra) / (c1 / dof(d)) if c1 > 0 else np.inf
+        p_value = float(f_dist.sf(F, extra, dof(d)))
+        p_values.append(p_value)
+        if p_value < BEND_P and fits[d]["converged"]:
+            chosen = d
+    diag = {"used": chosen > 0, "degree": chosen + 1, "g": g,
+            "costs": [f["cost"] for f in fits], "p_values": p_values,
+            "converged": [f["converged"] for f in fits]}
+    return diag, fits[chosen], model, W
+
+
 def _directions_from(cal_loads: np.ndarray) -> tuple[np.ndarray, float] | None:
     L = np.asarray(cal_loads, float)
     norms = np.linalg.norm(L, axis=1)
@@ -603,15 +750,33 @@ def _known_consistency(pd: PoseData, final: dict, W, bend: bool = False) -> dict
     30 %)."""
     import copy
 
+    M = final["M"]
+    if "deg" in final:  # the index model (:class:`IndexModel`): its own free fit
+        im = IndexModel(pd, final["g"], M, free=True)
+        x0 = np.r_[np.zeros(im.ng), final["x"][len(final["x"]) - pd.p * (pd.r + 1
+                                                                         + final["deg"]):]]
+        out = im.solve(final["deg"], W, x0)
+        A = out["x"][im.ng:].reshape(pd.p, -1)[:, : pd.r] / final["g"]
+        raw = out["resid"] / W
+        return _rotation_miss(pd, out["M"], raw @ np.linalg.pinv(A).T, out["converged"])
     free = copy.copy(pd)
     free.known_pose = np.array([], int)
     free.unknown = np.arange(pd.P)
     free.known_M = np.zeros((0, pd.r))
-    M = final["M"]
     fm = ForwardModel(free, magnitude=final["g"])
     fm.bend = bend
     out = fm.solve(M / np.linalg.norm(M, axis=1, keepdims=True), final["g"], W)
-    MA = out["M"][pd.known_pose]
+    # the free fit's own misfit in load units: its pose-mean residuals through the pseudo-inverse
+    # of its A (what the readings cannot explain, even with every direction free)
+    B, raw = fm.linear(out["M"], W)
+    misfit = (raw / W) @ np.linalg.pinv(B[:pd.r].T).T
+    return _rotation_miss(pd, out["M"], misfit, out["converged"])
+
+
+def _rotation_miss(pd: PoseData, M_free, misfit, converged) -> dict:
+    """The known loads against the free fit's loads at their poses turned by the best rotation
+    (:func:`_known_consistency`); ``misfit`` the free fit's residuals in load units."""
+    MA = M_free[pd.known_pose]
     if pd.r == 3 and len(MA) >= 2:
         P_, _, Qt = np.linalg.svd(MA.T @ pd.known_M)
         R = (P_ @ Qt).T
@@ -623,15 +788,11 @@ def _known_consistency(pd: PoseData, final: dict, W, bend: bool = False) -> dict
     res = MA @ R.T - pd.known_M
     rms = float(np.sqrt(np.mean(res**2)))
     scale = float(np.median(np.linalg.norm(pd.known_M, axis=1)))
-    # the free fit's own misfit in load units: its pose-mean residuals through the pseudo-inverse
-    # of its A (what the readings cannot explain, even with every direction free)
-    B, raw = fm.linear(out["M"], W)
-    misfit = (raw / W) @ np.linalg.pinv(B[:pd.r].T).T
     spread = float(np.sqrt(np.mean(misfit**2)))
     return {"residual_rms": rms, "fraction": rms / scale if scale > 0 else float("nan"),
             "free_fit_misfit_rms": spread,
             "ratio": rms / spread if spread > 0 else float("inf"),
-            "converged": out["converged"]}
+            "converged": converged}
 
 
 def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None = None,
@@ -788,8 +949,21 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
             if bend["used"]:
                 final = cand
                 fm = fb
-    return {"bend": bend, "pd": pd, "fm": fm, "final": final, "best": best, "W2": W2, "v": v,
-            "candidates": candidates, "consistency": _known_consistency(pd, final, W2, fm.bend),
+    # every channel a polynomial of its own signal (:class:`IndexModel`), from these directions,
+    # at the magnitude of the one weighed mass when the known loads share it (else the fit's)
+    g_hold = (float(magnitude) if magnitude is not None
+              else float(np.median(known_mag)) if len(known_mag) and known_mag.max()
+              <= (1 + ONE_MASS) * known_mag.min() else final["g"])
+    index = {"used": False}
+    W_final, forward = W2, final
+    got = _index_refinement(pd, final, g_hold)
+    if got is not None:
+        index, fit, _, W_index = got
+        if index["used"]:
+            final, W_final = {**fit, "start": f"{final['start']}, index model"}, W_index
+    return {"bend": bend, "index": index, "pd": pd, "fm": fm, "final": final, "best": best,
+            "forward": forward, "W2": W2, "W_final": W_final, "v": v, "candidates": candidates,
+            "consistency": _known_consistency(pd, final, W_final, fm.bend),
             "labels": np.asarray(labels), "n": int(len(np.asarray(Z))), "dof": dof,
             "known_sigma": known_sigma, "known_samples": known_samples}
 
@@ -854,6 +1028,7 @@ def rig_calibration(s1: dict, model: str = "affine", drift: str = "none", t=None
                         "nfev": c["nfev"]} for c in candidates],
             "chosen_start": best["start"],
             "bend": s1["bend"],
+            "index_model": s1.get("index", {"used": False}),
             "known_consistency": consistency,
             "converged": bool(final["converged"]),
             "nfev": int(final["nfev"]),

@@ -136,8 +136,15 @@ def diagnose(Z, M, pose, tr, te, loads, means, kn, base) -> str:
     s1 = rig_mod.rig_pose_loads(Z[tr], pose[tr], means[kn], loads[kn])
     pd, fin, W2 = s1["pd"], s1["final"], s1["W2"]
     truth = loads[pd.unknown] / np.linalg.norm(loads[pd.unknown], axis=1, keepdims=True)
-    parts = [f"chosen ({'bent' if s1['bend'].get('used') else 'affine'}) {ratio(fin['M']):.2f}x "
-             f"cost {fin['cost']:.3g}"]
+    idx = s1["index"]
+    chosen = (f"index model, degree {idx['degree']}" if idx.get("used")
+              else "bent" if s1["bend"].get("used") else "affine")
+    parts = [f"chosen ({chosen}) {ratio(fin['M']):.2f}x cost {fin['cost']:.3g}"]
+    if idx.get("used"):
+        M_true = fin["M"].copy()
+        M_true[pd.unknown] = truth * idx["g"]
+        t = rig_mod.IndexModel(pd, idx["g"], M_true).solve(idx["degree"] - 1, s1["W_final"])
+        parts.append(f"index model from true directions {ratio(t['M']):.2f}x cost {t['cost']:.3g}")
     for name, bend in (("affine", False), ("bent", True)):
         fm = rig_mod.ForwardModel(pd)
         fm.bend = bend
