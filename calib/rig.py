@@ -25,6 +25,12 @@ components and 8 magnitudes). :func:`fit_rig` fits it in two stages:
    (a global step per pose, which LM's local steps cannot take: a direction stuck near the
    mirror image of the truth). The lowest weighted cost is kept and every start's cost is in
    the diagnostics.
+   Then the **index model** (:class:`IndexModel`): every channel a polynomial (degree 2 or 3)
+   of its own linear signal ``a_c . m``, ``a_c`` fitted with the curvature and the directions,
+   the magnitude held at the known loads' when they are one mass; its degree is chosen by
+   nested F-tests and it replaces the forward model's loads when it is kept. A printed or
+   capacitive channel bends along the one direction it senses: on a real printed sensor this
+   took the worst load set from 5.9x to 1.8x least squares with every load known.
 2. **Calibration.** Least squares on every row with its pose's load: the known loads where
    known, ``g u_j`` elsewhere; exactly what least squares with every load known does, with the
    estimated loads in place of the unknown ones. Fitting the rows (not the pose means) shrinks
