@@ -489,7 +489,7 @@ def _plan(args) -> str:
         text += (f"; rms load error >= {res['bound']:.3g} (all known: "
                  f"{res['bound_all_known']:.3g}) in load units")
     return text + ("; the bound assumes a linear sensor: one that is not (a printed sensor "
-                   "whose channels bend) can do worse, measured 1.2-5.9x on a real one "
+                   "whose channels bend) can do worse, measured 1.0-1.9x on a real one "
                    "(docs/calib.md)")
 
 

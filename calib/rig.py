@@ -747,13 +747,13 @@ def _directions_from(cal_loads: np.ndarray) -> tuple[np.ndarray, float] | None:
 
 def _known_consistency(pd: PoseData, final: dict, W, bend: bool = False) -> dict:
     """How far the known loads are from what the readings alone say: the forward model the fit
-    chose (``bend``: with its per-channel bending terms) refitted with every pose's direction
-    free (magnitude held at the fit's), turned onto the known loads by the best rotation; the
-    rms of what remains, in load units and as a fraction of the load. Measured on simulated
-    rigs (imperfect sensors, misaligned mounts): 0.3-8 % of the load; two known loads swapped:
-    mostly 3-55 %. On a real printed sensor (bent fits): 4-19 % where the fit is within 2.5x
-    least squares with every load known, 53 % where it is 5.9x (an affine free fit: 5-26 % and
-    30 %)."""
+    chose (the index model when ``final`` is its fit; else ``bend``: with its per-channel bending
+    terms) refitted with every pose's direction free (magnitude held at the fit's), turned onto
+    the known loads by the best rotation; the rms of what remains, in load units and as a
+    fraction of the load. Measured on simulated rigs (imperfect sensors, misaligned mounts):
+    0.3-8 % of the load; two known loads swapped: mostly 3-55 %. On a real printed sensor
+    (index model): 1.3-12.5 % on fits within 1.0-2.5x least squares with every load known (the
+    bent model's free fit: 4-19 %, and 53 % on a 5.9x fit)."""
     import copy
 
     M = final["M"]
