@@ -44,6 +44,7 @@ import hashlib
 import io
 import json
 import os
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -342,7 +343,9 @@ def load(path, check: bool = True) -> Dataset:
         with np.load(path, allow_pickle=False) as npz:
             raw = {k: npz[k] for k in npz.files}
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
-            NotImplementedError, RuntimeError) as e:  # RuntimeError: "encrypted" member
+            NotImplementedError, RuntimeError, SyntaxError, tokenize.TokenError) as e:
+        # RuntimeError: an "encrypted" member; SyntaxError, TokenError: a damaged .npy header
+        # (numpy parses it as a Python literal)
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise DatasetError(f"{path}: not a readable dataset (truncated or corrupt: {reason})") \
             from None

@@ -27,6 +27,7 @@ import io
 import json
 import os
 import time
+import tokenize
 import zipfile
 import zlib
 
@@ -240,8 +241,10 @@ class SfMPolicy:
         except PolicyFileError:
             raise
         except (zipfile.BadZipFile, zlib.error, KeyError, ValueError, OSError, EOFError,
-                UnicodeDecodeError, NotImplementedError, RuntimeError) as e:
-            # (zipfile raises RuntimeError for a member flagged as encrypted)
+                UnicodeDecodeError, NotImplementedError, RuntimeError, SyntaxError,
+                tokenize.TokenError) as e:
+            # (zipfile raises RuntimeError for a member flagged as encrypted; numpy parses a
+            # .npy header as a Python literal: damaged, it raises SyntaxError or TokenError)
             why = str(e).splitlines()[0] if str(e) else ""
             raise PolicyFileError(f"{path} is not a readable SfM policy file "
                                   f"({type(e).__name__}: {why})") from None

@@ -155,3 +155,31 @@ def test_flipped_bytes_in_policy_and_dataset_files(tmp_path, good_policy, small_
             loader(bad)
         except error as e:
             assert "\n" not in str(e)
+
+
+def _npy_with_unclosed_header() -> bytes:
+    # the header numpy parses as a Python literal, cut mid-tuple: the tokenizer raises
+    # TokenError, neither ValueError nor SyntaxError (found by the flipped-bytes test above)
+    import struct
+
+    header = "{'descr': '<i8', 'fortran_order': False, 'shape': (2, "
+    header += " " * (64 - 10 - len(header) - 1) + "\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header.encode() + bytes(16)
+
+
+def test_a_npy_header_the_tokenizer_rejects_is_a_one_line_error(tmp_path, good_policy,
+                                                                small_train):
+    from mkv_env.dataset import DatasetError, load, save
+
+    data_path = tmp_path / "d.npz"
+    save(small_train, data_path)
+    for path, loader, error in ((good_policy, SfMPolicy.load, PolicyFileError),
+                                (str(data_path), load, DatasetError)):
+        content = members(path)
+        first = next(n for n in content if n.endswith(".npy"))
+        content[first] = _npy_with_unclosed_header()
+        bad = tmp_path / "bad.npz"
+        write_members(bad, content)
+        with pytest.raises(error, match="TokenError|truncated or corrupt|not a readable") as e:
+            loader(bad)
+        assert "\n" not in str(e.value)
