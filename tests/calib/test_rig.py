@@ -274,6 +274,18 @@ def _write(path, header, rows):
     return str(path)
 
 
+def _train_and_known_csv(tmp_path, rig):
+    """The training half of a rig (8 channels) and 4 known pose means on the recommended poses,
+    as CSV files for the CLI."""
+    tr, _ = rig.split()
+    kn = choose_known_poses(rig.directions, 4)
+    means, _ = rig.pose_means(tr)
+    ch = [f"z{i}" for i in range(8)]
+    return (_write(tmp_path / "raw.csv", ch, rig.Z[tr]),
+            _write(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"],
+                   np.hstack([means[kn], rig.stated_loads[kn]])))
+
+
 @pytest.fixture
 def rig_csv(tmp_path):
     rig, tr, te, ls, Zk, Mk = rig_fits(3)
@@ -545,14 +557,7 @@ def test_cli_a_route_far_from_the_pose_fit_exits_3(tmp_path, capsys):
     # noise 1 % of span, seed 18: the paper route aligned to 4 known loads measures 44x the
     # held-out error of all-known least squares (scripts/calib_rig_study.py); on a static-pose
     # log calib fit cross-checks it against the pose-level joint fit and refuses it
-    rig = simulate_rig(18, noise=0.01)
-    tr, te = rig.split()
-    kn = choose_known_poses(rig.directions, 4)
-    means, _ = rig.pose_means(tr)
-    ch = [f"z{i}" for i in range(8)]
-    raw = _write(tmp_path / "raw.csv", ch, rig.Z[tr])
-    known = _write(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"],
-                   np.hstack([means[kn], rig.stated_loads[kn]]))
+    raw, known = _train_and_known_csv(tmp_path, simulate_rig(18, noise=0.01))
     out = tmp_path / "cal.json"
     args = ["fit", raw, "--dof", "3", "--bias", "--known", known, "--out", str(out)]
     assert main(args + ["--method", "paper"]) == 3
@@ -597,15 +602,10 @@ def test_known_consistency_uses_the_model_the_fit_chose():
     # a bending sensor (15 % nonlinearity): the free fit under the model the fit chose (the
     # index model; before it the bent one) wanders less from the (correct) known loads than a
     # free fit under a simpler model does
-    from calib.rig import _known_consistency, rig_pose_loads
+    from calib.rig import _known_consistency
 
     rig = simulate_rig(3, nonlinearity=0.15)
-    tr, _ = rig.split()
-    kn = choose_known_poses(rig.directions, 4)
-    means, _ = rig.pose_means(tr)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        s1 = rig_pose_loads(rig.Z[tr], rig.pose[tr], means[kn], rig.stated_loads[kn])
+    s1 = _stage1_recommended(rig)
     assert s1["bend"]["used"] and s1["index"]["used"] and s1["index"]["degree"] == 3
     fwd = s1["forward"]
     affine = _known_consistency(s1["pd"], fwd, s1["W2"], bend=False)["fraction"]
@@ -621,6 +621,20 @@ _CLEAN = {"drift": 0.0, "wander": 0.0, "creep": 0.0, "hysteresis": 0.0, "mass_er
           "misalignment_deg": 0.0}
 
 
+def _stage1_recommended(rig):
+    """Stage 1 of the rig fit on a rig's training half, 4 known loads on the recommended poses."""
+    from calib.rig import rig_pose_loads
+
+    tr, _ = rig.split()
+    kn = choose_known_poses(rig.directions, 4)
+    means, _ = rig.pose_means(tr)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s1 = rig_pose_loads(rig.Z[tr], rig.pose[tr], means[kn], rig.stated_loads[kn])
+    s1["rig"] = rig
+    return s1
+
+
 def _worst_direction_error_deg(s1, rig, key):
     pd = s1["pd"]
     M, T = s1[key]["M"][pd.unknown], rig.directions[pd.unknown]
@@ -633,32 +647,16 @@ def test_index_model_recovers_a_sensor_whose_channels_are_cubics_of_their_own_si
     # the simulator's nonlinearity (each channel a square and a cube of its linear signal, 15 %)
     # without noise: the index refinement finds the pose directions exactly, where the bent
     # forward model (a square along the affine fit's direction) misses them by about a degree
-    from calib.rig import rig_pose_loads
-
-    rig = simulate_rig(seed, nonlinearity=0.15, noise=1e-6, **_CLEAN)
-    tr, _ = rig.split()
-    kn = choose_known_poses(rig.directions, 4)
-    means, _ = rig.pose_means(tr)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        s1 = rig_pose_loads(rig.Z[tr], rig.pose[tr], means[kn], rig.stated_loads[kn])
+    s1 = _stage1_recommended(simulate_rig(seed, nonlinearity=0.15, noise=1e-6, **_CLEAN))
     assert s1["index"]["used"] and s1["index"]["degree"] == 3
-    assert _worst_direction_error_deg(s1, rig, "final") < 0.01
-    assert _worst_direction_error_deg(s1, rig, "forward") > 0.5
+    assert _worst_direction_error_deg(s1, s1["rig"], "final") < 0.01
+    assert _worst_direction_error_deg(s1, s1["rig"], "forward") > 0.5
     assert "index model" in s1["final"]["start"]
 
 
 @pytest.mark.parametrize("seed", range(3))
 def test_index_model_is_not_taken_on_a_linear_sensor(seed):
-    from calib.rig import rig_pose_loads
-
-    rig = simulate_rig(seed, nonlinearity=0.0, **_CLEAN)
-    tr, _ = rig.split()
-    kn = choose_known_poses(rig.directions, 4)
-    means, _ = rig.pose_means(tr)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        s1 = rig_pose_loads(rig.Z[tr], rig.pose[tr], means[kn], rig.stated_loads[kn])
+    s1 = _stage1_recommended(simulate_rig(seed, nonlinearity=0.0, **_CLEAN))
     idx = s1["index"]
     assert not idx["used"] and min(idx["p_values"]) > 0.01 and s1["final"] is s1["forward"]
 
@@ -675,14 +673,7 @@ def test_index_model_needs_residual_degrees_of_freedom():
 
 
 def test_cli_says_when_the_index_model_was_taken(tmp_path, capsys):
-    rig = simulate_rig(0, nonlinearity=0.15, **_CLEAN)
-    tr, _ = rig.split()
-    kn = choose_known_poses(rig.directions, 4)
-    means, _ = rig.pose_means(tr)
-    ch = [f"z{i}" for i in range(8)]
-    train = _write(tmp_path / "train.csv", ch, rig.Z[tr])
-    known = _write(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"],
-                   np.hstack([means[kn], rig.stated_loads[kn]]))
+    train, known = _train_and_known_csv(tmp_path, simulate_rig(0, nonlinearity=0.15, **_CLEAN))
     out = tmp_path / "cal.json"
     assert main(["fit", train, "--dof", "3", "--bias", "--method", "joint", "--known", known,
                  "--model", "affine", "--drift", "none", "--out", str(out)]) == 0
