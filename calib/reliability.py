@@ -35,9 +35,9 @@ from __future__ import annotations
 
 import numpy as np
 
-# rig fits: known loads inconsistent with the readings (defined beside the measure, which the
-# fit also uses)
-from .rig import KNOWN_INCONSISTENT
+# rig fits: known loads inconsistent with the readings, and one weighed mass (defined beside the
+# fit, which also uses them)
+from .rig import KNOWN_INCONSISTENT, SAME_MAGNITUDE
 
 #: Chi-square tail probability below which known residuals are implausible.
 CHI2_PROBABILITY = 1e-6
@@ -49,8 +49,6 @@ KNOWN_MISS = 0.25
 #: Other routes on static-pose logs: largest disagreement with the pose fit, in units of its
 #: own pose-level residual.
 CROSSCHECK_FACTOR = 10.0
-#: Known loads within this relative spread are one weighed mass.
-SAME_MAGNITUDE = 0.05
 #: A fitted magnitude further than this (relative) from that mass is implausible.
 MAGNITUDE_TOLERANCE = 0.2
 #: Default factor of the held-out check (leave-one-pose-out rms over in-sample residual rms).

@@ -263,8 +263,9 @@ BEND_P = 0.01
 #: per channel, each kept when an F-test against the lower one gives p below :data:`BEND_P`.
 INDEX_DEGREE = 2
 #: Known loads whose magnitudes are within this relative spread are one weighed mass: the index
-#: refinement holds every pose's load at their magnitude.
-ONE_MASS = 0.05
+#: refinement holds every pose's load at their magnitude (and :mod:`calib.reliability` checks the
+#: fitted magnitude against it).
+SAME_MAGNITUDE = 0.05
 #: Rounds of feasible GLS reweighting of the index refinement (channel weights from the
 #: highest-degree fit's own residuals).
 INDEX_REWEIGHT = 2
@@ -423,28 +424,16 @@ def _wls(X, Y, W):
     """Weighted least squares of every column of Y (P, p) on its own design X (P, k) or (p, P,
     k), weights W (P, p); returns the coefficients (p, k) and the weighted residuals (P, p)."""
     Xc = np.broadcast_to(X, (Y.shape[1],) + X.shape[-2:]) if X.ndim == 2 else X
-    Xw = Xc * W.T[:, :, None]
-    yw = (Y * W).T
-    scale = np.maximum(np.sqrt((Xw**2).sum(axis=1)), 1e-300)  # column scaling
-    Xs = Xw / scale[:, None, :]
-    G = np.einsum("cpk,cpl->ckl", Xs, Xs)
-    h = np.einsum("cpk,cp->ck", Xs, yw)
-    try:
-        b = np.linalg.solve(G, h[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        b = np.stack([np.linalg.lstsq(Xs[c], yw[c], rcond=None)[0] for c in range(len(Xs))])
-    coef = b / scale
-    resid = yw - np.einsum("cpk,ck->cp", Xw, coef)
-    return coef, resid.T
+    coef, resid = _wls_batch(Xc[None], Y, W)
+    return coef[0], resid[0]
 
 
 def _wls_batch(X, Y, W):
     """:func:`_wls` for a batch of designs X (b, p, P, k) (one per channel and batch member):
-    coefficients (b, p, k) and weighted residuals (b, P, p). The same arithmetic, so a batch of
-    one gives :func:`_wls`'s numbers."""
+    coefficients (b, p, k) and weighted residuals (b, P, p)."""
     Xw = X * W.T[None, :, :, None]
     yw = (Y * W).T
-    scale = np.maximum(np.sqrt((Xw**2).sum(axis=2)), 1e-300)
+    scale = np.maximum(np.sqrt((Xw**2).sum(axis=2)), 1e-300)  # column scaling
     Xs = Xw / scale[:, :, None, :]
     G = np.einsum("bcpk,bcpl->bckl", Xs, Xs)
     h = np.einsum("bcpk,cp->bck", Xs, yw)
@@ -468,15 +457,9 @@ class ForwardModel:
         self.fit_g = magnitude is None
 
     def loads(self, x, U0, T):
-        pd = self.pd
-        nt = T.shape[1]
-        M = np.zeros((pd.P, pd.r))
-        M[pd.known_pose] = pd.known_M
-        nu = len(pd.unknown)
-        V = U0 + np.einsum("ma,mad->md", x[: nt * nu].reshape(nu, nt), T)
-        g = x[-1] if self.fit_g else self.magnitude
-        M[pd.unknown] = g * V / np.linalg.norm(V, axis=1, keepdims=True)
-        return M
+        """Every pose's load (P, r) at the parameters x: direction steps in the tangent planes T
+        of U0, then (when fitted) g."""
+        return self.loads_batch(np.asarray(x, float)[None], U0, T)[0]
 
     def loads_batch(self, xs, U0, T):
         """:meth:`loads` for every row of xs: (b, P, r)."""
@@ -497,17 +480,22 @@ class ForwardModel:
         ``B`` ((r+1, p): the affine pass), ``resid`` (weighted residuals of the model, (P, p))
         and for ``bend`` ``a`` (p, r), ``S`` and ``bent`` ((p, r+2): affine part and bend
         gain of each channel)."""
+        return {k: v[0] for k, v in self.coefficients_batch(np.asarray(M)[None], W).items()}
+
+    def coefficients_batch(self, Ms, W):
+        """:meth:`coefficients` for a batch of loads Ms (b, P, r), every entry with a leading
+        batch axis (LM's finite-difference Jacobian: one call for all its columns)."""
         pd = self.pd
-        X = np.column_stack([M, np.ones(pd.P)])
-        coef, resid = _wls(X, pd.means, W)
-        out = {"B": coef.T, "resid": resid}
+        X = np.concatenate([Ms, np.ones(Ms.shape[:2] + (1,))], axis=2)
+        Xc = np.broadcast_to(X[:, None], (len(Ms), pd.p) + X.shape[1:])
+        coef, resid = _wls_batch(Xc, pd.means, W)
+        out = {"B": coef.transpose(0, 2, 1), "resid": resid}
         if self.bend:
-            a = coef[:, : pd.r]
-            s2 = (M @ a.T) ** 2  # (P, p)
-            S = np.maximum(s2.max(axis=0), 1e-300)
-            Xc = np.concatenate([np.broadcast_to(X, (pd.p,) + X.shape),
-                                 (s2 / S).T[:, :, None]], axis=2)
-            bent, out["resid"] = _wls(Xc, pd.means, W)
+            a = coef[:, :, : pd.r]
+            s2 = np.einsum("bPr,bcr->bPc", Ms, a) ** 2  # (b, P, p)
+            S = np.maximum(s2.max(axis=1), 1e-300)
+            bendcol = (s2 / S[:, None, :]).transpose(0, 2, 1)[..., None]
+            bent, out["resid"] = _wls_batch(np.concatenate([Xc, bendcol], axis=3), pd.means, W)
             out.update(a=a, S=S, bent=bent)
         return out
 
@@ -516,20 +504,6 @@ class ForwardModel:
         With ``bend`` the residuals are those of the bent model; B stays the affine part."""
         c = self.coefficients(M, W)
         return c["B"], c["resid"]
-
-    def residuals(self, Ms, W):
-        """The weighted residuals (b, P, p) of :meth:`coefficients` for a batch of loads Ms
-        (b, P, r) at once (LM's finite-difference Jacobian: one call for all its columns)."""
-        pd = self.pd
-        X = np.concatenate([Ms, np.ones(Ms.shape[:2] + (1,))], axis=2)
-        Xc = np.broadcast_to(X[:, None], (len(Ms), pd.p) + X.shape[1:])
-        coef, resid = _wls_batch(Xc, pd.means, W)
-        if self.bend:
-            s2 = np.einsum("bPr,bcr->bPc", Ms, coef[:, :, : pd.r]) ** 2  # (b, P, p)
-            S = np.maximum(s2.max(axis=1), 1e-300)
-            bendcol = (s2 / S[:, None, :]).transpose(0, 2, 1)[..., None]
-            _, resid = _wls_batch(np.concatenate([Xc, bendcol], axis=3), pd.means, W)
-        return resid
 
     def predict(self, coef, M):
         """The model's pose means (n, p) at loads M (n, r)."""
@@ -585,7 +559,8 @@ class ForwardModel:
             x0[-1] = g0
 
         def batch(xs):  # residuals of every row of xs: (b, P * p)
-            return self.residuals(self.loads_batch(xs, U0, T), W).reshape(len(xs), -1)
+            return self.coefficients_batch(self.loads_batch(xs, U0, T), W)["resid"].reshape(
+                len(xs), -1)
 
         def fun(x):
             return batch(x[None])[0]
@@ -623,7 +598,6 @@ class IndexModel:
         self.T = _tangents(self.U0)
         self.ng = self.T.shape[1] * len(self.unknown)
         self.scale = np.maximum(pd.means.std(axis=0), 1e-300)
-        self.M0 = M0
 
     def loads_batch(self, xs):
         """The loads (b, P, r) of direction steps xs[:, :ng]."""
@@ -759,8 +733,7 @@ def _known_consistency(pd: PoseData, final: dict, W, bend: bool = False) -> dict
     M = final["M"]
     if "deg" in final:  # the index model (:class:`IndexModel`): its own free fit
         im = IndexModel(pd, final["g"], M, free=True)
-        x0 = np.r_[np.zeros(im.ng), final["x"][len(final["x"]) - pd.p * (pd.r + 1
-                                                                         + final["deg"]):]]
+        x0 = np.r_[np.zeros(im.ng), final["x"][-pd.p * (pd.r + 1 + final["deg"]):]]
         out = im.solve(final["deg"], W, x0)
         A = out["x"][im.ng:].reshape(pd.p, -1)[:, : pd.r] / final["g"]
         raw = out["resid"] / W
@@ -959,7 +932,7 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
     # at the magnitude of the one weighed mass when the known loads share it (else the fit's)
     g_hold = (float(magnitude) if magnitude is not None
               else float(np.median(known_mag)) if len(known_mag) and known_mag.max()
-              <= (1 + ONE_MASS) * known_mag.min() else final["g"])
+              <= (1 + SAME_MAGNITUDE) * known_mag.min() else final["g"])
     index = {"used": False}
     W_final, forward = W2, final
     got = _index_refinement(pd, final, g_hold)
