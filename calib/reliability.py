@@ -12,9 +12,9 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   motion rows differs from it by more than :data:`MAGNITUDE_TOLERANCE`;
 - **implausible known residuals**: the calibrated known readings miss the known loads by more
   than the fit's own scatter allows, a chi-square test at probability :data:`CHI2_PROBABILITY`
-  (the scatter: a stated ``known_sigma``, else the pose-level magnitude scatter of a rig fit or
-  the known-load accuracy the joint fit used), and by more than :data:`PRACTICAL_FRACTION` of
-  the load (a significant but negligible misfit is no failure);
+  (the scatter: a stated ``known_sigma``, else a rig fit's calibration misfit at the poses whose
+  loads it fitted, or the known-load accuracy the joint fit used), and by more than
+  :data:`PRACTICAL_FRACTION` of the load (a significant but negligible misfit is no failure);
 - **known loads missed**: whatever the fit's scatter, the calibrated known readings lie further
   than :data:`KNOWN_MISS` of the load from their known loads (rms over the known readings of
   the vector error): the loads a user stated are not what the calibration reproduces (a paper
@@ -67,6 +67,15 @@ def _converged(d: dict):
     return None
 
 
+def _pose_scatter(joint: dict) -> float | None:
+    """A rig fit's own pose-level scatter: the larger of its calibration's misfit at the poses
+    whose loads it fitted (rms per component) and their magnitude scatter; None when neither is
+    finite."""
+    vals = [float(joint[k]) for k in ("pose_residual_rms", "pose_magnitude_residual_rms")
+            if joint.get(k) is not None and np.isfinite(joint[k])]
+    return max(vals) if vals else None
+
+
 def assess(cal, known_Z=None, known_M=None, known_sigma=None,
            holdout_factor: float = HOLDOUT_FACTOR) -> list[str]:
     """The reasons ``cal`` is unreliable (module docstring); an empty list when it is not."""
@@ -108,7 +117,7 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                    f"of the load from their known loads (limit {KNOWN_MISS:.0%})")
     sigma = known_sigma
     if sigma is None and joint is not None:
-        sigma = (joint.get("pose_magnitude_residual_rms") if joint.get("route") == "poses"
+        sigma = (_pose_scatter(joint) if joint.get("route") == "poses"
                  else joint.get("known_sigma"))
     if sigma is not None and np.isfinite(sigma) and sigma > 0 and scale > 0:
         stat = float(np.sum((res / sigma) ** 2))

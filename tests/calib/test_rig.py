@@ -235,6 +235,14 @@ def test_reliability_rules_fire_on_what_they_name():
     d["cv_poses"] = {"folds": 4, "rms": 4.0}
     assert any("held-out check failed" in p for p in assess(cal, Zk, Mk))
     del d["cv_poses"]
+    # known loads 5 % off what the fit was given: far beyond its own pose-level misfit, below
+    # the 25 % miss; the rule compares with the misfit at every fitted pose's components
+    off = Mk + 0.05 * np.linalg.norm(Mk, axis=1, keepdims=True) * np.array([1.0, 0.0, 0.0])
+    assert [p for p in assess(cal, Zk, off) if "implausible known residuals" in p]
+    j = d["joint"]
+    assert j["pose_residual_rms"] > 0
+    j["pose_residual_rms"] = 0.5 * np.linalg.norm(Mk, axis=1).mean()
+    assert not [p for p in assess(cal, Zk, off) if "implausible known residuals" in p]
     # a route without a scatter of its own (no joint diagnostics) that misses the known loads
     # by a third of the load: the paper route on a real printed sensor did this at 11x least
     # squares and exited 0
