@@ -37,6 +37,7 @@ from scipy.optimize import least_squares
 
 from ._validate import check_matrix
 from .bias import _finish, _prepare_source, fit_centered
+from .models import summarise_folds
 from .result import CalibrationError, add_uncertainty, propagate
 from .sfm import principal
 
@@ -211,8 +212,8 @@ def leave_one_pose_out(Z, labels, known_Z, known_M, fit, t=None) -> dict:
     ``rms_per_axis`` (load units), ``errors`` (folds x r) and ``failed_folds``."""
     t = np.linspace(0.0, 1.0, len(Z)) if t is None else t
     folds = _folds(Z, labels, known_Z, known_M, fit, t)
-    return _summarise([None if f is None else f[0].apply(np.asarray(Z)[f[1]]).mean(axis=0) - f[2]
-                       for f in folds], np.atleast_2d(known_M).shape[1])
+    return summarise_folds([None if f is None else f[0].apply(np.asarray(Z)[f[1]]).mean(axis=0)
+                            - f[2] for f in folds], np.atleast_2d(known_M).shape[1])
 
 
 def _folds(Z, labels, known_Z, known_M, fit, t) -> list:
@@ -261,19 +262,7 @@ def _fold_errors(folds, Z, model, drift) -> dict:
             continue
         errs.append(cal.apply(Z[rows]).mean(axis=0) - mk)
     r = folds[0][2].shape[0] if folds and folds[0] is not None else 3
-    return _summarise(errs, r)
-
-
-def _summarise(errors, r) -> dict:
-    good = [e for e in errors if e is not None]
-    E = np.array(good).reshape(-1, r)
-    return {
-        "folds": len(E),
-        "failed_folds": len(errors) - len(good),
-        "rms": float(np.sqrt(np.mean(E**2))) if len(E) else float("nan"),
-        "rms_per_axis": np.sqrt(np.mean(E**2, axis=0)) if len(E) else np.full(r, np.nan),
-        "errors": E,
-    }
+    return summarise_folds(errs, r)
 
 
 def _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigma,

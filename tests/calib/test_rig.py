@@ -470,6 +470,37 @@ def test_quadratic_model_fits_a_bending_sensor_and_auto_picks_it():
     assert model == "affine", table
 
 
+def _cv(fold_sq):
+    sq = np.asarray(fold_sq, float)
+    return {"folds": int(np.isfinite(sq).sum()), "rms": float(np.sqrt(np.nanmean(sq) / 3)),
+            "fold_sq": sq}
+
+
+@settings(max_examples=60, deadline=None)
+@given(base=st.lists(st.floats(0.01, 100.0), min_size=2, max_size=12),
+       gain=st.floats(0.05, 0.99), data=st.data())
+def test_choose_keeps_the_simplest_model_unless_another_is_clearly_better(base, gain, data):
+    from calib.models import choose
+
+    n = len(base)
+    # every fold better by the same factor: clearly better (a paired difference of one sign)
+    got = choose(lambda m, d: _cv(base) if m == "affine" else _cv(np.array(base) * gain),
+                 12, 8, "auto", "none")
+    assert got[0] == "channel" and got[2]["clearly_better"] == ["channel/none"], got
+    # better on average but worse on one fold by as much as it gains on the others: noise
+    noisy = np.array(base, float)
+    i = data.draw(st.integers(0, n - 1))
+    others = np.arange(n) != i
+    noisy[others] *= gain
+    noisy[i] += 0.999 * (1 - gain) * float(np.sum(noisy[others]) / gain)  # mean barely lower
+    got = choose(lambda m, d: _cv(base) if m == "affine" else _cv(noisy), 12, 8, "auto", "none")
+    assert np.mean(noisy) < np.mean(base) and got[0] == "affine", (got, base, noisy)
+    # worse on every fold never wins
+    got = choose(lambda m, d: _cv(base) if m == "affine" else _cv(np.array(base) / gain),
+                 12, 8, "auto", "none")
+    assert got[0] == "affine" and got[2]["clearly_better"] == []
+
+
 def test_channel_model_straightens_each_channel_and_needs_few_poses():
     from calib.models import channel_bends, fit_model, identifiable
     from calib.result import Calibration
@@ -660,6 +691,21 @@ def test_index_model_recovers_a_sensor_whose_channels_are_cubics_of_their_own_si
     assert _worst_direction_error_deg(s1, s1["rig"], "final") < 0.01
     assert _worst_direction_error_deg(s1, s1["rig"], "forward") > 0.5
     assert "index model" in s1["final"]["start"]
+    # the true degree predicts left-out poses far better than the lower ones
+    h = s1["index"]["holdout"]
+    assert h[2] < 1e-3 * h[1] and h[1] < h[0], h
+
+
+def test_index_degree_needs_both_the_f_test_and_the_held_out_poses(monkeypatch):
+    # the same cubic sensor, but a held-out error that grows with the degree: however
+    # significant the F-test, no higher degree is kept
+    from calib.rig import IndexModel
+
+    monkeypatch.setattr(IndexModel, "holdout", lambda self, fit, W: float(fit["deg"] + 1))
+    s1 = _stage1_recommended(simulate_rig(0, nonlinearity=0.15, noise=1e-6, **_CLEAN))
+    idx = s1["index"]
+    assert max(idx["p_values"]) < 1e-6 and not idx["used"] and idx["degree"] == 1
+    assert s1["final"] is s1["forward"]
 
 
 @pytest.mark.parametrize("seed", range(3))
