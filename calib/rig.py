@@ -676,15 +676,18 @@ class IndexModel:
             f = self.solve(deg, Wj, fit["x"])
             th = f["x"][self.ng:].reshape(1, pd.p, k)
 
-            def misfit(V, f=f, th=th, j=j):  # weighted residuals of pose j at directions V
-                Ms = np.repeat(f["M"][None], len(V), axis=0)
-                Ms[:, j] = self.g * V / np.linalg.norm(V, axis=1, keepdims=True)
-                return (pd.means[j] - self.predict(Ms, np.repeat(th, len(V), 0), deg)[:, j]) * W[j]
+            def misfit(V, th=th, j=j):  # weighted residuals of pose j at directions V (n, r)
+                U = V / np.linalg.norm(V, axis=1, keepdims=True)
+                return (pd.means[j] - self.predict(U[None] * self.g, th, deg)[0]) * W[j]
 
             if j not in unknown:
                 total += float(np.sum(misfit(f["M"][j][None]) ** 2))
                 continue
-            starts = [f["M"][j] / self.g, grid[np.argmin(np.sum(misfit(grid) ** 2, axis=1))]]
+            u_fit = f["M"][j] / self.g
+            u_grid = grid[np.argmin(np.sum(misfit(grid) ** 2, axis=1))]
+            # the grid's best is a second start only when it is not the fitted direction's basin
+            starts = [u_fit] if u_fit @ u_grid > np.cos(np.radians(DISTINCT_DEG)) else [
+                u_fit, u_grid]
             best = np.inf
             for u in starts:
                 T = _tangents(u[None])[0]
