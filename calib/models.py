@@ -17,8 +17,7 @@ held-out error (never by training error, which always prefers the larger model).
   so that a slow drift does not bias C, then dropped (its mean stays in the offset): new data
   have no position in the calibration log.
 
-:func:`choose` runs the candidates' leave-one-pose-out error and keeps the simplest unless
-another is better by more than one paired standard error.
+:func:`choose` runs the candidates' leave-one-pose-out error and keeps the best.
 """
 
 from __future__ import annotations
@@ -143,12 +142,14 @@ def candidates(n_poses: int, p: int, model: str, drift: str) -> list[tuple[str, 
 
 def choose(cv_of, n_poses: int, p: int, model: str, drift: str) -> tuple[str, str, dict]:
     """Resolve ``auto`` model/drift: ``cv_of(model, drift)`` returns a leave-one-pose-out
-    result (dict with ``rms``, optionally per-fold ``fold_sq``). Returns (model, drift,
+    result (dict with ``rms``); the pair with the lowest rms wins. Returns (model, drift,
     table) with every candidate's rms and the identifiability of the skipped ones.
 
-    The simplest candidate (the first: affine, no drift, when ``auto``) is kept unless another
-    is clearly better on the same folds (:func:`_clearly_better`); among those that are, the
-    lowest rms wins."""
+    Keeping the simplest model unless another beat it by one paired
+    standard error (the one-standard-error rule) was tried: on simulated rigs with 1 %
+    nonlinearity and drift it was worse on 16 of 60 rigs and better on 2 (3.3 +- 1.0 % more
+    held-out error: it turned down the channel model the simulated nonlinearity calls for), on
+    a real printed sensor better on 2 load-set splits and worse on 1."""
     if model != "auto" and drift != "auto":
         if not identifiable(n_poses, p, model, drift):
             raise CalibrationError(
@@ -160,39 +161,17 @@ def choose(cv_of, n_poses: int, p: int, model: str, drift: str) -> tuple[str, st
         need = min(columns(p, m, "none") for m in (MODELS if model == "auto" else (model,))) + 1
         raise CalibrationError(f"the {model} model needs at least {need} poses with {p} "
                                f"channels; the log has {n_poses}")
-    table, cvs = {}, {}
+    table = {}
     for m, d in cands:
-        cvs[m, d] = cv = cv_of(m, d)
+        cv = cv_of(m, d)
         table[f"{m}/{d}"] = cv["rms"] if cv["folds"] else float("inf")
-    simplest = cands[0]
-    beats = [c for c in cands[1:] if np.isfinite(table[f"{c[0]}/{c[1]}"])
-             and _clearly_better(cvs[c], cvs[simplest])]
-    best = min([simplest, *beats], key=lambda c: table[f"{c[0]}/{c[1]}"])
+    best = min(cands, key=lambda c: table[f"{c[0]}/{c[1]}"])
+    if not np.isfinite(table[f"{best[0]}/{best[1]}"]):
+        best = cands[0]
     skipped = [f"{m}/{d}" for m in (MODELS if model == "auto" else (model,))
                for d in (DRIFTS if drift == "auto" else (drift,)) if (m, d) not in cands]
     return best[0], best[1], {"leave_one_pose_out_rms": table, "chosen": f"{best[0]}/{best[1]}",
-                              "simplest": f"{simplest[0]}/{simplest[1]}",
-                              "clearly_better": [f"{m}/{d}" for m, d in beats],
                               "not_identified": skipped}
-
-
-def _clearly_better(cv: dict, base: dict) -> bool:
-    """Whether a candidate's leave-one-pose-out error beats the simplest model's by more than one
-    standard error of their paired per-fold difference (the one-standard-error rule of
-    cross-validation, paired because both saw the same folds). With few folds (a rig's 4 known
-    poses) two models' rms often differ by noise: on a real printed sensor the leave-one-pose-out
-    rms of four models was 10.1-12.1 N on a 10 N load, and taking the lowest swapped the affine
-    fit (1.24x least squares with every load known) for one with a drift term (1.43x)."""
-    a, b = np.asarray(cv.get("fold_sq", []), float), np.asarray(base.get("fold_sq", []), float)
-    if len(a) != len(b) or len(a) == 0:
-        return bool(cv["rms"] < base["rms"]) if np.isfinite(base["rms"]) else True
-    if not np.isfinite(b).any():
-        return True  # the simplest model failed every fold
-    both = np.isfinite(a) & np.isfinite(b)
-    if both.sum() < 2:
-        return False
-    diff = a[both] - b[both]
-    return bool(diff.mean() + diff.std(ddof=1) / np.sqrt(len(diff)) < 0)
 
 
 def leave_one_pose_out_ls(Z, M, labels, model: str = "affine", drift: str = "none",
@@ -221,8 +200,7 @@ def leave_one_pose_out_ls(Z, M, labels, model: str = "affine", drift: str = "non
 
 def summarise_folds(errors, r: int) -> dict:
     """A leave-one-pose-out result from per-fold load errors (None: the fold's fit failed):
-    ``folds``, ``failed_folds``, ``rms``, ``rms_per_axis``, ``errors`` (good folds x r) and
-    ``fold_sq`` (every fold's squared error, NaN where it failed: :func:`choose` pairs them)."""
+    ``folds``, ``failed_folds``, ``rms``, ``rms_per_axis`` and ``errors`` (good folds x r)."""
     good = [e for e in errors if e is not None]
     E = np.array(good, float).reshape(-1, r)
     return {
@@ -231,6 +209,4 @@ def summarise_folds(errors, r: int) -> dict:
         "rms": float(np.sqrt(np.mean(E**2))) if len(E) else float("nan"),
         "rms_per_axis": np.sqrt(np.mean(E**2, axis=0)) if len(E) else np.full(r, np.nan),
         "errors": E,
-        "fold_sq": np.array([np.nan if e is None else float(np.sum(np.square(e)))
-                             for e in errors]),
     }

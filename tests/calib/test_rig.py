@@ -470,37 +470,6 @@ def test_quadratic_model_fits_a_bending_sensor_and_auto_picks_it():
     assert model == "affine", table
 
 
-def _cv(fold_sq):
-    sq = np.asarray(fold_sq, float)
-    return {"folds": int(np.isfinite(sq).sum()), "rms": float(np.sqrt(np.nanmean(sq) / 3)),
-            "fold_sq": sq}
-
-
-@settings(max_examples=60, deadline=None)
-@given(base=st.lists(st.floats(0.01, 100.0), min_size=2, max_size=12),
-       gain=st.floats(0.05, 0.99), data=st.data())
-def test_choose_keeps_the_simplest_model_unless_another_is_clearly_better(base, gain, data):
-    from calib.models import choose
-
-    n = len(base)
-    # every fold better by the same factor: clearly better (a paired difference of one sign)
-    got = choose(lambda m, d: _cv(base) if m == "affine" else _cv(np.array(base) * gain),
-                 12, 8, "auto", "none")
-    assert got[0] == "channel" and got[2]["clearly_better"] == ["channel/none"], got
-    # better on average but worse on one fold by as much as it gains on the others: noise
-    noisy = np.array(base, float)
-    i = data.draw(st.integers(0, n - 1))
-    others = np.arange(n) != i
-    noisy[others] *= gain
-    noisy[i] += 0.999 * (1 - gain) * float(np.sum(noisy[others]) / gain)  # mean barely lower
-    got = choose(lambda m, d: _cv(base) if m == "affine" else _cv(noisy), 12, 8, "auto", "none")
-    assert np.mean(noisy) < np.mean(base) and got[0] == "affine", (got, base, noisy)
-    # worse on every fold never wins
-    got = choose(lambda m, d: _cv(base) if m == "affine" else _cv(np.array(base) / gain),
-                 12, 8, "auto", "none")
-    assert got[0] == "affine" and got[2]["clearly_better"] == []
-
-
 def test_channel_model_straightens_each_channel_and_needs_few_poses():
     from calib.models import channel_bends, fit_model, identifiable
     from calib.result import Calibration
