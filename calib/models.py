@@ -145,11 +145,11 @@ def choose(cv_of, n_poses: int, p: int, model: str, drift: str) -> tuple[str, st
     result (dict with ``rms``); the pair with the lowest rms wins. Returns (model, drift,
     table) with every candidate's rms and the identifiability of the skipped ones.
 
-    Keeping the simplest model unless another beat it by one paired
-    standard error (the one-standard-error rule) was tried: on simulated rigs with 1 %
-    nonlinearity and drift it was worse on 16 of 60 rigs and better on 2 (3.3 +- 1.0 % more
-    held-out error: it turned down the channel model the simulated nonlinearity calls for), on
-    a real printed sensor better on 2 load-set splits and worse on 1."""
+    Keeping the simplest model unless another beat it by one paired standard error (the
+    one-standard-error rule) was tried: on simulated rigs with 1 % nonlinearity and drift it was
+    worse on 16 of 60 rigs and better on 2 (3.3 +- 1.0 % more held-out error: it turned down the
+    channel model the simulated nonlinearity calls for), on a real printed sensor better on 2
+    load-set splits and worse on 1."""
     if model != "auto" and drift != "auto":
         if not identifiable(n_poses, p, model, drift):
             raise CalibrationError(
