@@ -331,6 +331,9 @@ def _summary(args, cal, status) -> str:
         + (f", bootstrap {args.bootstrap}" if args.bootstrap else "")
         + (f", {d['joint']['n_poses']} poses found" if d.get("joint", {}).get("route") == "poses"
            else "")
+        + (", no static poses: every reading its own pose (forward maximum-likelihood fit)"
+           if d.get("joint", {}).get("route") == "forward" else "")
+        + _predicted(d)
         + (f" (each channel a degree-{d['joint']['index_model']['degree']} polynomial of its own "
            "signal)" if d.get("joint", {}).get("index_model", {}).get("used") else "")
         + (f", model {d['model_selection']['chosen']} "
@@ -340,6 +343,17 @@ def _summary(args, cal, status) -> str:
            f"{d['cv_poses']['folds']} pose(s)" if "cv_poses" in d else "")
         + f"; {status}"
     )
+
+
+def _predicted(d) -> str:
+    """The summary's predicted held-out error (forward fits), with its interval."""
+    pe = (d.get("joint") or {}).get("predicted_error")
+    if not isinstance(pe, dict):
+        return ""
+    lo, hi = pe["interval"]
+    return (f", predicted held-out error {pe['rms']:.4g} [{lo:.4g}, {hi:.4g}] "
+            f"({pe['coverage']:.0%} interval; {pe['ratio']:.2f}x least squares with every load "
+            "known)")
 
 
 def _fit_least_squares(args, channels, Z) -> str:

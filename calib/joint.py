@@ -122,6 +122,9 @@ def fit_joint(
         if model not in ("affine", "auto") or drift not in ("none", "auto"):
             raise CalibrationError(f"model {model}/{drift} needs a static-pose log; no static "
                                    "poses were found in this one")
+        if dof in (2, 3):
+            return fit_forward_rows(Za, known_Z, known_M, dof, magnitude, known_samples,
+                                    motion)
         return motion
     Mk = np.atleast_2d(np.asarray(known_M, float))[:, : motion.C.shape[0]]
     t = np.linspace(0.0, 1.0, len(Za))
@@ -183,6 +186,132 @@ def fit_joint(
         if key in m:
             cal.diagnostics[key] = m[key]
     return cal
+
+
+#: A known reading within this fraction of every channel's spread of a row of the log is that
+#: row (the known loads given for readings of the log itself, as `calib plan` recommends).
+SAME_READING = 1e-6
+
+
+def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=None,
+                     motion=None, seed: int = 0):
+    """A log with no static poses (one reading per pose, or a continuous sweep): every reading
+    its own pose in the maximum-likelihood forward fit (:mod:`calib.forward`), the Sampson and
+    centered routes among its starts. A known reading that is a row of the log makes that row
+    a known pose; any other known reading is a pose of its own, the mean of ``known_samples``
+    readings (default 1). The calibration is the fit's ``C = (A^T V^-1 A)^-1 A^T V^-1`` with
+    ``V`` the estimated channel variances, the offset its ``o``."""
+    from .forward import Problem, fit_forward, gls_inverse, predict_error
+    from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor
+
+    Z = np.asarray(Z, float)
+    Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
+    Mk = np.atleast_2d(np.asarray(known_M, float))[:, :dof]
+    spread = np.maximum(Z.std(axis=0), 1e-300)
+    rows, extra = [], []
+    for k, zk in enumerate(Zk):
+        d = np.max(np.abs(Z - zk) / spread, axis=1)
+        j = int(np.argmin(d))
+        if d[j] <= SAME_READING and j not in rows:
+            rows.append(j)
+        else:
+            extra.append(k)
+    Y = np.vstack([Z, Zk[extra]]) if extra else Z
+    n_known = float(known_samples) if known_samples else 1.0
+    counts = np.r_[np.ones(len(Z)), np.full(len(extra), n_known)]
+    known = np.r_[np.asarray(rows, int), len(Z) + np.arange(len(extra))].astype(int)
+    order = np.r_[[k for k in range(len(Zk)) if k not in extra], extra].astype(int)
+    Mk = Mk[order]
+    mags = np.linalg.norm(Mk, axis=1)
+    g = (float(magnitude) if magnitude is not None
+         else float(np.median(mags)) if mags.max() <= (1 + _same_magnitude()) * mags.min()
+         else None)
+    # every row with more than one reading averaged (extra known poses) has counts > 1 but no
+    # within-pose scatter of its own: the pose-level variance covers it
+    pr = Problem(Y, counts, None, known, Mk, magnitude=g)
+    starts = {}
+    for name, cal in _starts(Z, Zk, Mk, dof, magnitude, motion).items():
+        try:
+            starts[name] = cal.apply(Y)
+        except (CalibrationError, ValueError):
+            continue
+    fit = fit_forward(pr, starts, seed=seed)
+    C = gls_inverse(fit["A"], fit["v"])
+    offset = fit["o"]
+    pred = predict_error(pr, fit, seed=seed)
+    from .forward import _global_cov
+
+    cov = _global_cov(fit)
+    nth = pr.p * (pr.r + 1)
+    if cov is not None:
+        se = np.sqrt(np.diag(cov)[:nth]).reshape(pr.p, pr.r + 1)
+        off_se = se[:, pr.r]
+        g_rel_se = (float(np.sqrt(cov[nth, nth])) / fit["g"]) if pr.fit_g else None
+        # C's standard errors by the delta method on the GLS inverse (A's columns)
+        J = []
+        eps = 1e-6
+        base = C.ravel()
+        for c in range(pr.p):
+            for a in range(pr.r):
+                A1 = fit["A"].copy()
+                h = eps * max(abs(A1[c, a]), 1e-12 + np.abs(fit["A"]).max())
+                A1[c, a] += h
+                J.append((gls_inverse(A1, fit["v"]).ravel() - base) / h)
+        J = np.array(J).T  # (dof*p, p*r)
+        idx = np.array([c * (pr.r + 1) + a for c in range(pr.p) for a in range(pr.r)])
+        covA = cov[np.ix_(idx, idx)]
+        C_se = np.sqrt(np.clip(np.einsum("ia,ab,ib->i", J, covA, J), 0, None)).reshape(C.shape)
+    else:
+        off_se = np.full(pr.p, np.inf)
+        C_se = np.full(C.shape, np.inf)
+        g_rel_se = float("inf") if pr.fit_g else None
+    loads = (Z - offset) @ C.T
+    mag = np.linalg.norm(loads, axis=1)
+    U = fit["M"] / np.linalg.norm(fit["M"], axis=1, keepdims=True)
+    cov_d = coverage_diagnostics(U[: len(Z)])
+    known_res = (Zk[order] - offset) @ C.T - Mk
+    diag = {
+        "n_samples": int(len(Z)),
+        "n_dropped_nonfinite": 0,
+        "singular_values": np.linalg.svd(Z - Z.mean(axis=0), compute_uv=False),
+        "condition_number_C": float(np.linalg.cond(C)),
+        "residual_rms": float(np.sqrt(np.mean((mag - fit["g"]) ** 2))),
+        "coverage": cov_d,
+        "excitation_poor": bool(excitation_is_poor(cov_d)),
+        "joint": {
+            "route": "forward",
+            "readings_per_pose": 1,
+            "n_poses": int(pr.P),
+            "n_known": int(len(Mk)),
+            "n_known_matched_to_rows": int(len(rows)),
+            "known_samples": known_samples,
+            "magnitude": float(fit["g"]),
+            "magnitude_fitted": pr.fit_g,
+            "channel_noise": np.sqrt(fit["v"]),
+            "pose_magnitude_residual_rms": float(np.sqrt(np.mean((mag - fit["g"]) ** 2))),
+            "pose_residual_rms": float(np.sqrt(np.mean(np.sum(
+                (loads - fit["M"][: len(Z)]) ** 2, axis=1)) / dof)),
+            "known_residual_rms": float(np.sqrt(np.mean(known_res**2))),
+            "known_residuals": known_res,
+            "starts": fit["starts"],
+            "chosen_start": fit["chosen_start"],
+            "reweight_rounds": fit["rounds"],
+            "cost": fit["cost"],
+            "converged": bool(fit["converged"]),
+            "nfev": int(fit["iterations"]),
+            "predicted_error": pred,
+            "magnitude_rel_stderr": g_rel_se,
+        },
+    }
+    cal = Calibration(C=C, offset=offset, dof=dof, method="joint", diagnostics=diag)
+    add_uncertainty(cal, off_se, C_se, channel_span(Z))
+    return cal
+
+
+def _same_magnitude() -> float:
+    from .rig import SAME_MAGNITUDE
+
+    return SAME_MAGNITUDE
 
 
 def _inconsistent(s1: dict) -> bool:

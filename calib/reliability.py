@@ -37,6 +37,7 @@ import numpy as np
 
 # rig fits: known loads inconsistent with the readings, and one weighed mass (defined beside the
 # fit, which also uses them)
+from .result import OFFSET_STDERR_MAX_FRACTION
 from .rig import KNOWN_INCONSISTENT, SAME_MAGNITUDE
 
 #: Chi-square tail probability below which known residuals are implausible.
@@ -54,6 +55,10 @@ MAGNITUDE_TOLERANCE = 0.2
 #: Default factor of the held-out check (leave-one-pose-out rms over in-sample residual rms).
 #: Measured on simulated rigs (scripts/calib_rig_study.py): 3-8 for good fits.
 HOLDOUT_FACTOR = 20.0
+#: A forward fit whose predicted held-out error (:func:`calib.forward.predict_error`) exceeds
+#: this multiple of what least squares with every load known would achieve on the same rig is
+#: refused: the ceiling the calibration study holds every written fit to (3x).
+PREDICTED_RATIO_MAX = 3.0
 #: The held-out rms may never exceed this fraction of the load magnitude.
 HOLDOUT_MAX_FRACTION = 0.5
 
@@ -89,6 +94,23 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
     conv = _converged(d)
     if conv is not None and not conv[0]:
         out.append(f"the optimiser did not converge ({conv[1]} evaluations)")
+    if d.get("offset_identified") is False:
+        rel = np.asarray(d.get("offset_stderr_rel_span", [np.inf]), float)
+        out.append(f"the offset is not identified: its standard error reaches "
+                   f"{float(np.max(rel)):.1%} of the data's span on channel "
+                   f"{int(np.argmax(rel))} (limit {OFFSET_STDERR_MAX_FRACTION:.0%}); loads "
+                   "away from the directions seen would be wrong")
+    joint_d = d.get("joint") if isinstance(d.get("joint"), dict) else {}
+    se_g = joint_d.get("magnitude_rel_stderr")
+    if se_g is not None and np.isfinite(se_g) and se_g > OFFSET_STDERR_MAX_FRACTION:
+        out.append(f"the scale is not identified: the fitted load magnitude's standard error is "
+                   f"{se_g:.1%} of it (limit {OFFSET_STDERR_MAX_FRACTION:.0%})")
+    pe = joint_d.get("predicted_error")
+    if isinstance(pe, dict) and not (pe.get("ratio", np.inf) <= PREDICTED_RATIO_MAX):
+        out.append(f"predicted held-out error {pe['rms']:.4g} is {pe['ratio']:.3g}x that of "
+                   f"least squares with every load known (limit {PREDICTED_RATIO_MAX:g}x)")
+    elif joint_d.get("route") == "forward" and pe is None:
+        out.append("the fit's covariance does not exist: nothing is identified")
     if known_Z is None or known_M is None:
         return out
     r = cal.C.shape[0]

@@ -105,9 +105,27 @@ def find_poses(Z) -> np.ndarray | None:
         return labels
     if n <= MAX_CLUSTER_ROWS:
         labels = _clusters(Z / span)
-        if labels is not None and _is_static(labels):
+        if labels is not None and _is_static(labels) and _separated(Z / span, labels):
             return labels
     return None
+
+
+#: Spatial clusters are static poses only when each one's rms radius is under this fraction of
+#: the distance to the nearest other cluster's mean (median over clusters): readings of a static
+#: pose scatter by noise, far less than poses lie apart; one reading per pose over a band of
+#: directions chains into a few clusters as wide as the gaps between them (ratio 0.3-1).
+CLUSTER_SEPARATION = 0.1
+
+
+def _separated(X: np.ndarray, labels: np.ndarray) -> bool:
+    good = labels >= 0
+    ids = np.unique(labels[good])
+    means = np.array([X[labels == i].mean(axis=0) for i in ids])
+    radius = np.array([np.sqrt(np.mean(np.sum((X[labels == i] - m) ** 2, axis=1)))
+                       for i, m in zip(ids, means, strict=True)])
+    d = np.linalg.norm(means[:, None] - means[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return bool(np.median(radius / np.maximum(d.min(axis=1), 1e-300)) <= CLUSTER_SEPARATION)
 
 
 def _runs(starts: np.ndarray, n: int) -> np.ndarray:

@@ -293,17 +293,22 @@ class RigData:
         """Train and test row indices: half the samples of every pose each.
 
         ``alternate``: even samples train, odd test; ``halves``: the first half of every pose
-        trains, the second tests (harder: drift and creep differ between them).
+        trains, the second tests (harder: drift and creep differ between them); ``poses``:
+        every reading of the even poses trains, of the odd poses tests (rigs with one reading
+        per pose: the test loads are new directions).
         """
         idx = np.arange(len(self.Z))
         within = idx - np.searchsorted(self.pose, self.pose)  # sample number inside its pose
         counts = np.bincount(self.pose)[self.pose]
-        if kind == "alternate":
+        if kind == "poses":
+            train = self.pose % 2 == 0
+        elif kind == "alternate":
             train = within % 2 == 0
         elif kind == "halves":
             train = within < counts // 2
         else:
-            raise CalibrationError(f"split kind must be 'alternate' or 'halves', got {kind!r}")
+            raise CalibrationError("split kind must be 'alternate', 'halves' or 'poses', got "
+                                   f"{kind!r}")
         return idx[train], idx[~train]
 
     def pose_means(self, rows) -> tuple[np.ndarray, np.ndarray]:
@@ -411,3 +416,87 @@ def simulate_rig(
         Z[hit, ch[hit]] += 20 * noise * fs[ch[hit]] * rng.choice([-1, 1], hit.sum())
     return RigData(Z=Z, pose=pose, stated_loads=magnitude * U, true_loads=F, directions=U,
                    S=S, offset=z0, magnitude=float(magnitude))
+
+
+def simulate_payload_rig(
+    rng=None,
+    poses: int = 40,
+    p: int = 8,
+    readings: int = 1,
+    sweep: bool = False,
+    tilt_deg: tuple[float, float] = (30.0, 90.0),
+    mass_kg: tuple[float, float] = (0.3, 3.0),
+    com_m: tuple[float, float] = (0.02, 0.15),
+    scales: tuple[float, float] = (1e-2, 1e2),
+    noise: tuple[float, float] = (0.002, 0.02),
+    misalignment_deg: float = 0.0,
+    mass_error: float = 0.0,
+) -> RigData:
+    """A robot wrist holding a gripper on a 6-axis force/torque sensor: the load is the gripper's
+    weight in the sensor frame, known from the robot's kinematics.
+
+    - The gripper's mass is uniform in ``mass_kg`` (weight ``9.81 m`` N), its centre of mass
+      ``com_m`` metres from the sensor's origin in a random direction, so the wrench is
+      ``[F; r x F]`` (forces in N, torques in N*m: rank 3, as the paper's section 5 says).
+    - ``p`` raw gauge channels read ``G^T [F; T] + offset``: every gauge mixes forces and
+      torques (a random 6 x p map), then gets its own scale, log-uniform in ``scales`` (counts,
+      volts, microstrain: units never agree); ``p = 6`` with ``scales = (1, 1)`` is a sensor
+      that reports the wrench itself.
+    - Noise per channel: a fraction of that channel's spread over the loads, log-uniform in
+      ``noise``.
+    - Orientations a wrist reaches: gravity in the sensor frame ``tilt_deg`` degrees from the
+      sensor's axis (the tool axis 30-90 degrees from vertical by default; ``(0, 70)`` a cap),
+      any roll. ``readings`` readings per pose (static), or with ``sweep`` one continuous slow
+      motion of ``poses * readings`` readings (a smooth random path through the band; every
+      reading its own pose).
+    - ``misalignment_deg`` (kinematic error of the stated direction, std) and ``mass_error``
+      (relative std of the weighed mass) make the stated loads differ from the applied ones.
+
+    Returns :class:`RigData`; ``S`` is the (3, p) map from the force to the readings,
+    ``stated_loads`` the kinematic loads per pose. Seeded, deterministic.
+    """
+    rng = np.random.default_rng(rng)
+    if poses < 2 or readings < 1 or p < 3:
+        raise CalibrationError("a payload rig needs >= 2 poses, >= 1 reading each, >= 3 channels")
+    lo, hi = (float(t) for t in tilt_deg)
+    if not 0 <= lo < hi <= 180:
+        raise CalibrationError(f"tilt_deg must be 0 <= low < high <= 180, got {tilt_deg}")
+    n = poses * readings
+    weight = 9.81 * rng.uniform(*mass_kg)
+    r_com = rng.normal(size=3)
+    r_com *= rng.uniform(*com_m) / np.linalg.norm(r_com)
+    L = lever_matrix(r_com)  # (6, 3): wrench = L F
+    G = rng.normal(size=(6, p))
+    S = L.T @ G  # (3, p) before the channel scales
+    S *= np.exp(rng.uniform(np.log(scales[0]), np.log(scales[1]), p)) / np.linalg.norm(S, axis=0)
+    ca, cb = np.cos(np.radians(lo)), np.cos(np.radians(hi))
+    if sweep:
+        # a smooth path: tilt and azimuth as slow random sinusoids over the band
+        t = np.linspace(0.0, 1.0, n)
+        w = _smooth_wander(n, rng)
+        cz = cb + (ca - cb) * (0.5 + 0.5 * np.clip(w, -1, 1))
+        phi = 2 * np.pi * (rng.uniform() + rng.uniform(1.0, 3.0) * t)
+        pose = np.arange(n)
+    else:
+        cz = rng.uniform(cb, ca, poses)
+        phi = rng.uniform(0, 2 * np.pi, poses)
+        pose = np.repeat(np.arange(poses), readings)
+    sz = np.sqrt(np.clip(1 - cz**2, 0, None))
+    U = np.column_stack([sz * np.cos(phi), sz * np.sin(phi), cz])
+    true_U = U.copy()
+    if misalignment_deg > 0:
+        for j in range(len(U)):
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            Kx = skew(axis)
+            a = np.radians(misalignment_deg) * rng.normal()
+            true_U[j] = (np.eye(3) + np.sin(a) * Kx + (1 - np.cos(a)) * Kx @ Kx) @ U[j]
+    true_w = weight * (1 + mass_error * rng.normal())
+    F = true_w * true_U[pose]
+    lin = F @ S
+    spread = weight * np.linalg.norm(S, axis=0)  # each channel's spread over the load sphere
+    z0 = rng.normal(size=p) * spread * rng.uniform(0.1, 10.0, p)
+    levels = spread * np.exp(rng.uniform(np.log(noise[0]), np.log(noise[1]), p))
+    Z = z0 + lin + rng.normal(size=lin.shape) * levels
+    return RigData(Z=Z, pose=pose, stated_loads=weight * U, true_loads=F, directions=U, S=S,
+                   offset=z0, magnitude=float(weight))

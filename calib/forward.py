@@ -1,0 +1,552 @@
+"""The forward model ``z = A m + o`` fitted by maximum likelihood, whatever the readings per pose.
+
+Every rig, one statistical model: pose ``j`` is seen as the mean ``y_j`` of its ``n_j``
+readings (``n_j = 1`` for one reading per pose, every reading its own pose for a slow
+continuous sweep), its load ``m_j`` known (the known loads) or ``g u_j`` with ``u_j`` an unknown
+unit direction and ``g`` the load magnitude (held at the known loads' when they are one mass,
+or given). Each channel ``c`` has its own noise, so
+
+    y_jc = a_c . m_j + o_c + e_jc,     var(e_jc) = v_c + s_c^2 / n_j,
+
+with ``s_c`` the within-pose scatter (estimated from repeats, 0 when no pose repeats) and
+``v_c`` each channel's pose-level variance (model misfit, and the whole reading noise when
+poses do not repeat). For fixed variances the negative log-likelihood is the weighted sum of
+squares ``sum_jc (y_jc - a_c . m_j - o_c)^2 / var_jc``; the variances are re-estimated from the
+residuals with the degrees of freedom the fit used (each channel's own ``r + 1`` and its share of
+the directions' leverage) until they settle (feasible generalised least squares; at its fixed
+point the likelihood equations hold with a degrees-of-freedom correction, as in REML).
+
+The weighted least squares is solved by Levenberg-Marquardt on all parameters at once, the
+directions eliminated pose by pose through the Schur complement (the bundle-adjustment trick: a
+pose's 2 angles touch only its own readings), so a step costs ``O(P p^2 r^2)`` and 100,000 poses
+are a few seconds. Starts (:func:`fit_forward`): the affine map of the known poses extended to the
+others by the magnitude constraint, calibrations handed in (the closed-form routes), random
+directions, each also *alternated* (the model refitted at the directions, then every unknown pose
+moved to the best of a grid of directions on its sphere: a global step per pose), and perturbed
+restarts of the best; every start's cost under the final weights is reported, the lowest wins.
+
+Everything here is equivariant to the channels' units, order and offsets: the start weights
+are each channel's spread, the estimated variances scale with the channel, the model has a free
+offset per channel.
+
+The covariance of ``(A, o, g)`` with the directions as nuisance parameters is the inverse of the
+Schur complement at the optimum (the Cramer-Rao bound of the model at the estimated variances);
+:func:`predict_error` turns it into the held-out load error expected of the calibration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .result import CalibrationError
+
+#: Directions tried per unknown pose by the global step (:func:`reinfer`): about 5 degrees apart
+#: on the sphere.
+GRID = 2000
+#: Starts with every unknown direction drawn uniformly, alternated; the best distinct ones are
+#: refined by LM.
+RANDOM_STARTS = 8
+#: At most this many unknown poses enter the search over starts; with more (a long sweep, one
+#: reading per pose), the starts run on an evenly strided subset and the best is then refined on
+#: every pose (same estimator, same optimum basin: the subset only chooses the basin).
+SEARCH_POSES = 400
+#: Feasible-GLS rounds at most (the variances settle in 3-6 on simulated and real rigs).
+REWEIGHT_ROUNDS = 12
+#: Variances below this fraction of a channel's spread squared are floored (an exactly
+#: redundant channel would otherwise get an infinite weight).
+VARIANCE_FLOOR = 1e-16
+
+
+def tangents(U: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the plane normal to each unit row of U: (m, r-1, r)."""
+    if U.shape[1] == 2:
+        return np.stack([-U[:, 1], U[:, 0]], axis=1)[:, None, :]
+    a = np.eye(3)[np.argmin(np.abs(U), axis=1)]
+    t1 = np.cross(U, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(U, t1)
+    return np.stack([t1, t2], axis=1)
+
+
+def grid(r: int, n: int = GRID) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (a Fibonacci lattice) or circle."""
+    i = np.arange(n) + 0.5
+    if r == 2:
+        a = 2 * np.pi * i / n
+        return np.column_stack([np.cos(a), np.sin(a)])
+    polar = np.arccos(1 - 2 * i / n)
+    azim = np.pi * (1 + 5**0.5) * i
+    return np.column_stack([np.cos(azim) * np.sin(polar), np.sin(azim) * np.sin(polar),
+                            np.cos(polar)])
+
+
+class Problem:
+    """Pose means, counts, within-pose scatter and the known loads of one rig.
+
+    ``Y`` (P, p) pose means; ``counts`` (P,) readings per pose; ``within`` (p,) within-pose
+    standard deviation per channel (None or zeros when no pose repeats); ``known`` indices of
+    the poses whose loads ``known_M`` (k, r) are given; ``magnitude`` the load magnitude of the
+    unknown poses (None: fitted).
+    """
+
+    def __init__(self, Y, counts, within, known, known_M, magnitude=None):
+        self.Y = np.asarray(Y, float)
+        self.P, self.p = self.Y.shape
+        self.counts = np.ones(self.P) if counts is None else np.asarray(counts, float)
+        self.within = np.zeros(self.p) if within is None else np.asarray(within, float)
+        self.known = np.asarray(known, int)
+        self.known_M = np.atleast_2d(np.asarray(known_M, float))
+        self.r = self.known_M.shape[1]
+        if self.r not in (2, 3):
+            raise CalibrationError(f"the forward fit is for 2 or 3 load components, got {self.r}")
+        self.unknown = np.setdiff1d(np.arange(self.P), self.known)
+        self.magnitude = None if magnitude is None else float(magnitude)
+        self.fit_g = magnitude is None
+        self.spread = np.maximum(self.Y.std(axis=0), 1e-300)
+
+    def loads(self, U, g):
+        """Every pose's load: the known ones, g U at the unknown poses."""
+        M = np.zeros((self.P, self.r))
+        M[self.known] = self.known_M
+        M[self.unknown] = g * U
+        return M
+
+    def weights(self, v):
+        """Weights 1/sd (P, p) from the pose-level variances v (p,)."""
+        return 1.0 / np.sqrt(v[None, :] + self.within[None, :] ** 2 / self.counts[:, None])
+
+    def sub(self, keep_unknown):
+        """The same rig with only the listed unknown poses (and every known one)."""
+        rows = np.sort(np.r_[self.known, keep_unknown])
+        q = Problem(self.Y[rows], self.counts[rows], self.within,
+                    np.searchsorted(rows, self.known), self.known_M, self.magnitude)
+        q.spread = self.spread
+        return q
+
+
+def linear_fit(pr: Problem, M, W):
+    """Every channel's (a_c, o_c) by weighted least squares at loads M: A (p, r), o (p,)."""
+    X = np.column_stack([M, np.ones(pr.P)])
+    W2 = W**2
+    H = np.einsum("jc,jd,je->cde", W2, X, X)
+    b = np.einsum("jc,jc,jd->cd", W2, pr.Y, X)
+    H += 1e-13 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(pr.r + 1)
+    th = np.linalg.solve(H, b[..., None])[..., 0]
+    return th[:, : pr.r], th[:, pr.r]
+
+
+def cost(pr: Problem, A, o, M, W) -> float:
+    return float(np.sum((W * (pr.Y - M @ A.T - o)) ** 2))
+
+
+def reinfer(pr: Problem, A, o, g, W, U=None, directions=None):
+    """Every unknown pose moved to the direction of ``directions`` (default :func:`grid`) that
+    the model explains best, then (when ``U`` is given) kept at ``U`` if that is better: the
+    global step per pose. Cost per pose: ``-2 b.u + u^T Q u`` (no p in the grid loop)."""
+    G = grid(pr.r) if directions is None else directions
+    u = pr.unknown
+    W2 = W[u] ** 2
+    b = g * ((W2 * (pr.Y[u] - o)) @ A)  # (nu, r)
+    Q = g**2 * np.einsum("jc,ca,cb->jab", W2, A, A)  # (nu, r, r)
+    iu = np.triu_indices(pr.r)
+    fac = np.where(iu[0] == iu[1], 1.0, 2.0)
+    GG = (G[:, iu[0]] * G[:, iu[1]] * fac).T  # (n_tri, K)
+    out = np.empty((len(u), pr.r))
+    for s in range(0, len(u), 2000):
+        sl = slice(s, s + 2000)
+        c = -2 * b[sl] @ G.T + Q[sl][:, iu[0], iu[1]] @ GG
+        out[sl] = G[np.argmin(c, axis=1)]
+    if U is not None:
+        def per(V):
+            return -2 * np.sum(b * V, axis=1) + np.einsum("ja,jab,jb->j", V, Q, V)
+        keep = per(U) <= per(out)
+        out[keep] = U[keep]
+    return out
+
+
+def alternate(pr: Problem, U, g, W, iters: int = 30):
+    """Directions after alternating the linear fit and :func:`reinfer` from U (until no pose
+    moves)."""
+    for _ in range(iters):
+        A, o = linear_fit(pr, pr.loads(U, g), W)
+        new = reinfer(pr, A, o, g, W, U)
+        if np.array_equal(new, U):
+            break
+        U = new
+    return U
+
+
+def solve(pr: Problem, U, g, W, A=None, o=None, max_iter: int = 200, tol: float = 1e-12):
+    """Levenberg-Marquardt over (A, o, g) and every unknown direction, directions eliminated by
+    the Schur complement. Returns a dict: ``A``, ``o``, ``g``, ``U``, ``M``, ``cost``,
+    ``converged``, ``iterations``, and ``schur`` (the reduced normal matrix at the optimum,
+    whose inverse is the covariance of ``(A, o[, g])`` in units of the weights)."""
+    r, p = pr.r, pr.p
+    u = pr.unknown
+    nu = len(u)
+    k = r - 1
+    U = np.asarray(U, float).copy()
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    g = float(pr.magnitude if not pr.fit_g else g)
+    if A is None:
+        A, o = linear_fit(pr, pr.loads(U, g), W)
+    A, o = A.copy(), o.copy()
+    nt = p * (r + 1) + (1 if pr.fit_g else 0)
+    lam = 1e-3
+    cur = cost(pr, A, o, pr.loads(U, g), W)
+    converged, it = False, 0
+    S_final = None
+
+    def system(A, o, U, g):
+        M = pr.loads(U, g)
+        X = np.column_stack([M, np.ones(pr.P)])
+        R = W * (pr.Y - M @ A.T - o)  # residuals; J = d(-R)... J entries below are dR/dparam
+        W2 = W**2
+        # global block: per channel (a_c, o_c), then g
+        H = np.zeros((nt, nt))
+        grad = np.zeros(nt)
+        Hc = np.einsum("jc,jd,je->cde", W2, X, X)
+        for c in range(p):
+            s = slice(c * (r + 1), (c + 1) * (r + 1))
+            H[s, s] = Hc[c]
+        grad[: p * (r + 1)] = -np.einsum("jc,jc,jd->cd", W, R, X).ravel()
+        T = tangents(U) if nu else np.zeros((0, k, r))
+        TA = np.einsum("jkr,cr->jck", T, A)  # (nu, p, k)
+        Wu = W[u]
+        Jphi = -(Wu * g)[:, :, None] * TA  # dR_jc / dphi_jk
+        D = np.einsum("jck,jcl->jkl", Jphi, Jphi)
+        gphi = np.einsum("jck,jc->jk", Jphi, R[u])
+        # cross terms: dR_jc/dtheta_c = -W_jc X_j
+        Xu = X[u]
+        B = np.zeros((nu, nt, k))
+        Bc = -(Wu[:, :, None, None] * Xu[:, None, :, None]) * Jphi[:, :, None, :]  # (nu,p,r+1,k)
+        B[:, : p * (r + 1)] = Bc.reshape(nu, p * (r + 1), k)
+        if pr.fit_g:
+            AU = U @ A.T  # (nu, p): a_c . u_j
+            Jg = -Wu * AU
+            Jg_full = np.zeros((pr.P, p))
+            Jg_full[u] = Jg
+            H[-1, -1] = np.sum(Jg**2)
+            hg = np.einsum("jc,jc,jd->cd", -W, Jg_full, X).ravel()  # sum J_theta * J_g
+            H[: p * (r + 1), -1] = hg
+            H[-1, : p * (r + 1)] = hg
+            grad[-1] = np.sum(Jg * R[u])
+            B[:, -1] = np.einsum("jc,jck->jk", Jg, Jphi)
+        return R, H, grad, D, gphi, B, T
+
+    def reduced(H, D, B, lam):
+        Dl = D + lam * (np.einsum("jkk->jk", D)[:, :, None] * np.eye(k) + 1e-300 * np.eye(k))
+        Hl = H + lam * np.diag(np.diag(H))
+        Dinv = np.linalg.inv(Dl) if nu else Dl
+        if nu:
+            Lc = np.linalg.cholesky(Dinv)  # Dinv = L L^T
+            BL = np.einsum("jak,jkl->jal", B, Lc).transpose(0, 2, 1).reshape(nu * k, nt)
+            S = Hl - BL.T @ BL
+        else:
+            S = Hl
+        return S, Dinv
+
+    for it in range(1, max_iter + 1):
+        R, H, grad, D, gphi, B, T = system(A, o, U, g)
+        improved = False
+        for _ in range(40):
+            S, Dinv = reduced(H, D, B, lam)
+            rhs = -(grad - (np.einsum("jak,jkl,jl->a", B, Dinv, gphi) if nu else 0.0))
+            try:
+                dth = np.linalg.solve(S, rhs)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dphi = (-np.einsum("jkl,jl->jk", Dinv, gphi + np.einsum("jak,a->jk", B, dth))
+                    if nu else np.zeros((0, k)))
+            th = np.column_stack([A, o]).ravel() + dth[: p * (r + 1)]
+            th = th.reshape(p, r + 1)
+            A1, o1 = th[:, :r], th[:, r]
+            g1 = g + dth[-1] if pr.fit_g else g
+            U1 = U + np.einsum("jk,jkr->jr", dphi, T) if nu else U
+            U1 = U1 / np.linalg.norm(U1, axis=1, keepdims=True) if nu else U1
+            new = cost(pr, A1, o1, pr.loads(U1, g1), W) if (not pr.fit_g or g1 > 0) else np.inf
+            if new < cur:
+                rel = (cur - new) / max(cur, 1e-300)
+                A, o, U, g, cur = A1, o1, U1, g1, new
+                lam = max(lam / 5, 1e-12)
+                improved = True
+                break
+            lam *= 5
+            if lam > 1e12:
+                break
+        if not improved:
+            converged = True  # no descent direction left at machine precision
+            break
+        if rel < tol:
+            converged = True
+            break
+    R, H, grad, D, gphi, B, T = system(A, o, U, g)
+    S_final, _ = reduced(H, D, B, 0.0)
+    return {"A": A, "o": o, "g": g, "U": U, "M": pr.loads(U, g), "cost": cur,
+            "converged": converged, "iterations": it, "schur": S_final,
+            "leverage_dirs": _direction_leverage(W, A, U, g, pr)}
+
+
+def _direction_leverage(W, A, U, g, pr: Problem) -> np.ndarray:
+    """Each channel's share of the degrees of freedom the unknown directions take: for every
+    unknown pose the diagonal of its own hat matrix (sums to r - 1 over the channels), summed
+    over poses; (p,)."""
+    u = pr.unknown
+    if not len(u):
+        return np.zeros(pr.p)
+    T = tangents(U)
+    J = (W[u] * g)[:, :, None] * np.einsum("jkr,cr->jck", T, A)
+    D = np.einsum("jck,jcl->jkl", J, J)
+    Dinv = np.linalg.pinv(D)
+    return np.einsum("jck,jkl,jcl->c", J, Dinv, J)
+
+
+def estimate_variances(pr: Problem, fit: dict, W) -> np.ndarray:
+    """Pose-level variance per channel from a fit's residuals: v_c solving
+    ``sum_j res_jc^2 / (v_c + s_c^2 / n_j) = P - (r + 1) - h_c`` (h_c the channel's share of the
+    directions' and the magnitude's degrees of freedom)."""
+    raw = pr.Y - fit["M"] @ fit["A"].T - fit["o"]
+    h = fit["leverage_dirs"] + (1.0 / pr.p if pr.fit_g else 0.0)
+    dof = np.maximum(pr.P - (pr.r + 1) - h, 1.0)
+    floor = VARIANCE_FLOOR * pr.spread**2
+    s2n = pr.within[None, :] ** 2 / pr.counts[:, None]
+    v = np.empty(pr.p)
+    for c in range(pr.p):
+        e2 = raw[:, c] ** 2
+        if not np.any(s2n[:, c] > 0):
+            v[c] = max(e2.sum() / dof[c], floor[c])
+            continue
+
+        def f(x, c=c, e2=e2):
+            return np.sum(e2 / (x + s2n[:, c])) - dof[c]
+
+        if f(floor[c]) <= 0:  # sampling noise explains the whole scatter
+            v[c] = floor[c]
+            continue
+        lo, hi = floor[c], max(e2.sum() / dof[c], floor[c]) * 2 + floor[c]
+        while f(hi) > 0:
+            hi *= 4
+        for _ in range(100):  # bisection in log space: f is decreasing in x
+            mid = np.sqrt(lo * hi)
+            lo, hi = (mid, hi) if f(mid) > 0 else (lo, mid)
+            if hi / lo < 1 + 1e-9:
+                break
+        v[c] = np.sqrt(lo * hi)
+    return v
+
+
+def _directions(L):
+    L = np.asarray(L, float)
+    n = np.linalg.norm(L, axis=1)
+    if not np.all(np.isfinite(L)) or np.any(n <= 0):
+        return None
+    return L / n[:, None]
+
+
+def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
+                random_starts: int = RANDOM_STARTS, restarts: int = 2,
+                only: dict | None = None) -> dict:
+    """The maximum-likelihood forward fit of a rig (module docstring).
+
+    ``start_loads``: named (P, r) arrays of every pose's load as another route estimates them
+    (the closed-form routes' calibrations applied to the pose means); their directions at the
+    unknown poses start the search. ``only``: named unit directions (nu, r) that are the *only*
+    starts (the oracle: the true directions). Returns the final fit (:func:`solve`'s dict) plus
+    ``v`` (pose-level variance per channel), ``W``, ``starts`` (every start: name, cost under the
+    final weights, converged, iterations), ``chosen_start``, ``rounds`` (feasible-GLS rounds),
+    ``g0``.
+    """
+    rng = np.random.default_rng(seed)
+    known_mag = np.linalg.norm(pr.known_M, axis=1)
+    g0 = pr.magnitude if pr.magnitude is not None else float(np.median(known_mag))
+    nu = len(pr.unknown)
+    if nu == 0:
+        raise CalibrationError("every pose has a known load: use least squares")
+    # the search runs on at most SEARCH_POSES unknown poses (evenly strided)
+    if nu > SEARCH_POSES:
+        pick = np.unique(np.linspace(0, nu - 1, SEARCH_POSES).round().astype(int))
+        sp = pr.sub(pr.unknown[pick])
+    else:
+        pick, sp = np.arange(nu), pr
+    W0 = np.broadcast_to(1.0 / pr.spread, (sp.P, sp.p)).copy()  # equivariant start weights
+    if np.any(pr.within > 0) and np.all(pr.counts > 1):
+        W0 = sp.weights(np.zeros(sp.p) + (pr.spread * 1e-3) ** 2)
+    named = []
+    if only is not None:
+        for name, U in only.items():
+            named.append((name, np.asarray(U, float)[pick]))
+    else:
+        # 1. the affine map of the known poses (r + 1 spanning loads), extended by |m| = g
+        X = np.column_stack([pr.known_M, np.ones(len(pr.known))])
+        if len(X) >= pr.r + 1 and np.linalg.matrix_rank(X) == pr.r + 1:
+            Bk = np.linalg.lstsq(X, pr.Y[pr.known], rcond=None)[0]
+            A, o = Bk[: pr.r].T, Bk[pr.r]
+            Ws = 1.0 / pr.spread
+            Aw = A * Ws[:, None]
+            got = _directions(((sp.Y[sp.unknown] - o) * Ws) @ np.linalg.pinv(Aw).T)
+            if got is not None:
+                named.append(("affine map of the known poses", got))
+        for name, L in (start_loads or {}).items():
+            got = _directions(np.asarray(L, float)[pr.unknown][pick])
+            if got is not None:
+                named.append((name, got))
+    results = []
+
+    def run(name, U, W, alt=True):
+        out = []
+        try:
+            f = solve(sp, U, g0, W)
+            out.append({**f, "start": name})
+            if alt:
+                Ua = alternate(sp, U, g0, W)
+                if not np.allclose(Ua, U):
+                    f = solve(sp, Ua, g0, W)
+                    out.append({**f, "start": f"{name}, alternated"})
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+            pass
+        return out
+
+    for name, U in named:
+        results += run(name, U, W0)
+    if only is None:
+        pool = []
+        for i in range(random_starts):
+            U = rng.standard_normal((len(sp.unknown), sp.r))
+            U /= np.linalg.norm(U, axis=1, keepdims=True)
+            try:
+                Ua = alternate(sp, U, g0, W0)
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            A, o = linear_fit(sp, sp.loads(Ua, g0), W0)
+            pool.append((cost(sp, A, o, sp.loads(Ua, g0), W0), i, Ua))
+        for _, i, Ua in sorted(pool, key=lambda t: t[:2])[:2]:
+            results += run(f"random directions {i + 1}, alternated", Ua, W0, alt=False)
+    if not results:
+        raise CalibrationError("no start of the forward fit gave finite directions")
+    best = min(results, key=lambda f: f["cost"])
+    if only is None:
+        for i in range(restarts):  # every unknown direction turned by about 20 degrees
+            U = best["U"] + rng.normal(scale=0.35, size=best["U"].shape)
+            results += run(f"perturbed restart {i + 1}", U, W0)
+        best = min(results, key=lambda f: f["cost"])
+    # feasible GLS on the search subset: variances from the best fit, refit, until they settle;
+    # then every start refitted under the final weights, the lowest cost kept (and reweighted
+    # again if another start won)
+    v, rounds = None, 0
+    for _outer in range(3):
+        for _ in range(REWEIGHT_ROUNDS):
+            v_new = estimate_variances(sp, best, W0 if v is None else sp.weights(v))
+            rounds += 1
+            done = v is not None and np.all(np.abs(np.log(v_new / v)) < 1e-3)
+            v = v_new
+            best = {**solve(sp, best["U"], best["g"], sp.weights(v), best["A"], best["o"]),
+                    "start": best["start"]}
+            if done:
+                break
+        Wf = sp.weights(v)
+        refit = []
+        for f in results:
+            try:
+                refit.append({**solve(sp, f["U"], f["g"], Wf), "start": f["start"]})
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+        top = min(refit, key=lambda f: f["cost"])
+        results = refit
+        if top["cost"] >= best["cost"] * (1 - 1e-9):
+            break
+        best = top
+    # every pose: the search subset's model placed on the other poses by the global step, then
+    # refined together
+    if sp is not pr:
+        W = pr.weights(v)
+        U = reinfer(pr, best["A"], best["o"], best["g"], W)
+        U[pick] = best["U"]
+        best = {**solve(pr, U, best["g"], W, best["A"], best["o"]), "start": best["start"]}
+        for _ in range(REWEIGHT_ROUNDS):
+            v_new = estimate_variances(pr, best, W)
+            done = np.all(np.abs(np.log(v_new / v)) < 1e-3)
+            v, W = v_new, pr.weights(v_new)
+            best = {**solve(pr, best["U"], best["g"], W, best["A"], best["o"]),
+                    "start": best["start"]}
+            rounds += 1
+            if done:
+                break
+    starts = [{"start": f["start"], "cost": f["cost"], "converged": f["converged"],
+               "iterations": f["iterations"]} for f in results]
+    return {**best, "v": v, "W": pr.weights(v), "starts": starts,
+            "chosen_start": best["start"], "rounds": rounds, "g0": g0}
+
+
+def gls_inverse(A, v) -> np.ndarray:
+    """The calibration of a fitted forward model: ``C = (A^T V^-1 A)^-1 A^T V^-1`` (dof, p), the
+    maximum-likelihood load of a new reading ``z`` being ``C (z - o)``."""
+    Ai = A / v[:, None]
+    return np.linalg.solve(A.T @ Ai, Ai.T)
+
+
+def _global_cov(fit: dict) -> np.ndarray | None:
+    """Covariance of (A, o[, g]) with the directions as nuisance: the inverse Schur complement."""
+    S = fit["schur"]
+    try:
+        cov = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    cov = 0.5 * (cov + cov.T)
+    return cov if np.all(np.isfinite(cov)) and np.all(np.diag(cov) >= 0) else None
+
+
+def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
+                  coverage: float = 0.90) -> dict:
+    """The held-out load error expected of the fit's calibration on new single readings at the
+    rig's poses (as many as it has poses), with an interval, and the same for least squares
+    with every load known (the reference the verdict compares with).
+
+    Monte Carlo over what varies: the fitted (A, o) drawn from their covariance (the inverse
+    Schur complement: the unknown directions are nuisance parameters), each channel's variance
+    from its scaled chi-square (degrees of freedom as in :func:`estimate_variances`), and the
+    test readings' noise. ``rms`` is the median over draws, ``interval`` the central
+    ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
+    ``ratio`` their quotient. Returns None when the covariance does not exist (a singular
+    fit: nothing identified)."""
+    rng = np.random.default_rng(seed)
+    r, p = pr.r, pr.p
+    cov = _global_cov(fit)
+    if cov is None:
+        return None
+    nth = p * (r + 1)
+    cov = cov[:nth, :nth]
+    A, o, v = fit["A"], fit["o"], fit["v"]
+    M = fit["M"]
+    P = len(M)
+    h = fit["leverage_dirs"] + (1.0 / p if pr.fit_g else 0.0)
+    dof = np.maximum(pr.P - (r + 1) - h, 1.0)
+    try:
+        L = np.linalg.cholesky(cov + 1e-300 * np.eye(nth))
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(cov)
+        L = V * np.sqrt(np.clip(w, 0, None))
+    # least squares with every load known: per channel (X^T W^2 X)^-1 at the fit's weights
+    X = np.column_stack([M, np.ones(P)])
+    W2 = fit["W"] ** 2
+    Hc = np.einsum("jc,jd,je->cde", W2, X, X)
+    Lls = np.linalg.cholesky(np.linalg.inv(Hc) + 1e-300 * np.eye(r + 1))  # (p, r+1, r+1)
+    err, err_ls = np.empty(draws), np.empty(draws)
+    truth = M @ A.T + o  # noise-free readings at the poses' loads
+    for i in range(draws):
+        s = rng.chisquare(dof) / dof
+        vi = v / s  # the variance an estimate of v could have come from
+        d = (L @ rng.standard_normal(nth)).reshape(p, r + 1)
+        Ah, oh = A + d[:, :r], o + d[:, r]
+        Z = truth + rng.standard_normal((P, p)) * np.sqrt(vi + pr.within**2)
+        Ch = gls_inverse(Ah, v)  # the calibration weighs by the estimate, the truth is vi
+        err[i] = np.sqrt(np.mean(np.sum(((Z - oh) @ Ch.T - M) ** 2, axis=1)))
+        dl = np.einsum("cab,cb->ca", Lls, rng.standard_normal((p, r + 1)))
+        Al, ol = A + dl[:, :r], o + dl[:, r]
+        Cl = gls_inverse(Al, v)
+        err_ls[i] = np.sqrt(np.mean(np.sum(((Z - ol) @ Cl.T - M) ** 2, axis=1)))
+    lo, hi = np.quantile(err, [(1 - coverage) / 2, (1 + coverage) / 2])
+    med, med_ls = float(np.median(err)), float(np.median(err_ls))
+    return {"rms": med, "interval": [float(lo), float(hi)], "coverage": coverage,
+            "ls_rms": med_ls, "ratio": med / med_ls if med_ls > 0 else float("inf"),
+            "test_readings": int(P)}
