@@ -35,7 +35,11 @@ def rms(cal, Zt, Ft):
 def test_noise_free_rig_is_recovered_exactly():
     Z, _, Zk, Mk, Zt, Ft, S, z0 = rig(1, noise=0.0, per_pose=3)
     cal = fit_joint(Z, Zk, Mk)
-    assert np.allclose(cal.C, np.linalg.pinv(S.T), atol=1e-8)
+    # 3 readings per pose are too few for static poses: the forward fit, every reading its own
+    # pose; with 8 channels and noise-free data C is any left inverse of S^T (the fit's is
+    # weighted by its channel variances, not the minimum-norm one): the loads are exact
+    assert np.allclose(cal.C @ S.T, np.eye(3), atol=1e-8)
+    assert np.allclose(cal.apply(Zt), Ft, atol=1e-8)
     assert np.allclose(cal.offset, z0, atol=1e-6)
     assert cal.method == "joint" and abs(cal.diagnostics["joint"]["magnitude"] - 3.03) < 1e-9
 
