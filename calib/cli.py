@@ -498,7 +498,9 @@ def _plan(args) -> str:
     text = (f"{args.poses}: {res['poses']} poses, {res['k']} known loads: put them on pose rows "
             f"{rows} (1 = first data row). Predicted (Cramer-Rao bound, isotropic sensor, "
             f"{res['samples']} readings per pose): load error {res['ratio']:.2f}x least squares "
-            f"with every load known ({res['ratio_first']:.2f}x with the first {res['k']} rows)")
+            f"with every load known ({res['ratio_first']:.2f}x with the first {res['k']} rows)"
+            f"; on a new single reading, whose own noise adds to both, "
+            f"{res['ratio_reading']:.2f}x ({res['ratio_reading_first']:.2f}x)")
     if "bound" in res:
         text += (f"; rms load error >= {res['bound']:.3g} (all known: "
                  f"{res['bound_all_known']:.3g}) in load units")

@@ -89,7 +89,9 @@ def plan(directions, k: int = 4, magnitude: float = 1.0, samples: int = 100,
     """The recommended known poses for a budget of ``k`` known loads and the predicted error.
 
     Returns ``known`` (indices, :func:`calib.joint.choose_known_poses`), ``ratio`` (bound over
-    the all-known bound), ``ratio_first`` (the same for the first k poses, a naive choice) and,
+    the all-known bound), ``ratio_first`` (the same for the first k poses, a naive choice),
+    ``ratio_reading`` / ``ratio_reading_first`` (the same for the error on a new single
+    reading, whose own noise adds to both: what a rig with one reading per pose sees) and,
     with ``noise`` and ``sensitivity``, ``bound`` and ``bound_all_known`` in load units.
     """
     U = np.asarray(directions, float)
@@ -106,8 +108,15 @@ def plan(directions, k: int = 4, magnitude: float = 1.0, samples: int = 100,
     known = choose_known_poses(U, k)
     b, b_all = bounds(U, known, magnitude=magnitude, samples=samples)
     f, f_all = bounds(U, range(k), magnitude=magnitude, samples=samples)
+    # a new single reading adds its own noise through C (isotropic unit-gain sensor, unit
+    # noise as in bounds): what a held-out reading's error is, and the ratio one-reading-per-
+    # pose rigs see (their parameter errors are small beside it)
+    A, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(8, 3)))
+    n2 = float(np.sum(np.linalg.pinv(A) ** 2))
     out = {"known": known, "ratio": b / b_all, "ratio_first": f / f_all, "k": k,
-           "poses": len(U), "samples": samples}
+           "poses": len(U), "samples": samples,
+           "ratio_reading": float(np.sqrt((b**2 + n2) / (b_all**2 + n2))),
+           "ratio_reading_first": float(np.sqrt((f**2 + n2) / (f_all**2 + n2)))}
     if noise is not None and sensitivity is not None:
         A, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(8, 3)))
         b, b_all = bounds(U, known, A=A * sensitivity, magnitude=magnitude, samples=samples,

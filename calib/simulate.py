@@ -431,6 +431,7 @@ def simulate_payload_rig(
     noise: tuple[float, float] = (0.002, 0.02),
     misalignment_deg: float = 0.0,
     mass_error: float = 0.0,
+    wrench: bool = False,
 ) -> RigData:
     """A robot wrist holding a gripper on a 6-axis force/torque sensor: the load is the gripper's
     weight in the sensor frame, known from the robot's kinematics.
@@ -441,7 +442,8 @@ def simulate_payload_rig(
     - ``p`` raw gauge channels read ``G^T [F; T] + offset``: every gauge mixes forces and
       torques (a random 6 x p map), then gets its own scale, log-uniform in ``scales`` (counts,
       volts, microstrain: units never agree); ``p = 6`` with ``scales = (1, 1)`` is a sensor
-      that reports the wrench itself.
+      that reports the wrench itself; ``wrench=True`` is a commercial F/T sensor's output (6
+      channels, forces in N, torques in N*m, no mixing).
     - Noise per channel: a fraction of that channel's spread over the loads, log-uniform in
       ``noise``.
     - Orientations a wrist reaches: gravity in the sensor frame ``tilt_deg`` degrees from the
@@ -466,9 +468,14 @@ def simulate_payload_rig(
     r_com = rng.normal(size=3)
     r_com *= rng.uniform(*com_m) / np.linalg.norm(r_com)
     L = lever_matrix(r_com)  # (6, 3): wrench = L F
-    G = rng.normal(size=(6, p))
-    S = L.T @ G  # (3, p) before the channel scales
-    S *= np.exp(rng.uniform(np.log(scales[0]), np.log(scales[1]), p)) / np.linalg.norm(S, axis=0)
+    if wrench:
+        p = 6
+        S = L.T.copy()  # (3, 6): the wrench itself
+    else:
+        G = rng.normal(size=(6, p))
+        S = L.T @ G  # (3, p) before the channel scales
+        S *= (np.exp(rng.uniform(np.log(scales[0]), np.log(scales[1]), p))
+              / np.linalg.norm(S, axis=0))
     ca, cb = np.cos(np.radians(lo)), np.cos(np.radians(hi))
     if sweep:
         # a smooth path: tilt and azimuth as slow random sinusoids over the band

@@ -189,3 +189,58 @@ def test_narrow_coverage_is_refused():
     cal = _joint(Z, Z[known], M[known])
     reasons = assess(cal, Z[known], M[known])
     assert any("offset is not identified" in r for r in reasons)
+
+
+def _cli(argv, capsys):
+    from calib.cli import main
+
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _write_payload(tmp_path, seed, **kw):
+    from calib.io import write_csv
+
+    d, Z, M, known, Zt, Mt = _payload_split(seed, **kw)
+    ch = [f"g{i}" for i in range(Z.shape[1])]
+    write_csv(tmp_path / "raw.csv", ch, Z)
+    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[known], M[known]]))
+    return Zt, Mt
+
+
+def test_cli_fits_one_reading_per_pose_with_a_predicted_error(tmp_path, capsys):
+    """`calib fit --method joint` on a one-reading-per-pose payload log: the forward fit, exit 0,
+    the summary names the route and prints the predicted held-out error with its interval."""
+    from calib.io import load_calibration
+
+    Zt, Mt = _write_payload(tmp_path, 11, poses=60)
+    code, out, err = _cli(["fit", tmp_path / "raw.csv", "--dof", 3, "--method", "joint",
+                           "--known", tmp_path / "known.csv", "--known-samples", 1,
+                           "--out", tmp_path / "cal.json"], capsys)
+    assert code == 0, err
+    assert "every reading its own pose" in out and "predicted held-out error" in out
+    assert out.rstrip().endswith("; reliable")
+    cal, _ = load_calibration(tmp_path / "cal.json")
+    pe = cal.diagnostics["joint"]["predicted_error"]
+    assert pe["interval"][0] < pe["rms"] < pe["interval"][1]
+    assert len(cal.diagnostics["joint"]["starts"]) >= 4
+
+
+def test_cli_refuses_a_narrow_log_in_one_line(tmp_path, capsys):
+    _write_payload(tmp_path, 7, poses=60, tilt_deg=(0, 34))
+    code, out, err = _cli(["fit", tmp_path / "raw.csv", "--dof", 3, "--method", "joint",
+                           "--known", tmp_path / "known.csv", "--known-samples", 1,
+                           "--out", tmp_path / "cal.json"], capsys)
+    assert code == 3 and not (tmp_path / "cal.json").exists()
+    assert err.count("\n") == 1 and "offset is not identified" in err
+
+
+def test_plan_reports_the_single_reading_ratio():
+    from calib.plan import plan
+
+    U = simulate_payload_rig(0, poses=100).directions
+    res = plan(U, 4, samples=1)
+    # parameter errors dominate the bound's ratio; a new reading's own noise dilutes it
+    assert 1.0 < res["ratio_reading"] < res["ratio"]
+    assert res["ratio_reading"] <= res["ratio_reading_first"] + 1e-9
