@@ -252,7 +252,7 @@ def solve(pr: Problem, U, g, W, A=None, o=None, max_iter: int = 200, tol: float 
             S = Hl
         return S, Dinv
 
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         R, H, grad, D, gphi, B, T = system(A, o, U, g)
         improved = False
         for _ in range(40):

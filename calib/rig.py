@@ -52,6 +52,8 @@ from scipy.optimize import least_squares
 
 from ._numdiff import batched_jacobian
 from ._validate import check_matrix
+from .forward import grid
+from .forward import tangents as _tangents
 from .result import Calibration, CalibrationError
 
 #: A pose needs at least this many readings; shorter runs (transitions) are left out.
@@ -394,31 +396,11 @@ class PoseData:
         self.n_extra = len(extra_means)
 
 
-def _tangents(U: np.ndarray) -> np.ndarray:
-    """An orthonormal basis of the plane normal to each row of U (m, 3) -> (m, 2, 3); in 2-D the
-    normal itself (m, 1, 2)."""
-    if U.shape[1] == 2:
-        return np.stack([-U[:, 1], U[:, 0]], axis=1)[:, None, :]
-    a = np.eye(3)[np.argmin(np.abs(U), axis=1)]
-    t1 = np.cross(U, a)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(U, t1)
-    return np.stack([t1, t2], axis=1)
-
-
 @functools.lru_cache(maxsize=4)
 def sphere_grid(n: int, r: int) -> np.ndarray:
     """``n`` unit vectors spread evenly over the sphere (r = 3: a Fibonacci lattice) or the
-    circle (r = 2); cached, read-only."""
-    i = np.arange(n) + 0.5
-    if r == 2:
-        a = 2 * np.pi * i / n
-        out = np.column_stack([np.cos(a), np.sin(a)])
-    else:
-        polar = np.arccos(1 - 2 * i / n)
-        azim = np.pi * (1 + 5**0.5) * i
-        out = np.column_stack([np.cos(azim) * np.sin(polar), np.sin(azim) * np.sin(polar),
-                               np.cos(polar)])
+    circle (r = 2) (:func:`calib.forward.grid`); cached, read-only."""
+    out = grid(r, n)
     out.flags.writeable = False
     return out
 

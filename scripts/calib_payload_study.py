@@ -43,6 +43,9 @@ from calib.reliability import assess  # noqa: E402
 from calib.result import CalibrationError  # noqa: E402
 from calib.simulate import simulate_payload_rig  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from calib_rig_study import fmt  # noqa: E402  (median / 95th percentile / worst)
+
 CASES = {
     "8 gauges, 40 poses (the default)": {"poses": 80},
     "6 wrench channels (N, N*m)": {"poses": 80, "wrench": True},
@@ -100,14 +103,6 @@ def one(job):
         except (CalibrationError, np.linalg.LinAlgError):
             out["oracle"] = np.nan
     return case, seed, out
-
-
-def fmt(v):
-    v = np.asarray(v, float)
-    v = v[np.isfinite(v)]
-    if not len(v):
-        return "n/a"
-    return f"{np.median(v):.2f} / {np.percentile(v, 95):.2f} / {v.max():.3g}"
 
 
 def table(results):
