@@ -22,7 +22,7 @@ pose's 2 angles touch only its own readings), so a step costs ``O(P p^2 r^2)`` a
 are a few seconds. Starts (:func:`fit_forward`): the affine map of the known poses extended to the
 others by the magnitude constraint, calibrations handed in (the closed-form routes), random
 directions, each also *alternated* (the model refitted at the directions, then every unknown pose
-moved to the best of a grid of directions on its sphere: a global step per pose), and perturbed
+moved to the best direction on its sphere, exactly: a global step per pose), and perturbed
 restarts of the best; every start's cost under the final weights is reported, the lowest wins.
 
 Everything here is equivariant to the channels' units, order and offsets: the start weights
@@ -40,8 +40,7 @@ import numpy as np
 
 from .result import CalibrationError
 
-#: Directions tried per unknown pose by the global step (:func:`reinfer`): about 5 degrees apart
-#: on the sphere.
+#: Points of :func:`grid` (about 5 degrees apart on the sphere).
 GRID = 2000
 #: Starts with every unknown direction drawn uniformly, alternated; the best distinct ones are
 #: refined by LM.
@@ -145,23 +144,39 @@ def cost(pr: Problem, A, o, M, W) -> float:
     return float(np.sum((W * (pr.Y - M @ A.T - o)) ** 2))
 
 
-def reinfer(pr: Problem, A, o, g, W, U=None, directions=None):
-    """Every unknown pose moved to the direction of ``directions`` (default :func:`grid`) that
-    the model explains best, then (when ``U`` is given) kept at ``U`` if that is better: the
-    global step per pose. Cost per pose: ``-2 b.u + u^T Q u`` (no p in the grid loop)."""
-    G = grid(pr.r) if directions is None else directions
+def sphere_minimum(b, Q):
+    """The global minimum over unit u of ``-2 b.u + u^T Q u`` for every row: b (m, r), Q (m, r,
+    r) symmetric. A trust-region subproblem: ``u = (Q - mu I)^-1 b`` with ``mu`` below Q's
+    smallest eigenvalue and ``|u| = 1``, ``mu`` found by bisection in Q's eigenbasis (the norm is
+    monotone there). Exact, unlike a grid, and O(m)."""
+    lam, V = np.linalg.eigh(Q)
+    c = np.einsum("jab,ja->jb", V, b)  # b in the eigenbasis
+    nb = np.maximum(np.linalg.norm(b, axis=1), 1e-300)
+    lo = lam[:, 0] - nb  # |u(lo)| <= 1
+    hi = lam[:, 0] - 1e-15 * np.maximum(np.abs(lam).max(axis=1), nb)
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        n2 = np.sum((c / (lam - mid[:, None])) ** 2, axis=1)
+        big = n2 > 1
+        hi = np.where(big, mid, hi)
+        lo = np.where(big, lo, mid)
+    x = c / (lam - lo[:, None])
+    # the hard case (b orthogonal to the lowest eigenvector): |x| < 1, the rest along it
+    short = np.sqrt(np.clip(1 - np.sum(x**2, axis=1), 0, None))
+    x[:, 0] += np.where(x[:, 0] >= 0, 1.0, -1.0) * short
+    u = np.einsum("jab,jb->ja", V, x)
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def reinfer(pr: Problem, A, o, g, W, U=None):
+    """Every unknown pose moved to the direction on its sphere that the model explains best
+    (:func:`sphere_minimum`, exact), kept at ``U`` (when given) where that is as good: the global
+    step per pose. Cost per pose: ``-2 b.u + u^T Q u``."""
     u = pr.unknown
     W2 = W[u] ** 2
     b = g * ((W2 * (pr.Y[u] - o)) @ A)  # (nu, r)
     Q = g**2 * np.einsum("jc,ca,cb->jab", W2, A, A)  # (nu, r, r)
-    iu = np.triu_indices(pr.r)
-    fac = np.where(iu[0] == iu[1], 1.0, 2.0)
-    GG = (G[:, iu[0]] * G[:, iu[1]] * fac).T  # (n_tri, K)
-    out = np.empty((len(u), pr.r))
-    for s in range(0, len(u), 2000):
-        sl = slice(s, s + 2000)
-        c = -2 * b[sl] @ G.T + Q[sl][:, iu[0], iu[1]] @ GG
-        out[sl] = G[np.argmin(c, axis=1)]
+    out = sphere_minimum(b, Q)
     if U is not None:
         def per(V):
             return -2 * np.sum(b * V, axis=1) + np.einsum("ja,jab,jb->j", V, Q, V)
@@ -170,13 +185,19 @@ def reinfer(pr: Problem, A, o, g, W, U=None, directions=None):
     return out
 
 
-def alternate(pr: Problem, U, g, W, iters: int = 30):
-    """Directions after alternating the linear fit and :func:`reinfer` from U (until no pose
-    moves)."""
+def alternate(pr: Problem, U, g, W, iters: int = 15, tol: float = 1e-6):
+    """Directions after alternating the linear fit and :func:`reinfer` from U: until no pose
+    moves or the cost falls by less than ``tol`` (relative: the alternation crawls near an
+    optimum, where LM's refinement, which follows, is fast)."""
+    last = np.inf
     for _ in range(iters):
         A, o = linear_fit(pr, pr.loads(U, g), W)
+        c = cost(pr, A, o, pr.loads(U, g), W)
+        if c > last * (1 - tol):
+            break
+        last = c
         new = reinfer(pr, A, o, g, W, U)
-        if np.array_equal(new, U):
+        if np.max(np.abs(new - U)) < 1e-12:
             break
         U = new
     return U

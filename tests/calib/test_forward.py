@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from calib.forward import Problem, cost, fit_forward, gls_inverse, solve
+from calib.forward import Problem, cost, fit_forward, gls_inverse, grid, solve, sphere_minimum
 from calib.joint import choose_known_poses, fit_joint
 from calib.least_squares import fit_least_squares
 from calib.reliability import assess
@@ -244,3 +244,22 @@ def test_plan_reports_the_single_reading_ratio():
     # parameter errors dominate the bound's ratio; a new reading's own noise dilutes it
     assert 1.0 < res["ratio_reading"] < res["ratio"]
     assert res["ratio_reading"] <= res["ratio_reading_first"] + 1e-9
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), r=st.sampled_from([2, 3]),
+       log_scale=st.floats(-3, 3))
+def test_sphere_minimum_is_the_global_minimum(seed, r, log_scale):
+    """The per-pose global step is exact: no point of a fine grid does better."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(6, r)) * 10.0**log_scale
+    Q = (A.T @ A)[None]
+    b = rng.normal(size=(1, r)) * 10.0**log_scale * rng.uniform(0, 20)
+    u = sphere_minimum(b, Q)[0]
+    G = grid(r, 20_000)
+
+    def f(V):
+        return -2 * V @ b[0] + np.einsum("ka,ab,kb->k", V, Q[0], V)
+
+    assert abs(np.linalg.norm(u) - 1) < 1e-12
+    assert f(u[None])[0] <= f(G).min() + 1e-9 * (np.abs(Q).max() + np.abs(b).max())
