@@ -12,14 +12,15 @@ with ``s_c`` the within-pose scatter (estimated from repeats, 0 when no pose rep
 ``v_c`` each channel's pose-level variance (model misfit, and the whole reading noise when
 poses do not repeat). For fixed variances the negative log-likelihood is the weighted sum of
 squares ``sum_jc (y_jc - a_c . m_j - o_c)^2 / var_jc``; the variances are re-estimated from the
-residuals with the degrees of freedom the fit used (each channel's own ``r + 1`` and its share of
-the directions' leverage) until they settle (feasible generalised least squares; at its fixed
-point the likelihood equations hold with a degrees-of-freedom correction, as in REML).
+residuals, each divided by ``1 - h`` with ``h`` its own leverage (:func:`estimate_variances`),
+for a fixed :data:`REWEIGHT_ROUNDS` rounds of feasible generalised least squares. Not to a
+fixed point: without repeated readings the likelihood with a free variance per channel is
+unbounded (see :data:`REWEIGHT_ROUNDS`).
 
 The weighted least squares is solved by Levenberg-Marquardt on all parameters at once, the
 directions eliminated pose by pose through the Schur complement (the bundle-adjustment trick: a
-pose's 2 angles touch only its own readings), so a step costs ``O(P p^2 r^2)`` and 100,000 poses
-are a few seconds. Starts (:func:`fit_forward`): the affine map of the known poses extended to the
+pose's 2 angles touch only its own readings), so a step costs ``O(P p^2 r^2)``: a 100,000-reading
+sweep takes about 17 s. Starts (:func:`fit_forward`): the affine map of the known poses extended to the
 others by the magnitude constraint, calibrations handed in (the closed-form routes), random
 directions, each also *alternated* (the model refitted at the directions, then every unknown pose
 moved to the best direction on its sphere, exactly: a global step per pose), and perturbed
