@@ -19,12 +19,12 @@ unbounded (see :data:`REWEIGHT_ROUNDS`).
 
 The weighted least squares is solved by Levenberg-Marquardt on all parameters at once, the
 directions eliminated pose by pose through the Schur complement (the bundle-adjustment trick: a
-pose's 2 angles touch only its own readings), so a step costs ``O(P p^2 r^2)``: a
-100,000-reading sweep takes about 17 s. Starts (:func:`fit_forward`): the affine map of the known
-poses extended to the others by the magnitude constraint, calibrations handed in (the closed-form routes), random
+pose's 2 angles touch only its own readings), so a step costs ``O(P p^2 r^2)``: a 100,000-reading
+sweep takes about 17 s. Starts (:func:`fit_forward`): the affine map of the known poses extended to
+the others by the magnitude constraint, calibrations handed in (the closed-form routes), random
 directions, each also *alternated* (the model refitted at the directions, then every unknown pose
-moved to the best direction on its sphere, exactly: a global step per pose), and perturbed
-restarts of the best; every start's cost under the final weights is reported, the lowest wins.
+moved to the best direction on its sphere, exactly: a global step per pose), and perturbed restarts
+of the best; every start's cost under the final weights is reported, the lowest wins.
 
 Everything here is equivariant to the channels' units, order and offsets: the start weights
 are each channel's spread, the estimated variances scale with the channel, the model has a free
