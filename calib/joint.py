@@ -204,7 +204,7 @@ SAME_READING = 1e-6
 #: fit, every one its own pose (a slow sweep's neighbouring readings carry nearly the same load:
 #: on a simulated 100,000-reading payload sweep, 50,000 strided readings measured a held-out
 #: error 1.0266x least squares with every load known, all 100,000 1.0258x, in 9.6 s against
-#: 16.6 s).
+#: 16.5 s, one run each).
 FORWARD_MAX_ROWS = 50_000
 
 
@@ -242,11 +242,13 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     order = np.r_[[k for k in range(len(Zk)) if k not in extra], extra].astype(int)
     Mk = Mk[order]
     mags = np.linalg.norm(Mk, axis=1)
+    from .rig import SAME_MAGNITUDE
+
     g = (float(magnitude) if magnitude is not None
-         else float(np.median(mags)) if mags.max() <= (1 + _same_magnitude()) * mags.min()
+         else float(np.median(mags)) if mags.max() <= (1 + SAME_MAGNITUDE) * mags.min()
          else None)
-    # every row with more than one reading averaged (extra known poses) has counts > 1 but no
-    # within-pose scatter of its own: the pose-level variance covers it
+    # no pose repeats: each channel's variance is one reading's, a known reading stated as the
+    # mean of known_samples readings weighs that many times more (Problem.weights)
     pr = Problem(Y, counts, None, known, Mk, magnitude=g)
     starts = {}
     for name, cal in _starts(Z, Zk, Mk, dof, magnitude, motion).items():
@@ -326,12 +328,6 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     cal = Calibration(C=C, offset=offset, dof=dof, method="joint", diagnostics=diag)
     add_uncertainty(cal, off_se, C_se, channel_span(Z))
     return cal
-
-
-def _same_magnitude() -> float:
-    from .rig import SAME_MAGNITUDE
-
-    return SAME_MAGNITUDE
 
 
 def _inconsistent(s1: dict) -> bool:

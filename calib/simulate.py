@@ -460,6 +460,11 @@ def simulate_payload_rig(
     rng = np.random.default_rng(rng)
     if poses < 2 or readings < 1 or p < 3:
         raise CalibrationError("a payload rig needs >= 2 poses, >= 1 reading each, >= 3 channels")
+    for name, pair in (("mass_kg", mass_kg), ("com_m", com_m), ("scales", scales),
+                       ("noise", noise)):
+        a, b = (float(t) for t in pair)
+        if not (np.isfinite(a) and np.isfinite(b) and 0 < a <= b):
+            raise CalibrationError(f"{name} must be a range 0 < low <= high, got {pair}")
     lo, hi = (float(t) for t in tilt_deg)
     if not 0 <= lo < hi <= 180:
         raise CalibrationError(f"tilt_deg must be 0 <= low < high <= 180, got {tilt_deg}")

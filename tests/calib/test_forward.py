@@ -263,3 +263,35 @@ def test_sphere_minimum_is_the_global_minimum(seed, r, log_scale):
 
     assert abs(np.linalg.norm(u) - 1) < 1e-12
     assert f(u[None])[0] <= f(G).min() + 1e-9 * (np.abs(Q).max() + np.abs(b).max())
+
+
+def test_known_readings_stated_as_means_weigh_more():
+    """Known readings that are not rows of the log, each the mean of 100 readings: stated as such
+    (known_samples=100) they weigh 100 readings' worth and the fit follows them more closely
+    than when stated as single readings."""
+    d = simulate_payload_rig(21, poses=60)
+    Z = d.Z
+    rng = np.random.default_rng(0)
+    Mk = d.magnitude * sample_directions(4, 3, rng)
+    noise = (d.Z - (d.true_loads @ d.S + d.offset)).std(axis=0)
+    Zk = Mk @ d.S + d.offset + rng.normal(size=(4, Z.shape[1])) * noise / 10.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = fit_joint(Z, Zk, Mk, 3, known_samples=1)
+        hundred = fit_joint(Z, Zk, Mk, 3, known_samples=100)
+    assert one.diagnostics["joint"]["n_known_matched_to_rows"] == 0
+
+    def miss(cal):
+        return float(np.sqrt(np.mean((cal.apply(Zk) - Mk) ** 2)))
+
+    assert miss(hundred) < 0.5 * miss(one)
+
+
+@pytest.mark.parametrize("kw", [{"noise": (-1, 2)}, {"scales": (0, 1)}, {"mass_kg": (3, 1)},
+                                {"com_m": (float("nan"), 1)}, {"tilt_deg": (90, 30)},
+                                {"poses": 1}, {"readings": 0}])
+def test_payload_simulator_refuses_bad_settings(kw):
+    from calib.result import CalibrationError
+
+    with pytest.raises(CalibrationError):
+        simulate_payload_rig(0, **kw)
