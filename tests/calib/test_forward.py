@@ -43,8 +43,9 @@ def test_noise_free_random_sensors_are_recovered(p, cap, readings):
     assert np.max(np.abs(f["A"] - A) / np.abs(A).max(axis=1, keepdims=True)) < 1e-6
     assert np.max(np.abs(f["o"] - o) / np.abs(A).sum(axis=1)) < 1e-6
     assert np.max(np.abs(f["M"] - M)) < 1e-6 * 7.5
-    # the returned fit has the lowest cost of every start (under the final weights)
-    assert all(f["cost"] <= s["cost"] * (1 + 1e-9) + 1e-20 for s in f["starts"])
+    # the diagnostics report every start under the returned fit's weights (the bookkeeping the
+    # summary relies on; that the optimum is reached is the next test's, against the oracle)
+    assert min(s["cost"] for s in f["starts"]) == pytest.approx(f["cost"], rel=1e-12, abs=1e-20)
 
 
 def test_the_search_reaches_the_optimum_from_bad_starts():
