@@ -44,10 +44,12 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument(
         "--method",
         choices=("paper", "centered", "joint", "least_squares"),
-        default="centered",
-        help="bias route (default centered; paper needs p >= r+1 channels; joint fits the "
-        "magnitude rows and --known pairs together; least_squares: every row of RAW.csv has "
-        "its load in Fx,Fy[,Fz][,Tx,Ty,Tz] columns)",
+        default=None,
+        help="bias route. Default: joint (the maximum-likelihood fit of the magnitude rows and "
+        "the --known pairs together) with --bias, --dof 2 or 3 and at least 2 known loads; "
+        "centered otherwise. centered and paper (needs p >= r+1 channels) are the closed-form "
+        "shape-from-motion routes; least_squares: every row of RAW.csv has its load in "
+        "Fx,Fy[,Fz][,Tx,Ty,Tz] columns",
     )
     f.add_argument("--cv", choices=("poses",),
                    help="poses: leave-one-pose-out error over the known poses (joint, "
@@ -194,6 +196,11 @@ def _fit(args) -> str:
     from .sfm import fit_sfm
 
     _check_outputs([args.raw, args.known], args.out)
+    # the default route: the maximum-likelihood joint fit wherever it applies (issue 37);
+    # a known file with fewer than 2 loads falls back to centered once it is read
+    default_method = args.method is None
+    if default_method:
+        args.method = "joint" if args.bias and args.known and args.dof in (2, 3) else "centered"
     if args.method != "joint" or args.dof == 6:
         given = [flag for flag, v in (("--known-sigma", args.known_sigma),
                                       ("--magnitude-sigma", args.magnitude_sigma),
@@ -237,6 +244,16 @@ def _fit(args) -> str:
     if args.known:
         kh, kd = read_csv(args.known)
         known_Z, known_M = split_known(kh, kd, channels, args.dof)
+        if default_method and args.method == "joint" and len(known_Z) < 2:
+            given = [flag for flag, v in (
+                ("--known-samples", args.known_samples), ("--known-sigma", args.known_sigma),
+                ("--magnitude-sigma", args.magnitude_sigma), ("--model", args.model),
+                ("--drift", args.drift), ("--robust", args.robust), ("--cv", args.cv))
+                if v not in (None, False)]
+            if given:
+                raise CalibrationError(f"{given[0]} needs the joint route, which needs at least "
+                                       f"2 known loads ({args.known} has {len(known_Z)})")
+            args.method = "centered"
     if args.dof == 6:
         if known_Z is None:
             raise CalibrationError("--dof 6 needs --known with at least 6 known loads (see docs)")

@@ -89,7 +89,10 @@ def fit_ft6(
             f"rank-deficient excitation: the known loads span {int((sm > 1e-9 * sm[0]).sum())} of 6"
             " load dimensions; add loads with different torque/force ratios"
         )
-    stage = fit_bias(data.source, 3, method=method) if bias else fit_sfm(data.source, 3)
+    # unwhitened: the complement N below assumes the minimum-norm C_u, whose rows span the
+    # force subspace of the readings (a noise-weighted left inverse's rows do not)
+    stage = (fit_bias(data.source, 3, method=method, whiten=False) if bias
+             else fit_sfm(data.source, 3))
     C_u, z0 = stage.C, stage.offset
     # orthonormal complement N of the force subspace W = rowspace(C_u)
     Qf, _ = np.linalg.qr(np.column_stack([C_u.T, np.eye(p)]))

@@ -32,11 +32,13 @@ median 1.23x and the joint fit measures 1.31x all-known least squares.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.optimize import least_squares
 
 from ._validate import check_matrix
-from .bias import _finish, _prepare_source, fit_centered
+from .bias import _finish, _prepare_source, fit_bias, fit_centered
 from .models import summarise_folds
 from .result import CalibrationError, add_uncertainty, propagate
 from .sfm import principal
@@ -92,8 +94,19 @@ def fit_joint(
     ``joint`` (sigmas, fitted magnitude, residual rms of both kinds, solver status) and standard
     errors from the weighted Jacobian.
     """
-    motion = _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigma,
-                         drop_nonfinite, known_samples)
+
+    # the Sampson fit's own warnings reach the user only when it is the fit returned; as a
+    # start of the forward or rig fit, those fits report their own
+    with warnings.catch_warnings(record=True) as motion_warnings:
+        warnings.simplefilter("always")
+        motion = _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigma,
+                             drop_nonfinite, known_samples)
+
+    def sampson():
+        for m in motion_warnings:
+            warnings.warn_explicit(m.message, m.category, m.filename, m.lineno)
+        return motion
+
     from .stream import is_streamed
 
     for name, v, allowed in (("model", model, ("affine", "channel", "quadratic", "auto")),
@@ -105,7 +118,7 @@ def fit_joint(
             raise CalibrationError(f"model {model}/{drift} needs a static-pose log (the rig "
                                    "fit); this one is fitted by the forward or Sampson route")
         if poses is None or poses is False or dof not in (2, 3):
-            return motion
+            return sampson()
         # a log larger than memory: the forward fit on the same strided rows an array gets
         _, _, data = _prepare_source(Z, dof, drop_nonfinite, 0)
         rows = data.source.strided(_forward_step(data.n))
@@ -132,7 +145,7 @@ def fit_joint(
         if dof in (2, 3):
             return fit_forward_rows(Za[:: _forward_step(len(Za))], known_Z, known_M, dof,
                                     magnitude, known_samples, motion, n_total=len(Za))
-        return motion
+        return sampson()
     Mk = np.atleast_2d(np.asarray(known_M, float))[:, : motion.C.shape[0]]
     t = np.linspace(0.0, 1.0, len(Za))
     n_rejected = 0
@@ -148,10 +161,9 @@ def fit_joint(
                               starts=_starts(Zs, Zk, Mk_, dof, magnitude, m),
                               known_sigma=known_sigma)
 
-    import warnings as _w
 
-    with _w.catch_warnings():
-        _w.simplefilter("ignore")  # the starts' own warnings: the final fit reports its own
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the starts' own warnings: the final fit reports its own
         try:
             s1 = stage1(Za, labels, known_Z, Mk, motion)
         except CalibrationError as e:
@@ -159,7 +171,7 @@ def fit_joint(
             if model not in ("affine", "auto") or drift not in ("none", "auto"):
                 raise CalibrationError(f"model {model}/{drift} needs the rig fit, which failed: "
                                        f"{e}") from None
-            return motion
+            return sampson()
         auto = model == "auto" or drift == "auto"
         skipped = None
         if auto and not cv and _inconsistent(s1):
@@ -251,7 +263,10 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     # mean of known_samples readings weighs that many times more (Problem.weights)
     pr = Problem(Y, counts, None, known, Mk, magnitude=g)
     starts = {}
-    for name, cal in _starts(Z, Zk, Mk, dof, magnitude, motion).items():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the starts' warnings: this fit reports its own
+        closed_form = _starts(Z, Zk, Mk, dof, magnitude, motion)
+    for name, cal in closed_form.items():
         try:
             starts[name] = cal.apply(Y)
         except (CalibrationError, ValueError):
@@ -341,8 +356,8 @@ def _inconsistent(s1: dict) -> bool:
 def _starts(Z, known_Z, known_M, dof, magnitude, motion):
     starts = {"Sampson-distance joint fit": motion}
     try:
-        starts["centered + alignment"] = fit_centered(Z, dof, known_Z=known_Z, known_M=known_M,
-                                                      magnitude=magnitude)
+        starts["centered + alignment"] = fit_bias(Z, dof, known_Z=known_Z, known_M=known_M,
+                                                  magnitude=magnitude)
     except CalibrationError:
         pass
     return starts
@@ -432,12 +447,11 @@ def _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigm
             raise CalibrationError(f"{name} must be a positive number, got {v!r}")
     if known_sigma is not None and known_samples is not None:
         raise CalibrationError("give known_sigma or known_samples, not both")
-    import warnings as _w
 
-    with _w.catch_warnings():
+    with warnings.catch_warnings():
         # the start's warnings are not the result's: the final fit reports its own (one source
         # for the summary line and the warnings)
-        _w.simplefilter("ignore")
+        warnings.simplefilter("ignore")
         start = fit_centered(src, dof, known_Z=Zk, known_M=Mk, magnitude=magnitude)
     mu = data.mean
     step = int(np.ceil(n / JOINT_MAX_ROWS))

@@ -76,7 +76,7 @@ def run_trial(
         for m in methods:
             with warnings.catch_warnings(record=True) as w:
                 warnings.simplefilter("always", CalibrationWarning)
-                cal = fit_bias(d.Z, 3, method=m)
+                cal = fit_bias(d.Z, 3, method=m, whiten=False)
             mags = np.linalg.norm(cal.apply(d.Z), axis=1)
             acc[m]["offsets"].append(cal.offset)
             acc[m]["mag_mean"].append(mags.mean())
@@ -145,7 +145,7 @@ def random_shape_check(seeds, noise: float = 0.2) -> dict:
             for start in ("resolved", "naive"):
                 c = fit_paper(d.Z, 3, start=start)
                 res[start].append(np.mean(np.abs(c.offset - z0)))
-            c = fit_bias(d.Z, 3, method="centered")
+            c = fit_bias(d.Z, 3, method="centered", whiten=False)
             res["centered"].append(np.mean(np.abs(c.offset - z0)))
     return {k: {"median": float(np.median(v)), "max": float(np.max(v))} for k, v in res.items()}
 
@@ -191,7 +191,8 @@ def table1(
         ls.offset = z0.copy()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", CalibrationWarning)
-            sf = fit_bias(rot.Z, 3, method="centered", known_Z=Zk[:3], known_M=Mk[:3])
+            sf = fit_bias(rot.Z, 3, method="centered", known_Z=Zk[:3], known_M=Mk[:3],
+                          whiten=False)
         for L in loads:
             path = _smooth_path(200, rng)
             Zt = L * path @ S + z0 + rng.uniform(-1, 1, (200, p)) * reading_noise

@@ -17,7 +17,9 @@ Cases (3-DOF, seeded; sensor k uses seed k):
   (``calib.joint.choose_known_poses``), a rig-design choice.
 
 Routes: least squares with every load known (``bias=True``), centered (auto prior = the
-default; always prior tau 0.1; no prior), paper, joint. Every shape-from-motion route gets 4 known
+route's default; always prior tau 0.1; no prior), paper (centered and paper whiten their
+channels by default, issue 37), joint (``calib fit --bias`` with 2 or more known loads uses it
+by default since issue 37). Every shape-from-motion route gets 4 known
 pairs (motion cases: the first 4 samples with their true loads) for its frame. The joint route
 is told the accuracy of its known pairs: single readings in the motion cases
 (``known_samples=1``), pose means of 100 readings on the rig (``known_samples=100``).
@@ -50,8 +52,8 @@ from calib.simulate import random_shape, sample_directions, simulate  # noqa: E4
 CASES = ["full sphere", "90 deg cap", "60 deg cap", "anisotropic (ratio 5-10), 60 deg",
          "p = r = 3, full sphere", "p = r = 3, 90 deg cap", "static-pose rig, 4 known",
          "static-pose rig, 4 known spread"]
-ROUTES = ["least squares, all known", "centered (auto prior, default)", "centered, prior always",
-          "centered, no prior", "paper", "joint"]
+ROUTES = ["least squares, all known", "centered (auto prior)", "centered, prior always",
+          "centered, no prior", "paper", "joint (default with known pairs)"]
 
 
 def make_case(case: str, seed: int):
@@ -93,11 +95,11 @@ def fit_route(route, Z, M, Zk, Mk, single=False):
         return fit_least_squares(Z, M, bias=True)
     if route == "paper":
         return fit_bias(Z, 3, method="paper", known_Z=Zk, known_M=Mk)
-    if route == "joint":
+    if route.startswith("joint"):
         # the user states how many readings each known reading averages: 1 in the motion
         # cases (single readings), 100 on the rig (pose means)
         return fit_joint(Z, Zk, Mk, known_samples=1 if single else 100)
-    prior = {"centered (auto prior, default)": "auto", "centered, prior always": 0.1,
+    prior = {"centered (auto prior)": "auto", "centered, prior always": 0.1,
              "centered, no prior": None}[route]
     return fit_bias(Z, 3, known_Z=Zk, known_M=Mk, isotropy_prior=prior)
 

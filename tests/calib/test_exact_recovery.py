@@ -1,4 +1,8 @@
-"""Noise-free data: C and offsets are recovered to 1e-8 relative (2-, 3- and 6-DOF, every route)."""
+"""Noise-free data: C and offsets are recovered to 1e-8 relative (2-, 3- and 6-DOF, every route).
+
+With more channels than load components any left inverse of the shape is exact on noise-free
+readings; the routes that weigh channels by their noise (the bias routes' whitening, issue 37)
+return a weighted one, not the minimum-norm ``d.C``: for them ``C S^T = I`` is the check."""
 
 import numpy as np
 import pytest
@@ -43,7 +47,7 @@ def test_bias_exact_3dof(method, p, seed):
     d = simulate(S, 80, rng, magnitude=3.0, offset=z0)
     Zk, Mk = known_pairs(S, z0, 3, rng, 3.0)
     cal = fit_bias(d.Z, 3, method=method, known_Z=Zk, known_M=Mk)
-    assert rel(cal.C, d.C) < TOL
+    assert rel(cal.C @ S.T, np.eye(3)) < TOL
     assert rel(cal.offset, z0) < TOL
 
 
@@ -56,7 +60,7 @@ def test_bias_exact_2dof(method, p, seed):
     d = simulate(S, 40, rng, magnitude=2.0, offset=z0)
     Zk, Mk = known_pairs(S, z0, 2, rng, 2.0)
     cal = fit_bias(d.Z, 2, method=method, known_Z=Zk, known_M=Mk)
-    assert rel(cal.C, d.C) < TOL
+    assert rel(cal.C @ S.T, np.eye(2)) < TOL
     assert rel(cal.offset, z0) < TOL
 
 

@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calib.forward import Problem, cost, fit_forward, gls_inverse, grid, solve, sphere_minimum
@@ -81,69 +81,7 @@ def _joint(Z, Zk, Mk):
         return fit_joint(Z, Zk, Mk, 3, known_samples=1)
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck),
-          phases=[Phase.explicit, Phase.reuse, Phase.generate])
-@given(seed=st.integers(0, 10_000), log_scale=st.lists(st.floats(-4, 4), min_size=8,
-                                                        max_size=8),
-       shift=st.lists(st.floats(-1e3, 1e3), min_size=8, max_size=8), perm_seed=st.integers(0, 99))
-def test_joint_without_poses_is_equivariant(seed, log_scale, shift, perm_seed):
-    """Per-channel scaling (1e-4..1e4), a permutation and per-channel offsets of the readings
-    leave the calibrated loads unchanged (to 1e-6 of the load)."""
-    d, Z, M, known, Zt, _ = _payload_split(seed, poses=40)
-    a = _joint(Z, Z[known], M[known])
-    s = 10.0 ** np.asarray(log_scale)
-    perm = np.random.default_rng(perm_seed).permutation(8)
-    off = np.asarray(shift) * Z.std(axis=0)
-
-    def tf(X):
-        return (X * s + off)[:, perm]
-
-    b = _joint(tf(Z), tf(Z[known]), M[known])
-    assert np.max(np.abs(a.apply(Zt) - b.apply(tf(Zt)))) < 1e-6 * d.magnitude
-
-
-@settings(max_examples=8, deadline=None, suppress_health_check=list(HealthCheck),
-          phases=[Phase.explicit, Phase.reuse, Phase.generate])
-@given(seed=st.integers(0, 10_000), log_scale=st.lists(st.floats(-4, 4), min_size=8,
-                                                        max_size=8), perm_seed=st.integers(0, 99))
-def test_least_squares_is_equivariant_and_centered_to_order_and_offsets(seed, log_scale,
-                                                                        perm_seed):
-    """Least squares: units, order and offsets. The centered route (the paper's principal
-    subspace) is equivariant to channel order and offsets only: channel units change the
-    principal subspace it fits in (a known limit of the paper's SVD step)."""
-    d, Z, M, known, Zt, _ = _payload_split(seed, poses=60)
-    s = 10.0 ** np.asarray(log_scale)
-    perm = np.random.default_rng(perm_seed).permutation(8)
-
-    def tf(X, scale=s):
-        return (X * scale + 3.0 * Z.std(axis=0))[:, perm]
-
-    a = fit_least_squares(Z, M, bias=True)
-    b = fit_least_squares(tf(Z), M, bias=True)
-    assert np.max(np.abs(a.apply(Zt) - b.apply(tf(Zt)))) < 1e-6 * d.magnitude
-    from calib.bias import fit_bias
-
-    one = np.ones(8)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        a = fit_bias(Z, 3, method="centered", known_Z=Z[known], known_M=M[known])
-        b = fit_bias(tf(Z, one), 3, method="centered", known_Z=tf(Z[known], one),
-                     known_M=M[known])
-    assert np.max(np.abs(a.apply(Zt) - b.apply(tf(Zt, one)))) < 1e-6 * d.magnitude
-
-
-def test_a_redundant_channel_moves_the_loads_within_the_noise():
-    d, Z, M, known, Zt, Mt = _payload_split(5, poses=60)
-    a = _joint(Z, Z[known], M[known])
-    rng = np.random.default_rng(0)
-    w = rng.normal(size=8)
-    extra = Z @ w
-    noise = 0.01 * extra.std()
-    Z9 = np.column_stack([Z, extra + rng.normal(size=len(Z)) * noise])
-    Zt9 = np.column_stack([Zt, Zt @ w + rng.normal(size=len(Zt)) * noise])
-    b = _joint(Z9, Z9[known], M[known])
-    moved = float(np.sqrt(np.mean(np.sum((a.apply(Zt) - b.apply(Zt9)) ** 2, axis=1))))
-    assert moved < 0.5 * _heldout(a, Zt, Mt)
+# equivariance to units, order, offsets and a redundant channel, every route: test_equivariance.py
 
 
 def test_payload_rigs_within_oracle_and_least_squares():

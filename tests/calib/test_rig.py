@@ -562,10 +562,11 @@ def test_cli_models_unidentified_or_on_the_wrong_route_are_one_line_errors(rig_c
 
 
 def test_cli_a_route_far_from_the_pose_fit_exits_3(tmp_path, capsys):
-    # noise 1 % of span, seed 18: the paper route aligned to 4 known loads measures 44x the
-    # held-out error of all-known least squares (scripts/calib_rig_study.py); on a static-pose
-    # log calib fit cross-checks it against the pose-level joint fit and refuses it
-    raw, known = _train_and_known_csv(tmp_path, simulate_rig(18, noise=0.01))
+    # noise 1 % of span, seed 45 (the one rig of seeds 0-59 where it happens since the bias
+    # routes whiten their channels): the paper route aligned to 4 known loads disagrees with the
+    # pose-level joint fit by 39x that fit's residual; on a static-pose log calib fit
+    # cross-checks it and refuses it
+    raw, known = _train_and_known_csv(tmp_path, simulate_rig(45, noise=0.01))
     out = tmp_path / "cal.json"
     args = ["fit", raw, "--dof", "3", "--bias", "--known", known, "--out", str(out)]
     assert main(args + ["--method", "paper"]) == 3
