@@ -1,4 +1,4 @@
-"""Command line: ``calib fit``, ``calib apply``, ``calib trials`` (DESIGN.md section 6).
+"""Command line: ``calib fit``, ``apply``, ``evaluate``, ``plan``, ``trials`` (DESIGN.md section 6).
 
 Bad input ends the command with exit status 2 and one line on stderr, ``calib: error: ...``.
 Calibration warnings (poor excitation, hyperboloid, mirror ambiguity) are printed as one line
@@ -30,11 +30,16 @@ class Unreliable(Exception):
 def _parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="calib",
                       description="Least-squares and shape-from-motion calibration.")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser,
+                           help="the command to run (calib COMMAND --help lists its options)")
 
     f = sub.add_parser("fit", help="calibrate from raw readings of a load moved over orientations")
-    f.add_argument("raw", metavar="RAW.csv")
-    f.add_argument("--dof", type=int, choices=(2, 3, 6), required=True)
+    f.add_argument("raw", metavar="RAW.csv",
+                   help="raw readings: a header of channel names, one row per reading (with "
+                   "--method least_squares also each row's load columns)")
+    f.add_argument("--dof", type=int, choices=(2, 3, 6), required=True,
+                   help="load components: 2 (Fx,Fy), 3 (Fx,Fy,Fz) or 6 (Fx..Tz: needs --known "
+                   "with at least 6 known loads, or --method least_squares)")
     f.add_argument("--bias", action="store_true", help="estimate the sensor offsets too")
     f.add_argument(
         "--known",
@@ -99,23 +104,34 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--chunk-rows", metavar="N", type=int_in_range(1, 2**31 - 1),
                    help="stream RAW.csv N rows at a time (never all in memory) through the "
                    "statistics of the fit: for logs larger than memory")
-    f.add_argument("--out", metavar="CAL.json", required=True)
+    f.add_argument("--out", metavar="CAL.json", required=True,
+                   help="calibration to write (JSON: the fit, the channel names, its "
+                   "diagnostics); not written when unreliable unless --allow-unreliable")
 
     a = sub.add_parser("apply", help="convert raw readings to loads")
-    a.add_argument("cal", metavar="CAL.json")
-    a.add_argument("raw", metavar="RAW.csv")
-    a.add_argument("--drop-nonfinite", action="store_true")
-    a.add_argument("--out", metavar="LOADS.csv", required=True)
+    a.add_argument("cal", metavar="CAL.json", help="calibration written by calib fit")
+    a.add_argument("raw", metavar="RAW.csv",
+                   help="raw readings with a header; the calibrated channels are picked by "
+                   "name, other columns ignored (a CAL.json without channel names: "
+                   "exactly its channel columns, in order)")
+    a.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop readings with NaN/inf in a calibrated channel instead of "
+                   "failing (LOADS.csv then has fewer rows; count reported)")
+    a.add_argument("--out", metavar="LOADS.csv", required=True,
+                   help="loads to write, one row per reading: columns Fx,Fy[,Fz][,Tx,Ty,Tz] "
+                   "by the calibration's dof")
 
     e = sub.add_parser("evaluate", help="held-out load error of a calibration on test readings")
-    e.add_argument("cal", metavar="CAL.json")
+    e.add_argument("cal", metavar="CAL.json", help="calibration written by calib fit")
     e.add_argument("test", metavar="TEST.csv",
                    help="readings; with load columns (Fx,Fy[,Fz]...) each row's load, "
                    "else --known gives the loads of its poses")
     e.add_argument("--known", metavar="KNOWN.csv",
                    help="pose readings and loads: each static pose of TEST.csv takes the load "
                    "of the known reading it lies nearest to")
-    e.add_argument("--drop-nonfinite", action="store_true")
+    e.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop rows of TEST.csv with NaN/inf in any column instead of failing "
+                   "(count reported)")
 
     pl = sub.add_parser("plan", help="which rig poses get the known loads, and the accuracy "
                         "to expect (Cramer-Rao bound)")
@@ -134,10 +150,13 @@ def _parser() -> argparse.ArgumentParser:
                     help="counts per load unit of the sensor (isotropic model)")
 
     t = sub.add_parser("trials", help="the paper's Trials 1-4, Table 1 and figures")
-    t.add_argument("--out", metavar="DIR", default="calib_trials")
+    t.add_argument("--out", metavar="DIR", default="calib_trials",
+                   help="folder for trials.md and the figures, created if missing (default "
+                   "calib_trials)")
     t.add_argument("--seeds", type=int_in_range(1, 100_000), default=200,
                    help="seeds per trial (default 200)")
-    t.add_argument("--no-plots", action="store_true")
+    t.add_argument("--no-plots", action="store_true",
+                   help="write trials.md only, no PNG figures (they need matplotlib)")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 

@@ -17,9 +17,10 @@ input column is standardised with training-set statistics stored in the file.
 
 Whole episodes are held out (:func:`mkv_env.dataset.split_by_episode`, ``--held-out`` fraction,
 seeded by ``--seed``) to *measure*: a first network trained on the other episodes gives the
-held-out accuracy, then the saved policy is trained again on every episode (same seed and
-epochs; ``teacher_steps`` counts all rows, ``validation_trained_steps`` the first network's),
-so the validation never takes data from the policy. A fit runs ``--epochs`` passes, or more when
+held-out accuracy, then the saved policy is trained again on every episode (same seed,
+``--epochs`` and ``--min-updates``; ``teacher_steps`` counts all rows,
+``validation_trained_steps`` the first network's), so the validation never takes data from
+the policy. A fit runs ``--epochs`` passes, or more when
 those give fewer than ``--min-updates`` minibatch updates (default 1,000): at 1,200 teacher steps
 30 epochs are only 150 Adam steps, which left BC underfitted (:func:`planned_epochs`). Per
 command it reports held-out accuracy next to the majority-class baseline (always predicting the
@@ -152,6 +153,7 @@ def train(
     on_epoch=None,
     refit: bool = True,
     min_updates: int = MIN_UPDATES,
+    on_refit=None,
 ):
     """Behaviour-clone ``data`` (a :class:`mkv_env.dataset.Dataset`); returns ``(policy, meta)``.
 
@@ -159,9 +161,13 @@ def train(
     (``record["of"]``: the epochs this fit runs, :func:`planned_epochs`).
     With ``held_out > 0`` a first network trained on the other episodes measures the held-out
     accuracy; with ``refit`` (the default) the returned policy is then trained again, same
-    seed and epochs, on every episode, so the validation never costs the policy data (at 1,200
-    teacher steps a 20 % split left BC on two thirds of its data and failed on 2 of 3 new training
-    sets, issue 26). ``refit=False`` returns the validation network itself.
+    seed, ``epochs`` and ``min_updates``, on every episode; ``on_refit(epoch, record)`` is
+    ``on_epoch`` of that refit (no held-out numbers). The refit plans its epochs from all rows
+    (:func:`planned_epochs`): when ``min_updates`` raises them, its larger minibatch count per
+    epoch gives fewer epochs than the held-out fit ran. So the validation never costs the
+    policy data (at 1,200 teacher steps a 20 % split left BC on two thirds of its data and
+    failed on 2 of 3 new training sets, issue 26). ``refit=False`` returns the validation
+    network itself.
     """
     import numpy as np
 
@@ -198,7 +204,8 @@ def train(
         x_all = dataset_features(builder, data)
         policy, fit = fit_features(x_all, data["actions"].astype(np.int64), None, y_held,
                                    spec.n_features, epochs=epochs, batch_size=batch_size, lr=lr,
-                                   seed=seed, net_arch=net_arch, min_updates=min_updates)
+                                   seed=seed, net_arch=net_arch, min_updates=min_updates,
+                                   on_epoch=on_refit)
         fit["held_out"], fit["history"] = held_metrics, history
     meta = {
         "format": FORMAT,

@@ -71,7 +71,8 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog="mkv", description="MK-V teleop data, shape-from-motion policies, "
                                               "baselines and evaluation.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser,
-                           metavar="COMMAND")
+                           metavar="COMMAND",
+                           help="the command to run (mkv COMMAND --help lists its options)")
     for cmd in COMMANDS:
         module = importlib.import_module(cmd.module)
         sp = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)

@@ -39,7 +39,9 @@ def _decays(text: str):
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="+", metavar="DATA.npz",
                    help="teacher recordings (mkv record); several are stacked")
-    p.add_argument("--out", required=True, metavar="POLICY.npz")
+    p.add_argument("--out", required=True, metavar="POLICY.npz",
+                   help="policy file to write (must end in .npz; run it as "
+                        "--policy sfm:POLICY.npz)")
     p.add_argument("--preset", choices=("default", "paper", "ols"), default="default",
                    help="default: this package's features and solver (docs/sfm.md); paper: "
                         "exactly the paper's configuration (raw channels, least-squares "
@@ -61,7 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="stack the K previous observations")
     p.add_argument("--traces", type=_decays, default=None, metavar="D,D",
                    help="decay factors of exponential traces, e.g. 0.5,0.8 ('' for none)")
-    p.add_argument("--prev-action", choices=("none", "signed", "onehot"), default=None)
+    p.add_argument("--prev-action", choices=("none", "signed", "onehot"), default=None,
+                   help="the previous command as a feature: none, signed (-1/0/+1 per "
+                        "command) or onehot (default: as --features; signed for default, "
+                        "none for raw)")
     p.add_argument("--encoding", choices=("signed", "onehot"), default="signed",
                    help="command columns of the training matrix (default signed: -1/0/+1)")
     p.add_argument("--thresholds", choices=("learned", "fixed"), default=None,

@@ -14,7 +14,8 @@ from sfm_learn.cli.common import CliError, check_output_path, check_outputs, one
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset_id", metavar="ID", help="local Minari dataset id")
-    p.add_argument("--out", required=True, metavar="DATA.npz")
+    p.add_argument("--out", required=True, metavar="DATA.npz",
+                   help="dataset file to write (as mkv record writes)")
     p.add_argument("--data-path", metavar="DIR",
                    help="Minari's dataset folder (default: MINARI_DATASETS_PATH or "
                         "~/.minari/datasets)")

@@ -29,7 +29,9 @@ from sfm_learn.cli.common import (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p)
     p.add_argument("--policy", required=True, metavar="SPEC", help=POLICY_HELP)
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument("--seed", type=seed, default=0, metavar="S",
+                   help="env seed of the episode; the policy's seed is derived from it "
+                        "(default 0)")
     p.add_argument("--max-steps", type=positive_int, default=None, metavar="N",
                    help="stop after N steps (default: the episode's own end)")
     p.add_argument("--out", metavar="DIR|OUT.gif|OUT.mp4",

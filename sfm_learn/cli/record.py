@@ -29,10 +29,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
     p.add_argument("--policy", required=True, metavar="SPEC",
                    help=POLICY_HELP)
-    p.add_argument("--episodes", type=episodes_type, required=True, metavar="N")
+    p.add_argument("--episodes", type=episodes_type, required=True, metavar="N",
+                   help="episodes to record (at most 10,000,000)")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
                    help="episode i uses env seed S+i (default 0)")
-    p.add_argument("--out", required=True, metavar="DATA.npz")
+    p.add_argument("--out", required=True, metavar="DATA.npz",
+                   help="dataset file to write (observations, commands, rewards per step; "
+                        "mkv_env.dataset)")
     add_quiet_argument(p)
     add_trust_argument(p)
 

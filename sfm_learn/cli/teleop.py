@@ -29,11 +29,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p)
     p.add_argument("--episodes", type=int_in_range(1, 1000), default=1, metavar="N",
                    help="episodes to drive (default 1); episode i uses env seed S+i")
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument("--seed", type=seed, default=0, metavar="S",
+                   help="episode i uses env seed S+i (default 0)")
     p.add_argument("--fps", type=int_in_range(1, 60), default=10,
                    help="control steps per second of wall time (default 10: real time)")
     p.add_argument("--zoom", type=positive_float, default=1.0, help="window scale (default 1)")
-    p.add_argument("--out", required=True, metavar="RUN.npz")
+    p.add_argument("--out", required=True, metavar="RUN.npz",
+                   help="dataset file to write with the driven episodes (as mkv record "
+                        "writes)")
 
 
 def run(args) -> int:

@@ -29,7 +29,9 @@ from sfm_learn.cli.common import (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", metavar="DATA.npz", help="demonstrations (mkv record)")
-    p.add_argument("--out", required=True, metavar="BC.zip")
+    p.add_argument("--out", required=True, metavar="BC.zip",
+                   help="model zip to write: an SB3 PPO zip holding the cloned policy, plus "
+                        "mkv_meta.json (PPO.load reads it; run it as --policy bc:BC.zip)")
     p.add_argument(
         "--epochs",
         type=positive_int,
@@ -90,6 +92,20 @@ def _fmt_acc(acc: dict | None) -> str:
     return ", ".join(f"{k} {v:.3f}" for k, v in acc.items() if v is not None)
 
 
+def _refit_line(args, rows: int, epochs: int, held_epochs: int | None) -> str:
+    """The line that starts the refit: on every row, for the saved policy, and where its epoch
+    count comes from (planned from all rows as the held-out fit's was from its rows)."""
+    batches = -(-rows // args.batch_size)
+    if epochs > args.epochs:
+        why = (f"--epochs {args.epochs} raised to reach --min-updates {args.min_updates} at "
+               f"{batches} minibatches per epoch")
+        if held_epochs is not None and held_epochs != epochs:
+            why += f"; the held-out fit above ran {held_epochs} on its fewer rows"
+    else:
+        why = f"--epochs {args.epochs}, {batches} minibatches per epoch"
+    return f"refit of the saved policy on all {rows} rows: {epochs} epochs ({why})"
+
+
 def run(args) -> int:
     check_output_path(args.out)
     check_outputs([args.data], [args.out])
@@ -99,8 +115,10 @@ def run(args) -> int:
     with progress_for(args, args.epochs, f"train-bc {os.path.basename(args.data)}",
                       unit="epoch") as bar:
 
+        held_fit = {}
+
         def on_epoch(epoch, rec):
-            bar.total = rec["of"]
+            held_fit["epochs"] = bar.total = rec["of"]
             bar.update(1)
             if not args.quiet:
                 line = f"epoch {epoch}/{rec['of']}: train NLL {rec['train_nll']:.4f}"
@@ -110,6 +128,13 @@ def run(args) -> int:
                         f"{_fmt_acc(rec['held_out_accuracy'])}"
                     )
                 bar.write(line)
+
+        def on_refit(epoch, rec):
+            if epoch == 1:  # the first epoch of the refit: say what it is
+                bar.total = bar.n + rec["of"]
+                if not args.quiet:
+                    bar.write(_refit_line(args, data.n_steps, rec["of"], held_fit.get("epochs")))
+            bar.update(1)
 
         policy, meta = train(
             data,
@@ -121,11 +146,13 @@ def run(args) -> int:
             features=args.features,
             on_epoch=on_epoch,
             min_updates=args.min_updates,
+            on_refit=on_refit,
         )
     meta["dataset"]["file"] = os.path.basename(args.data)
     save(policy, meta, args.out)
     print(
-        f"{meta['teacher_steps']} training rows ({meta['teacher_episodes']} episodes), "
+        f"saved policy: {meta['teacher_steps']} training rows ({meta['teacher_episodes']} "
+        "episodes), "
         f"{meta['epochs']} epochs ({meta['updates']} updates) in {meta['train_wall_s']:.1f} s, "
         f"{len(meta['feature_spec']['obs_names'])} channels -> "
         f"{len(meta['input_mean'])} {args.features} features"

@@ -35,7 +35,10 @@ updates_type = int_in_range(0, 10_000_000)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_env_arguments(p, required=True)
-    p.add_argument("--out", required=True, metavar="DAGGER.zip")
+    p.add_argument("--out", required=True, metavar="DAGGER.zip",
+                   help="model zip to write: an SB3 PPO zip holding the final policy, plus "
+                        "mkv_meta.json (PPO.load reads it; run it as "
+                        "--policy dagger:DAGGER.zip)")
     p.add_argument("--steps", type=steps_type, default=12_000, metavar="N",
                    help="teacher queries (labelled steps) over all rounds (default 12000)")
     p.add_argument("--rounds", type=rounds_type, default=DEFAULTS["rounds"], metavar="R",

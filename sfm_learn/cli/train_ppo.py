@@ -67,7 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="raw: the rescaled sensors; features: plus decaying traces and the previous "
         "command, as SfM/BC see them (default: from the hyperparameter file)",
     )
-    p.add_argument("--out", required=True, metavar="PPO.zip")
+    p.add_argument("--out", required=True, metavar="PPO.zip",
+                   help="model zip to write: SB3's PPO zip plus mkv_meta.json "
+                        "(PPO.load reads it; run it as --policy ppo:PPO.zip)")
     p.add_argument(
         "--seed",
         type=seed,

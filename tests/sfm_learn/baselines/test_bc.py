@@ -348,3 +348,25 @@ def test_small_data_gets_the_minimum_number_of_updates(teacher_data, tmp_path, c
     assert meta["updates"] == meta["epochs"] * batches >= 1000
     assert (meta["epochs"] - 1) * batches < 1000 and meta["epochs"] > 30
     assert f"{meta['epochs']} epochs ({meta['updates']} updates)" in stdout
+
+
+def test_the_refit_says_it_is_the_saved_policy_and_where_its_epochs_come_from(teacher_data,
+                                                                             tmp_path, capsys):
+    # each fit plans its epochs from its own rows: with --min-updates raising them, the refit on
+    # every row (more minibatches per epoch) runs fewer epochs than the held-out fit printed
+    data = ds.load(teacher_data)  # 1,500 rows: 6 minibatches of 256; the held-out fit's 1,200: 5
+    out = tmp_path / "bc.zip"
+    code, stdout, _ = run(capsys, "train-bc", str(teacher_data), "--out", str(out), "--epochs",
+                          "3", "--min-updates", "100")
+    assert code == 0
+    meta = bc.read_metadata(out)
+    held_epochs = bc.planned_epochs(meta["validation_trained_steps"], 3, 256, 100)
+    assert meta["epochs"] == bc.planned_epochs(data.n_steps, 3, 256, 100) == 17 < held_epochs == 20
+    lines = stdout.splitlines()
+    refit = next(i for i, line in enumerate(lines) if line.startswith("refit"))
+    assert lines[refit - 1].startswith(f"epoch {held_epochs}/{held_epochs}:")
+    assert lines[refit] == (
+        f"refit of the saved policy on all {data.n_steps} rows: 17 epochs (--epochs 3 raised to "
+        "reach --min-updates 100 at 6 minibatches per epoch; the held-out fit above ran 20 on "
+        "its fewer rows)")
+    assert "saved policy: 1500 training rows (10 episodes), 17 epochs (102 updates)" in stdout
