@@ -28,7 +28,9 @@ Semantics are Gymnasium 1.x's (those of ``SyncVectorEnv`` over ``gymnasium.make(
 * truncation after ``max_episode_steps`` (the registration's limit, as ``TimeLimit`` does);
 * infos are dicts of arrays with ``_key`` masks; ``info["pose"]`` is a float array (n, 3)
   (``vector_infos=False`` skips them); the per-env dicts are built only when read
-  (:attr:`MKVVectorEnv.env_infos`).
+  (:attr:`MKVVectorEnv.env_infos`). The jam ids' ``info["scenario"]`` is an int64 array of
+  scenario codes (as SyncVectorEnv batches the single envs' numpy ints), named by
+  :func:`mkv_env.jams.scenario_name` or ``scenario_names``.
 
 For Stable-Baselines3, wrap it with :class:`mkv_env.sb3_vec.SB3VecEnv`.
 """
