@@ -14,7 +14,7 @@ from gymnasium import spaces
 from mkv_env import kernel as _kernel
 from mkv_env import robot as _robot
 from mkv_env.actions import ACTION_NVEC, NOOP_ACTION, OFF, action_space
-from mkv_env.jams import SCENARIOS, build_scenario
+from mkv_env.jams import SCENARIOS, build_scenario, scenario_code
 from mkv_env.params import RobotParams, channel_specs
 from mkv_env.sensors import SensorSuite
 from mkv_env.tracker import MotionTracker
@@ -536,7 +536,14 @@ class MKVJamEnv(MKVEnv):
 
     ## Starting State
     A seeded layout, a scenario drawn uniformly from ``scenarios``, the robot jammed in it.
-    ``info["scenario"]`` names it.
+    ``env.unwrapped.scenario`` names it.
+
+    ## Info
+    As ``MKV-v0``, plus ``escaped`` (bool) and ``scenario``: the jam's code, a numpy int64 index
+    into ``mkv_env.jams.SCENARIOS`` (also ``env.unwrapped.scenario_names``), 0 ``wall``,
+    1 ``corner``, 2 ``dead_end``, 3 ``wedge``, whatever subset ``scenarios`` allows;
+    ``mkv_env.jams.scenario_name(info["scenario"])`` gives the name. A code, not a string, so
+    Gymnasium's array wrappers (``NumpyToTorch``, vector infos as int arrays) take it.
 
     ## Episode End
     Terminated with ``info["escaped"] = True`` once the robot is free: not stuck,
@@ -557,6 +564,8 @@ class MKVJamEnv(MKVEnv):
     """
 
     _KERNEL_KIND = _kernel.KIND_JAM
+    scenario_names = SCENARIOS
+    """Names of the ``info["scenario"]`` codes, by code (``mkv_env.jams.SCENARIOS``)."""
 
     def __init__(self, scenarios=SCENARIOS, escape_reward: float = 5.0, n_clutter: int = 10,
                  **kwargs):
@@ -567,7 +576,8 @@ class MKVJamEnv(MKVEnv):
         super().__init__(n_clutter=n_clutter, **kwargs)
         self.scenarios = scenarios
         self.escape_reward = float(escape_reward)
-        self.scenario = None
+        self.scenario: str | None = None  # the current jam's name; its code goes in info
+        self._scenario_code = None
 
     def _build_world(self) -> World:
         rng = self.np_random
@@ -586,7 +596,7 @@ class MKVJamEnv(MKVEnv):
             if world.robot_overlaps():
                 continue
             if _drive_until_jammed(world, self, rng):
-                self.scenario = kind
+                self.scenario, self._scenario_code = kind, scenario_code(kind)
                 return world
         raise ValueError("could not build a jam scenario: the robot could not be driven into a "
                          "jam with these parameters (arena_size_m, n_clutter, robot_params: is "
@@ -604,12 +614,12 @@ class MKVJamEnv(MKVEnv):
     def _info(self, stuck: bool, collision: bool) -> dict[str, Any]:
         info = super()._info(stuck, collision)
         info["escaped"] = self._tracker.escapes > 0
-        info["scenario"] = self.scenario
+        info["scenario"] = self._scenario_code
         return info
 
     def _kernel_info(self, info: dict, cells: int, escaped: bool) -> None:
         info["escaped"] = escaped
-        info["scenario"] = self.scenario
+        info["scenario"] = self._scenario_code
 
 
 COVERAGE_CELL_M = 0.25

@@ -9,6 +9,7 @@ so every episode starts in a real jam, not a pose that merely looks like one.
 from __future__ import annotations
 
 import math
+import operator
 
 import numpy as np
 
@@ -16,7 +17,34 @@ from mkv_env.world import dead_end_walls
 
 SCENARIOS = ("wall", "corner", "dead_end", "wedge")
 """Kinds of jam: head-on/angled into the arena wall; into an arena corner; inside a U-shaped dead
-end; wedged in a gap between two cylinders narrower than the robot."""
+end; wedged in a gap between two cylinders narrower than the robot. A kind's index here is its
+code, ``info["scenario"]`` of the jam envs (:func:`scenario_code`, :func:`scenario_name`)."""
+
+SCENARIO_DTYPE = np.int64
+"""Type of the scenario codes in ``info`` (a numpy integer: Gymnasium's array wrappers, such as
+``NumpyToTorch``, convert it; a string they cannot)."""
+
+
+def scenario_code(name: str) -> np.int64:
+    """The code of jam scenario ``name``: its index in :data:`SCENARIOS`, as a numpy int64."""
+    try:
+        return SCENARIO_DTYPE(SCENARIOS.index(name))
+    except ValueError:
+        raise ValueError(f"unknown jam scenario {name!r}; known: {', '.join(SCENARIOS)}") from None
+
+
+def scenario_name(code) -> str:
+    """The name of the jam scenario with code ``code`` (``info["scenario"]``): a Python or numpy
+    integer, or a 0-d integer array or tensor (anything ``operator.index`` takes)."""
+    try:
+        i = None if isinstance(code, (bool, np.bool_)) else operator.index(code)
+    except TypeError:
+        i = None
+    if i is None or not 0 <= i < len(SCENARIOS):
+        raise ValueError(f"not a jam scenario code: {code!r} (codes are 0..{len(SCENARIOS) - 1}: "
+                         f"{', '.join(SCENARIOS)})")
+    return SCENARIOS[i]
+
 
 # wall: approach a random point of an arena wall
 WALL_END_MARGIN_M = 0.7

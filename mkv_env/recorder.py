@@ -23,6 +23,7 @@ import numpy as np
 
 import mkv_env
 from mkv_env import dataset as ds
+from mkv_env.jams import scenario_name
 from mkv_env.policies import make_policy
 
 _BOOL_INFO = ("stuck", "bumped", "collision", "in_jam")
@@ -82,7 +83,9 @@ class EpisodeRecorder:
     def begin(self, seed: int, info: dict) -> None:
         self._seeds.append(int(seed))
         self._lengths.append(0)
-        self._scenarios.append(info.get("scenario"))
+        scen = info.get("scenario")  # the jam envs' code; datasets keep the readable name
+        self._scenarios.append(scen if scen is None or isinstance(scen, str)
+                               else scenario_name(scen))
         if self.has_escaped is None:
             self.has_escaped = "escaped" in info
 

@@ -28,7 +28,9 @@ Semantics are Gymnasium 1.x's (those of ``SyncVectorEnv`` over ``gymnasium.make(
 * truncation after ``max_episode_steps`` (the registration's limit, as ``TimeLimit`` does);
 * infos are dicts of arrays with ``_key`` masks; ``info["pose"]`` is a float array (n, 3)
   (``vector_infos=False`` skips them); the per-env dicts are built only when read
-  (:attr:`MKVVectorEnv.env_infos`).
+  (:attr:`MKVVectorEnv.env_infos`). The jam ids' ``info["scenario"]`` is an int64 array of
+  scenario codes (as SyncVectorEnv batches the single envs' numpy ints), named by
+  :func:`mkv_env.jams.scenario_name` or ``scenario_names``.
 
 For Stable-Baselines3, wrap it with :class:`mkv_env.sb3_vec.SB3VecEnv`.
 """
@@ -50,6 +52,7 @@ from mkv_env.actions import ACTION_NVEC, OFF
 from mkv_env.envs import TRAIL_DROP_POINTS as _TRAIL_DROP
 from mkv_env.envs import TRAIL_MAX_POINTS as _TRAIL_MAX
 from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
+from mkv_env.jams import SCENARIO_DTYPE as _SCENARIO_DTYPE
 
 _MODES = {m.value: m for m in AutoresetMode}
 _VALID = frozenset(range(ACTION_NVEC[0]))  # values of an action's entries (both take 0, 1, 2)
@@ -115,6 +118,8 @@ class MKVVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.sensor_names = list(first.sensor_names)
+        if hasattr(first, "scenario_names"):  # the jam ids: names of the info["scenario"] codes
+            self.scenario_names = first.scenario_names
         n = self.num_envs
         self._obs = np.zeros((n, len(self.sensor_names)), dtype=np.float32)
         self._elapsed = np.zeros(n, dtype=np.int64)
@@ -157,7 +162,8 @@ class MKVVectorEnv(VectorEnv):
             self._col_spec = tuple((k, _MASK_KEY[k], index[k]) for k in names)
             self._max_steps = -1 if self.max_episode_steps is None else self.max_episode_steps
             self._has_scenario = hasattr(first, "scenario")
-            self._scenarios = np.full(n, None, dtype=object)
+            # the envs' scenario codes (numpy ints, as their info: SyncVectorEnv's int array)
+            self._scenarios = np.zeros(n, dtype=_SCENARIO_DTYPE)
             self._active = np.ones(n, dtype=bool)
             self._idle = np.zeros(n, dtype=bool)
             # autoresets in C (MKV-v0, MKV-v1 without rendering): see kernel.setup_resets
@@ -197,7 +203,8 @@ class MKVVectorEnv(VectorEnv):
     def _dicts(self, cols: dict, rows) -> list[dict | None]:
         """Per-env dicts from info columns (the rows that reported; None elsewhere)."""
         out: list[dict | None] = [None] * self.num_envs
-        values = {k: (v.tolist() if v.dtype != object else list(v)) for k, v in cols.items()}
+        values = {k: (v.tolist() if v.dtype != object and k not in _NUMPY_SCALAR_KEYS
+                      else list(v)) for k, v in cols.items()}
         for i in rows:
             d = {k: values[k][i] for k in cols}
             d["pose"] = tuple(d["pose"])
@@ -246,7 +253,7 @@ class MKVVectorEnv(VectorEnv):
             self._elapsed[i] = 0
             self._autoreset[i] = False
             if self._batch is not None and self._has_scenario:
-                self._scenarios[i] = self.envs[i].scenario
+                self._scenarios[i] = self.envs[i]._scenario_code
         self._started = True
         self.env_infos = infos
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
@@ -691,6 +698,8 @@ class MKVVectorEnv(VectorEnv):
 _INFO_COLUMNS = ("stuck", "bumped", "collision", "distance_m", "jams", "escapes", "collisions",
                  "in_jam", "pose")
 _MASK_KEY = {k: f"_{k}" for k in (*_INFO_COLUMNS, "escaped", "scenario", "cells_visited")}
+#: Info keys whose single-env values are numpy scalars (the per-env dicts keep them so).
+_NUMPY_SCALAR_KEYS = frozenset({"scenario"})
 
 
 def _masked(col: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ from conftest import FWD, OFF, open_floor, place, run
 from gymnasium.utils.env_checker import check_env
 
 import mkv_env  # noqa: F401
+from mkv_env.jams import scenario_name
 
 IDS = ["MKV-v0", "MKVJam-v0"]
 
@@ -102,7 +103,10 @@ def test_jam_env_starts_stuck_and_terminates_with_escaped():
     scenarios = set()
     for seed in range(12):
         obs, info = env.reset(seed=seed)
-        scenarios.add(info["scenario"])
+        code = info["scenario"]  # a numpy int code (array wrappers take it), named by the env
+        assert isinstance(code, np.int64)
+        assert scenario_name(code) == env.unwrapped.scenario
+        scenarios.add(env.unwrapped.scenario_names[code])
         assert info["in_jam"] and info["jams"] == 1 and not info["escaped"]
         # pressing on is hopeless: still stuck after another second
         for _ in range(10):

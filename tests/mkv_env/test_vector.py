@@ -32,7 +32,8 @@ def _same_info(a, b):
     for k in b:
         va, vb = a[k], b[k]
         if k == "pose":
-            vb = np.array([list(x) for x in vb])
+            # (float rows here; Gymnasium's object array has None where an env did not report)
+            vb = np.array([[0.0] * 3 if x is None else list(x) for x in vb])
         if k == "final_info":
             _same_info(va, vb)
             continue
@@ -41,6 +42,8 @@ def _same_info(a, b):
                 assert (x is None and y is None) or x.tobytes() == y.tobytes()
             continue
         assert np.array_equal(np.asarray(va), np.asarray(vb)), k
+        if k != "pose":  # the same dtypes too (info["scenario"]: int64 codes)
+            assert np.asarray(va).dtype == np.asarray(vb).dtype, k
 
 
 @pytest.mark.parametrize("env_id", IDS)
@@ -94,6 +97,36 @@ def test_same_step_autoreset_matches_gymnasium():
         _same_info(ra[4], rb[4])
         finals += int(ra[4].get("_final_obs", np.zeros(3, bool)).sum())
     assert finals >= 3
+
+
+@pytest.mark.parametrize("kernel", ["c", "python"])
+@pytest.mark.parametrize("env_id", ["MKVJam-v0", "MKVJam-v1"])
+def test_disabled_autoreset_and_masked_resets_match_gymnasium(env_id, kernel):
+    """Disabled autoreset with partial resets (one env mid-episode, then those that ended): the
+    infos, the int scenario codes and their ``_scenario`` masks included, as SyncVectorEnv's."""
+    a = _native(env_id, 3, max_episode_steps=4, autoreset_mode="Disabled", kernel=kernel)
+    b = _sync(env_id, 3, AutoresetMode.DISABLED, max_episode_steps=4, kernel=kernel)
+    oa, ia = a.reset(seed=7)
+    ob, ib = b.reset(seed=7)
+    _same_info(ia, ib)
+    rng = np.random.default_rng(3)
+    partial = 0
+    done = np.zeros(3, dtype=bool)
+    for t in range(14):
+        mask = np.array([False, True, False]) if t == 2 else done
+        if mask.any():
+            (oa, ia), (ob, ib) = (venv.reset(options={"reset_mask": mask}) for venv in (a, b))
+            assert oa.tobytes() == ob.tobytes()
+            _same_info(ia, ib)
+            assert ia["_scenario"].tolist() == mask.tolist()
+            partial += not mask.all()
+        act = rng.integers(0, 3, size=(3, 2))
+        ra, rb = a.step(act), b.step(act)
+        for x, y in zip(ra[:4], rb[:4], strict=False):
+            assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+        _same_info(ra[4], rb[4])
+        done = ra[2] | ra[3]
+    assert partial >= 2
 
 
 def test_env_i_equals_a_single_env_seeded_seed_plus_i():
