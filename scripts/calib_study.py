@@ -175,7 +175,18 @@ def main(argv=None):
     text = "\n".join(L) + "\n"
     from sfm_common.files import atomic_write_text
 
-    atomic_write_text(a.out, text)
+    # the study's own block of a.out (the other studies keep theirs: calib_rig_study,
+    # calib_payload_study, calib_low_signal write between their own markers)
+    begin, end = "<!-- calib_study:begin -->", "<!-- calib_study:end -->"
+    old = ""
+    if os.path.exists(a.out):
+        with open(a.out, encoding="utf-8") as f:
+            old = f.read()
+    if begin in old and end in old:
+        head, rest = old.split(begin, 1)
+        atomic_write_text(a.out, head + begin + "\n" + text + end + rest.split(end, 1)[1])
+    else:
+        atomic_write_text(a.out, begin + "\n" + text + end + "\n" + old)
     # the same tables inside docs/calib.md, between its study markers
     doc = a.doc
     if doc and os.path.exists(doc):
