@@ -67,23 +67,29 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[str]:
     regular file is never what was meant. ``suffix`` (default: ``path``'s extension) lets writers
     that pick a format from the name (matplotlib, Pillow) see the right one.
     """
-    path = os.path.realpath(os.fspath(path))
+    given = os.fspath(path)
+    path = os.path.realpath(given)
     check_writable_target(path)
     if suffix is None:
         suffix = os.path.splitext(path)[1]
     mode = (stat.S_IMODE(os.stat(path).st_mode) if os.path.isfile(path)
             else 0o666 & ~_umask())
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=os.path.dirname(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=os.path.dirname(path))
+    except OSError as e:  # name the path the user gave, not the temporary one
+        raise OSError(e.errno, e.strerror, given) from None
     os.close(fd)
     try:
         yield tmp
         os.chmod(tmp, mode)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(e, OSError) and e.filename in (tmp, path) and e.errno is not None:
+            raise OSError(e.errno, e.strerror, given) from None
         raise
 
 

@@ -16,9 +16,11 @@ Adding a policy spec prefix (``sfm:``, ``ppo:``, ``bc:``): add a line to
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
+import warnings
 from dataclasses import dataclass
 
 import sfm_learn  # noqa: F401  (registers the policy specs)
@@ -81,6 +83,17 @@ def build_parser() -> OneLineParser:
     return p
 
 
+@contextlib.contextmanager
+def _held_warnings():
+    """Library warnings (Gymnasium's "MKV-v0 is out of date", torch's on a pickled file) are
+    held while a command runs: shown at its end when it succeeds, dropped when it fails, so that
+    a failing command's one-line error is the only line it prints."""
+    with warnings.catch_warnings(record=True) as held:
+        yield
+    for w in held:  # reached only on success: an exception skips this
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``mkv`` console script; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -89,7 +102,8 @@ def main(argv=None) -> int:
     try:
         args = build_parser().parse_args(argv)
         prog = args._prog
-        return int(args._run(args) or 0)
+        with _held_warnings():
+            return int(args._run(args) or 0)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted; no output written", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -86,3 +86,26 @@ def test_outputs_must_differ_from_inputs_and_each_other(tmp_path):
         check_distinct([a], [link])
     with pytest.raises(ValueError, match="two outputs"):
         check_distinct([], [b, tmp_path / "b.json"])
+
+
+def test_a_failed_write_names_the_users_path_not_the_temporary_one(tmp_path, monkeypatch):
+    """A read-only or full file system fails inside mkstemp or the write of the temporary file:
+    the error names the path the user gave (issue 40: ".../ro/.tmp-a5lp8rjb.zip" was printed)."""
+    import errno
+    import tempfile
+
+    from sfm_common.files import atomic_path, atomic_write_text
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / ".tmp-x.zip"))
+
+    target = str(tmp_path / "out.zip")
+    with monkeypatch.context() as m:
+        m.setattr(tempfile, "mkstemp", refuse)
+        with pytest.raises(OSError) as e:
+            atomic_write_text(target, "x")
+    assert e.value.filename == target and e.value.errno == errno.EROFS
+    with pytest.raises(OSError) as e, atomic_path(target) as tmp:
+        raise OSError(errno.ENOSPC, "No space left on device", tmp)
+    assert e.value.filename == target and e.value.errno == errno.ENOSPC
+    assert [p.name for p in tmp_path.iterdir()] == []  # nothing left behind

@@ -184,3 +184,36 @@ def test_console_script_runs(tmp_path):
     r = subprocess.run([exe, "eval", "--env", "MKV-v0", "--policy", "nope", "--episodes", "1"],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.count("\n") == 1
+
+
+def test_library_warnings_before_a_one_line_error_are_dropped(monkeypatch, capsys):
+    """Issue 40: a warning raised by a library while a command runs (Gymnasium's "MKV-v0 is out
+    of date") is shown when the command succeeds and dropped when it fails: the one-line error
+    is then the only line on stderr."""
+    import argparse
+    import warnings
+
+    from sfm_learn.cli import app
+    from sfm_learn.cli.common import CliError
+
+    def run(ok):
+        def _run(args):
+            warnings.warn("the library says something", DeprecationWarning, stacklevel=1)
+            if not ok:
+                raise CliError("it failed")
+            return 0
+        return _run
+
+    for ok in (False, True):
+        parser = argparse.ArgumentParser()
+        parser.set_defaults(_run=run(ok), _prog="mkv x")
+        monkeypatch.setattr(app, "build_parser", lambda p=parser: p)
+        with warnings.catch_warnings(record=True) as shown:
+            warnings.simplefilter("always")
+            code = app.main([])
+        err = capsys.readouterr().err
+        said = [str(w.message) for w in shown]
+        if ok:  # shown (after the command: held until then)
+            assert code == 0 and said == ["the library says something"]
+        else:
+            assert code == 2 and said == [] and err == "mkv x: error: it failed\n"
