@@ -368,7 +368,6 @@ def write_report(
 
     from sfm_common.files import atomic_write_text
 
-    os.makedirs(out_dir, exist_ok=True)
     seed_list = list(range(seeds))
     sweep_list = list(range(sweep_seeds if sweep_seeds is not None else max(seeds // 4, 10)))
     n_caps, n_noise = 8, 9
@@ -401,6 +400,7 @@ def write_report(
         f"| {f6['sfm']:.4f} | {f6['ls_same']:.4f} | {f6['ls_double']:.4f} |",
     ]
     figs = []
+    os.makedirs(out_dir, exist_ok=True)  # only now: an interrupted run leaves no folder
     if plots:
         from . import plots as P
 

@@ -9,6 +9,7 @@ system a daemon thread checks every half second that the main process still exis
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -28,7 +29,10 @@ def _alive(pid: int) -> bool:
 
 
 def die_with(main_pid: int) -> None:
-    """Call in a worker (e.g. as a pool initializer): end this process when ``main_pid`` ends."""
+    """Call in a worker (e.g. as a pool initializer): end this process when ``main_pid`` ends.
+    The worker also ignores SIGINT from then on: the main process handles Ctrl-C and stops it
+    (see :func:`children_ignore_sigint` for the moments before this runs)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -47,3 +51,43 @@ def die_with(main_pid: int) -> None:
             threading.Event().wait(POLL_S)
 
     threading.Thread(target=watch, name="die-with-main", daemon=True).start()
+
+
+@contextlib.contextmanager
+def children_ignore_sigint(ctx=None):
+    """Processes started inside this block never see SIGINT.
+
+    Ctrl-C at a terminal signals the whole process group: a pool's workers, and the forkserver
+    that forks them, would each print a ``KeyboardInterrupt`` traceback (a worker still importing
+    its modules has no handler yet), and a Ctrl-C that lands while a worker is being started
+    leaves it half-started (its traceback: ``FileNotFoundError`` rebuilding a semaphore the main
+    process has already removed). Here, while the processes start:
+
+    - SIGINT is blocked in this thread; a signal mask survives fork and exec, so the processes
+      start with SIGINT blocked and keep it so (the workers' initializer also ignores it): only
+      the main process sees Ctrl-C, and stops them (one line, exit 130);
+    - a Ctrl-C delivered to another thread of this process is only recorded, and raised as
+      ``KeyboardInterrupt`` when the block ends (no process is left half-started).
+
+    With ``ctx`` a forkserver context, its server is started inside the block too (every process
+    it forks inherits the mask). Main thread only (signal handlers live there); elsewhere, or
+    without ``pthread_sigmask``, it does nothing.
+    """
+    if (not hasattr(signal, "pthread_sigmask")
+            or threading.current_thread() is not threading.main_thread()):
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda *a: caught.append(a))
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        if ctx is not None and ctx.get_start_method() == "forkserver":
+            from multiprocessing import forkserver
+
+            forkserver.ensure_running()
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)  # a pending Ctrl-C is delivered here
+    if caught:
+        raise KeyboardInterrupt

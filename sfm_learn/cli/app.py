@@ -94,8 +94,10 @@ def _held_warnings():
         warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
 
 
-def main(argv=None) -> int:
-    """Entry point of the ``mkv`` console script; returns the exit status."""
+def main(argv=None, *, nested: bool = False) -> int:
+    """Entry point of the ``mkv`` console script; returns the exit status. ``nested``: called as
+    a stage of another command (``mkv demo``), a Ctrl-C propagates as ``KeyboardInterrupt``
+    instead of being reported here (the outer command reports it, once)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     prog = "mkv"
     debug = bool(os.environ.get("MKV_DEBUG"))
@@ -105,6 +107,8 @@ def main(argv=None) -> int:
         with _held_warnings():
             return int(args._run(args) or 0)
     except KeyboardInterrupt:
+        if nested:
+            raise
         print(f"{prog}: interrupted; no output written", file=sys.stderr)
         return EXIT_INTERRUPTED
     except UsageError as e:

@@ -132,7 +132,7 @@ class _Stages:
         if self.quiet and "--quiet" not in argv and argv[0] in ("record", "train-ppo",
                                                                  "train-bc"):
             argv.append("--quiet")
-        return self._run(title, "mkv " + shlex.join(argv), lambda: main(argv))
+        return self._run(title, "mkv " + shlex.join(argv), lambda: main(argv, nested=True))
 
     def call(self, title: str, shown: str, fn) -> float:
         return self._run(title, shown, lambda: (fn(), 0)[1])
@@ -234,15 +234,22 @@ def _run(args, out: str, final: str) -> None:
     dagger = [p("policies", f"dagger_{k}.zip") for k in sets]
     ppo = {JAM_ENV: p("policies", "ppo_jam.zip"), WANDER_ENV: p("policies", "ppo_wander.zip")}
 
+    def mkv(argv):
+        from sfm_learn.cli.app import main
+
+        return main(argv, nested=True)
+
     def each(fn):
         for k in sets:
-            if fn(k):
+            code = fn(k)
+            if code == 130:  # the stage was interrupted (Ctrl-C): not a failure
+                raise KeyboardInterrupt
+            if code:
                 raise CliError(f"stage failed for training set {k}")
 
     def record_sets():
-        from sfm_learn.cli.app import main
 
-        each(lambda k: main(["record", "--env", TEACHER_ENV, *env_kwargs, "--policy", "teacher",
+        each(lambda k: mkv(["record", "--env", TEACHER_ENV, *env_kwargs, "--policy", "teacher",
                              "--episodes", str(b.train_episodes), "--seed",
                              str(b.train_seeds()[k]), "--out", trains[k], "--quiet"]))
 
@@ -255,11 +262,10 @@ def _run(args, out: str, final: str) -> None:
         "--episodes", b.held_episodes, "--seed", b.held_seed, "--out", held])
 
     def fit_sets():
-        from sfm_learn.cli.app import main
 
-        each(lambda k: main(["fit", trains[k], "--out", sfm[k]]
+        each(lambda k: mkv(["fit", trains[k], "--out", sfm[k]]
                             + (["--spectrum", p("sfm_spectrum.png")] if k == 0 else [])))
-        each(lambda k: main(["fit", trains[k], "--preset", "paper", "--out", paper[k]]
+        each(lambda k: mkv(["fit", trains[k], "--preset", "paper", "--out", paper[k]]
                             + (["--spectrum", p("sfm_paper_spectrum.png")] if k == 0 else [])))
 
     st.call("fit the SfM policy (default and the paper's preset) on every training set",
@@ -308,9 +314,8 @@ def _run(args, out: str, final: str) -> None:
             run_studies)
 
     def bc_sets():
-        from sfm_learn.cli.app import main
 
-        each(lambda k: main(["train-bc", trains[k], "--out", bc[k], "--epochs",
+        each(lambda k: mkv(["train-bc", trains[k], "--out", bc[k], "--epochs",
                              str(b.bc_epochs), "--seed", str(b.train_seed), "--held-out", "0",
                              "--quiet"]))
 
@@ -320,9 +325,8 @@ def _run(args, out: str, final: str) -> None:
     steps_per_set = b.train_episodes * (b.episode_steps or 600)
 
     def dagger_sets():
-        from sfm_learn.cli.app import main
 
-        each(lambda k: main(["train-dagger", "--env", TEACHER_ENV, *env_kwargs, "--steps",
+        each(lambda k: mkv(["train-dagger", "--env", TEACHER_ENV, *env_kwargs, "--steps",
                              str(steps_per_set), "--rounds", str(b.dagger_rounds), "--seed",
                              str(b.train_seeds()[k]), "--epochs", str(b.bc_epochs), "--out",
                              dagger[k], "--quiet"]))

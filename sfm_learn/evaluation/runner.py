@@ -220,14 +220,17 @@ def _run_parallel(env_id, env_kwargs, specs, seed, units, workers, start_method,
                 on_unit_episode(uid, i, n)
             reported[0] += len(done)
 
+    from sfm_common.workers import children_ignore_sigint
+
     pool = futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
                                        initializer=_init_worker,
                                        initargs=(progress_q, os.getpid()))
     results: dict[int, list[EpisodeRecord]] = {}
     try:
-        pending = {pool.submit(_worker_unit, uid, env_id, env_kwargs, specs[p], seed,
-                               seed + first, count): uid
-                   for uid, (p, first, count) in enumerate(units)}
+        with children_ignore_sigint(ctx):  # the workers start at the submits
+            pending = {pool.submit(_worker_unit, uid, env_id, env_kwargs, specs[p], seed,
+                                   seed + first, count): uid
+                       for uid, (p, first, count) in enumerate(units)}
         while pending:
             done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
             drain()

@@ -511,13 +511,14 @@ def run_sweep(spec: dict, out_dir: str, *, backend: str = "local", workers: int 
     else:
         import multiprocessing as mp
 
-        from sfm_common.workers import die_with
+        from sfm_common.workers import children_ignore_sigint, die_with
         from sfm_learn.evaluation.runner import default_start_method
 
         ctx = mp.get_context(default_start_method())
         with futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=die_with,
                                          initargs=(os.getpid(),)) as pool:
-            futs = {pool.submit(_job_entry, spec, job, out_dir): job for job in todo}
+            with children_ignore_sigint(ctx):  # the workers start at the submits
+                futs = {pool.submit(_job_entry, spec, job, out_dir): job for job in todo}
             try:
                 for fut in futures.as_completed(futs):
                     done(futs[fut], fut.result())
