@@ -42,7 +42,9 @@ def main() -> None:
     args = ap.parse_args()
     import ray
 
-    ray.init(num_cpus=max(2, args.env_runners + 1), include_dashboard=False,
+    # a new local Ray of its own ("local"): not RAY_ADDRESS's, nor the one a dead `ray start`
+    # left in /tmp/ray/ray_current_cluster (which would refuse num_cpus)
+    ray.init(address="local", num_cpus=max(2, args.env_runners + 1), include_dashboard=False,
              log_to_driver=False)
     algo = build(args.env, args.env_runners)
     try:

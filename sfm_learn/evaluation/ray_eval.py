@@ -27,9 +27,15 @@ def import_ray():
 
 
 def init_ray(address: str | None, workers: int):
-    """Connect to the cluster at ``address``, or start a local Ray with ``workers`` CPUs (no
-    dashboard, worker logs not forwarded). Reuses a running session. ValueError (one line) when
-    the cluster cannot be reached."""
+    """Connect to the cluster at ``address``, or start a private local Ray with ``workers`` CPUs
+    (no dashboard, worker logs not forwarded). Reuses a running session. ValueError (one line)
+    when the cluster cannot be reached.
+
+    Without ``address`` the local Ray is always a new one (``ray.init(address="local")``): a bare
+    ``ray.init`` would instead connect to ``RAY_ADDRESS`` or to the last ``ray start --head``
+    recorded in ``<tmp>/ray/ray_current_cluster``, a file left behind when that head died without
+    ``ray stop``, and then refuse ``num_cpus``. Ray shuts the local instance down when the process
+    exits (its atexit handler), as before."""
     if address:
         use_cluster_token()  # before Ray is imported: it reads the mode then
     ray = import_ray()
@@ -43,7 +49,7 @@ def init_ray(address: str | None, workers: int):
         if address:
             ray.init(address=address, **kwargs)
         else:
-            ray.init(num_cpus=int(workers), **kwargs)
+            ray.init(address="local", num_cpus=int(workers), **kwargs)
     except Exception as e:  # noqa: BLE001  (ConnectionError, RuntimeError, ...: one line)
         text = (str(e).strip().splitlines() or [type(e).__name__])[0]
         where = f"the Ray cluster at {address}" if address else "a local Ray"

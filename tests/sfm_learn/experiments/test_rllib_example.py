@@ -17,7 +17,7 @@ def test_one_iteration_with_two_env_runners():
     spec = importlib.util.spec_from_file_location("rllib_ppo", EXAMPLE)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    ray.init(num_cpus=3, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=3, include_dashboard=False, log_to_driver=False)
     try:
         algo = mod.build("mkv_env:MKV-v1", env_runners=2, train_batch=500)
         result = algo.train()
