@@ -100,7 +100,7 @@ def feature_spec_from_args(args, names):
 
 
 def run(args) -> int:
-    from sfm_learn.eigenspace.policy import PRESETS, fit_policy
+    from sfm_learn.eigenspace.policy import PRESETS, check_fit_rows, fit_policy
     from sfm_learn.reporting.tables import spectrum_lines
 
     check_output_path(args.out)
@@ -119,6 +119,13 @@ def run(args) -> int:
     if args.rank is not None and not 1 <= args.rank <= spec.n_features + 2:
         raise CliError(f"--rank must be in [1, {spec.n_features + 2}] for {spec.n_features} "
                        f"features and 2 commands, got {args.rank}")
+    rows = sum(d.n_steps for d in datasets)
+    what = (f"dataset {args.data[0]}" if len(args.data) == 1
+            else f"datasets {', '.join(args.data)} (together)")
+    try:  # before anything is fitted or written (min_fit_rows says why this minimum)
+        check_fit_rows(rows, spec, args.encoding, what)
+    except ValueError as e:
+        raise CliError(str(e)) from None
     solver = args.solver or PRESETS[args.preset]["solver"]
     thresholds = args.thresholds or PRESETS[args.preset]["thresholds"]
     min_support = (PRESETS[args.preset]["min_support"] if args.min_support is None
