@@ -38,7 +38,9 @@ def _decays(text: str):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="+", metavar="DATA.npz",
-                   help="teacher recordings (mkv record); several are stacked")
+                   help="teacher recordings (mkv record); several are stacked; at least "
+                        "features + commands + 1 steps in all (35 by default, 13 for --preset "
+                        "paper)")
     p.add_argument("--out", required=True, metavar="POLICY.npz",
                    help="policy file to write (must end in .npz; run it as "
                         "--policy sfm:POLICY.npz)")

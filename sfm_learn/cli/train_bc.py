@@ -37,7 +37,9 @@ from sfm_learn.cli.common import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", metavar="DATA.npz", help="demonstrations (mkv record)")
+    p.add_argument("data", metavar="DATA.npz",
+                   help="demonstrations (mkv record); at least features + 1 steps (33 by default, "
+                        "11 for --features raw)")
     p.add_argument("--out", required=True, metavar="BC.zip",
                    help="model zip to write: an SB3 PPO zip holding the cloned policy, plus "
                         "mkv_meta.json (PPO.load reads it; run it as --policy bc:BC.zip)")

@@ -40,7 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "mkv_meta.json (PPO.load reads it; run it as "
                         "--policy dagger:DAGGER.zip)")
     p.add_argument("--steps", type=steps_type, default=12_000, metavar="N",
-                   help="teacher queries (labelled steps) over all rounds (default 12000)")
+                   help="teacher queries (labelled steps) over all rounds (default 12000); at "
+                        "least 32 x rounds + 1, so round 0's fit has features + 1 rows")
     p.add_argument("--rounds", type=rounds_type, default=DEFAULTS["rounds"], metavar="R",
                    help=f"rounds; round 0 is the teacher driving (default {DEFAULTS['rounds']})")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
