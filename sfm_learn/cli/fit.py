@@ -102,7 +102,13 @@ def feature_spec_from_args(args, names):
 
 
 def run(args) -> int:
-    from sfm_learn.eigenspace.policy import PRESETS, check_fit_rows, fit_policy
+    from sfm_learn.eigenspace.policy import (
+        PRESETS,
+        check_fit_rows,
+        check_fit_size,
+        fit_columns,
+        fit_policy,
+    )
     from sfm_learn.reporting.tables import spectrum_lines
 
     check_output_path(args.out)
@@ -125,6 +131,7 @@ def run(args) -> int:
     what = (f"dataset {args.data[0]}" if len(args.data) == 1
             else f"datasets {', '.join(args.data)} (together)")
     try:  # before anything is fitted or written (min_fit_rows says why this minimum)
+        check_fit_size(rows, fit_columns(spec, args.encoding))  # too many columns: say that first
         check_fit_rows(rows, spec, args.encoding, what)
     except ValueError as e:
         raise CliError(str(e)) from None

@@ -44,7 +44,8 @@ from sfm_common.files import atomic_path
 from sfm_learn.eigenspace.projector import EigenspaceProjector
 
 __all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thresholds",
-           "quantise", "FORMAT", "PRESETS", "preset", "min_fit_rows", "check_fit_rows"]
+           "quantise", "FORMAT", "PRESETS", "preset", "fit_columns", "min_fit_rows",
+           "check_fit_rows"]
 
 FORMAT = "mkv-sfm-policy"
 FORMAT_VERSION = 2  # 2: the complete projector (to_arrays); 1: run-time arrays only
@@ -404,6 +405,16 @@ def check_fit_size(n_rows: int, n_columns: int) -> None:
                          "machine's memory) is allowed: use fewer rows or features")
 
 
+def fit_columns(feature_spec: FeatureSpec, encoding: str = "signed") -> int:
+    """Columns of a stacked training row ``[features, commands]``: ``n_features`` plus one signed
+    column per command, or one one-hot column per command value."""
+    if encoding not in ("signed", "onehot"):
+        raise ValueError(f"encoding must be 'signed' or 'onehot', got {encoding!r}")
+    n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"
+                 else len(feature_spec.action_nvec))
+    return int(feature_spec.n_features) + int(n_targets)
+
+
 def min_fit_rows(feature_spec: FeatureSpec, encoding: str = "signed") -> int:
     """Fewest training rows (time steps) an SfM fit of ``feature_spec`` accepts: one more than
     the columns of a stacked row ``[features, commands]`` (``n_features`` plus 2 signed command
@@ -422,11 +433,7 @@ def min_fit_rows(feature_spec: FeatureSpec, encoding: str = "signed") -> int:
     up). Learned thresholds need no more: a command value absent from the training rows is
     never predicted (its threshold is stored at +-1e6), at any size.
     """
-    if encoding not in ("signed", "onehot"):
-        raise ValueError(f"encoding must be 'signed' or 'onehot', got {encoding!r}")
-    n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"
-                 else len(feature_spec.action_nvec))
-    return int(feature_spec.n_features) + int(n_targets) + 1
+    return fit_columns(feature_spec, encoding) + 1
 
 
 def check_fit_rows(n_rows: int, feature_spec: FeatureSpec, encoding: str = "signed",
@@ -490,8 +497,8 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
         raise ValueError("the feature spec's obs_names differ from the dataset's sensor names")
     n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"
                  else len(feature_spec.action_nvec))
-    check_fit_rows(sum(d.n_steps for d in datasets), feature_spec, encoding)
     check_fit_size(sum(d.n_steps for d in datasets), feature_spec.n_features + n_targets)
+    check_fit_rows(sum(d.n_steps for d in datasets), feature_spec, encoding)
     builder = FeatureBuilder(feature_spec)
     feats = np.concatenate([builder.transform(d["observations"], d["actions"], episode_starts(d))
                             for d in datasets])
