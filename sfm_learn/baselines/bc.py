@@ -85,6 +85,43 @@ def planned_epochs(n_rows: int, epochs: int, batch_size: int, min_updates: int) 
     return max(int(epochs), -(-int(min_updates) // batches))
 
 
+def min_rows(n_features: int) -> int:
+    """Fewest training rows behaviour cloning accepts on ``n_features`` inputs: one more.
+
+    Why: the network's first layer is a linear map of the standardised features, and ``n``
+    training rows, centred by that standardisation, span at most ``n - 1`` directions of the
+    feature space; below ``n_features + 1`` rows some direction is never seen varying and the
+    network's response along it is its random initialisation, not anything learned (the same
+    floor as the SfM fit's inputs, :func:`sfm_learn.eigenspace.policy.min_fit_rows`, whose
+    stacked rows add the command columns). Nothing else in the code needs more: the per-column
+    statistics need 2 rows, a minibatch shorter than ``batch_size`` is one full-batch Adam step
+    (:func:`planned_epochs` counts the updates, so fewer rows than ``--batch-size`` still get
+    ``--min-updates`` of them), and a command value absent from the rows is simply never the
+    majority class. A floor of identifiability, not of quality (issue 26: 1,200 teacher steps
+    and up)."""
+    return int(n_features) + 1
+
+
+def check_rows(data, *, held_out: float = 0.0, seed: int = 0, features: str = "default",
+               what: str = "the dataset") -> None:
+    """ValueError (one line naming ``what``, its rows and the minimum) unless ``data`` has
+    :func:`min_rows` rows and, when ``held_out`` splits it (two or more episodes), the network
+    that measures the held-out accuracy is trained on that many too (the held-out part always
+    has rows: whole episodes, at least one)."""
+    from mkv_env.dataset import split_by_episode
+
+    n_features = feature_spec(list(data.metadata["sensor_names"]), features).n_features
+    need = min_rows(n_features)
+    why = f"behaviour cloning on {n_features} {features} features needs at least {need}"
+    if data.n_steps < need:
+        raise ValueError(f"{what} has {data.n_steps} rows; {why} (one more than its features)")
+    train_set, held_set = split_by_episode(data, held_out, seed)
+    if held_set.n_steps and train_set.n_steps < need:
+        raise ValueError(f"{what}: holding out {held_set.n_episodes} of {data.n_episodes} "
+                         f"episodes (fraction {held_out:g}) leaves {train_set.n_steps} training "
+                         f"rows; {why}: hold out less (--held-out 0) or record more episodes")
+
+
 # ---------------------------------------------------------------------- features
 def feature_spec(sensor_names, features: str = "default"):
     from mkv_env.features import FeatureSpec, default_feature_spec
@@ -167,7 +204,8 @@ def train(
     epoch gives fewer epochs than the held-out fit ran. So the validation never costs the
     policy data (at 1,200 teacher steps a 20 % split left BC on two thirds of its data and
     failed on 2 of 3 new training sets, issue 26). ``refit=False`` returns the validation
-    network itself.
+    network itself. Fewer rows than :func:`min_rows` (in all, or left for the validation
+    network by the split) raise ValueError before any training (:func:`check_rows`).
     """
     import numpy as np
 
@@ -185,8 +223,7 @@ def train(
         raise ValueError(
             f"dataset actions must be [drive, steer] indices in 0..2, got shape {acts.shape}"
         )
-    if data.n_steps < 2:
-        raise ValueError(f"dataset has {data.n_steps} step(s); behaviour cloning needs more")
+    check_rows(data, held_out=held_out, seed=seed, features=features)
     train_set, held_set = split_by_episode(data, held_out, seed)
     spec = feature_spec(sensor_names, features)
     builder = FeatureBuilder(spec)
@@ -495,7 +532,9 @@ __all__ = [
     "BCPolicy",
     "DEFAULTS",
     "VALUE_NAMES",
+    "check_rows",
     "load_spec",
+    "min_rows",
     "read_metadata",
     "save",
     "train",

@@ -39,6 +39,47 @@ FORMAT_VERSION = 1
 DEFAULTS = {"rounds": 4, "epochs": 30, "batch_size": 256, "lr": 1e-3}
 
 
+def round_steps(steps: int, rounds: int) -> list[int]:
+    """Teacher queries of each round: ``steps`` shared out, the first rounds one more."""
+    return [steps // rounds + (1 if r < steps % rounds else 0) for r in range(rounds)]
+
+
+def min_steps(n_features: int, rounds: int) -> int:
+    """Fewest teacher queries (``steps``) DAgger accepts over ``rounds`` rounds on
+    ``n_features`` inputs.
+
+    Round 0's network is fitted on round 0's rows alone, and it drives round 1, so those rows
+    must identify it: :func:`sfm_learn.baselines.bc.min_rows` (features + 1). Round 0 gets
+    ``ceil(steps / rounds)`` of them (:func:`round_steps`), hence ``steps >=
+    (min_rows - 1) * rounds + 1``; every later refit has more rows (all rounds so far). And at
+    least 2 per round, the floor the rollouts always had."""
+    return max(2 * rounds, (bc.min_rows(n_features) - 1) * rounds + 1)
+
+
+def check_steps(steps: int, rounds: int, n_features: int, what: str = "steps") -> None:
+    """ValueError (one line naming ``what``, the rows round 0 gets and the minimum) when
+    ``steps`` is below :func:`min_steps`."""
+    need = min_steps(n_features, rounds)
+    if steps < need:
+        raise ValueError(
+            f"{what} {steps} is too small for {rounds} round{'s' if rounds != 1 else ''} "
+            f"(at least {need}): round 0 gets {round_steps(steps, rounds)[0]} teacher steps and "
+            f"its fit on {n_features} features needs at least {bc.min_rows(n_features)} rows")
+
+
+def check_budget(env_id: str, steps: int, rounds: int, env_kwargs: dict | None = None,
+                 what: str = "steps") -> None:
+    """:func:`check_steps` for ``env_id`` (made once to read its sensors), before any run."""
+    from mkv_env.recorder import make_env
+
+    env = make_env(env_id, dict(env_kwargs or {}))
+    try:
+        names = list(env.unwrapped.sensor_names)
+    finally:
+        env.close()
+    check_steps(steps, rounds, bc.feature_spec(names, "default").n_features, what)
+
+
 def _rollout(env, actor, teacher, first_seed: int, n_steps: int):
     """Run ``actor`` (None: the teacher itself) for ``n_steps`` steps, episodes on seeds
     ``first_seed + i``; the teacher labels every step. Returns observations, actions sent,
@@ -77,7 +118,8 @@ def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
           min_updates: int = bc.MIN_UPDATES):
     """Run DAgger; returns ``(policy, meta)``. ``on_round(round, info)`` after every round.
     Each round's refit runs ``epochs``, or enough for ``min_updates`` minibatch updates
-    (:func:`sfm_learn.baselines.bc.planned_epochs`)."""
+    (:func:`sfm_learn.baselines.bc.planned_epochs`). ``steps`` below :func:`min_steps` raise
+    ValueError before any episode runs."""
     from mkv_env.features import FeatureBuilder
     from mkv_env.policies import make_policy
     from mkv_env.recorder import make_env
@@ -92,8 +134,9 @@ def train(env_id: str, steps: int, *, rounds: int = 4, seed: int = 0,
         sensor_names = list(env.unwrapped.sensor_names)
         expert = make_policy(teacher, env, seed)
         spec = bc.feature_spec(sensor_names, "default")
+        check_steps(steps, rounds, spec.n_features)
         builder = FeatureBuilder(spec)
-        per_round = [steps // rounds + (1 if r < steps % rounds else 0) for r in range(rounds)]
+        per_round = round_steps(steps, rounds)
         parts, log = [], []
         policy, fit, learner = None, None, None
         for r in range(rounds):
@@ -155,4 +198,5 @@ def load_spec(arg, env, seed):
         lambda net, meta: bc.BCPolicy(net, meta, seed))
 
 
-__all__ = ["DEFAULTS", "FORMAT", "load_spec", "read_metadata", "save", "train"]
+__all__ = ["DEFAULTS", "FORMAT", "check_budget", "check_steps", "load_spec", "min_steps",
+           "read_metadata", "round_steps", "save", "train"]

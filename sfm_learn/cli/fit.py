@@ -38,7 +38,9 @@ def _decays(text: str):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="+", metavar="DATA.npz",
-                   help="teacher recordings (mkv record); several are stacked")
+                   help="teacher recordings (mkv record); several are stacked; at least "
+                        "features + commands + 1 steps in all (35 by default, 13 for --preset "
+                        "paper)")
     p.add_argument("--out", required=True, metavar="POLICY.npz",
                    help="policy file to write (must end in .npz; run it as "
                         "--policy sfm:POLICY.npz)")
@@ -100,7 +102,13 @@ def feature_spec_from_args(args, names):
 
 
 def run(args) -> int:
-    from sfm_learn.eigenspace.policy import PRESETS, fit_policy
+    from sfm_learn.eigenspace.policy import (
+        PRESETS,
+        check_fit_rows,
+        check_fit_size,
+        fit_columns,
+        fit_policy,
+    )
     from sfm_learn.reporting.tables import spectrum_lines
 
     check_output_path(args.out)
@@ -119,6 +127,14 @@ def run(args) -> int:
     if args.rank is not None and not 1 <= args.rank <= spec.n_features + 2:
         raise CliError(f"--rank must be in [1, {spec.n_features + 2}] for {spec.n_features} "
                        f"features and 2 commands, got {args.rank}")
+    rows = sum(d.n_steps for d in datasets)
+    what = (f"dataset {args.data[0]}" if len(args.data) == 1
+            else f"datasets {', '.join(args.data)} (together)")
+    try:  # before anything is fitted or written (min_fit_rows says why this minimum)
+        check_fit_size(rows, fit_columns(spec, args.encoding))  # too many columns: say that first
+        check_fit_rows(rows, spec, args.encoding, what)
+    except ValueError as e:
+        raise CliError(str(e)) from None
     solver = args.solver or PRESETS[args.preset]["solver"]
     thresholds = args.thresholds or PRESETS[args.preset]["thresholds"]
     min_support = (PRESETS[args.preset]["min_support"] if args.min_support is None

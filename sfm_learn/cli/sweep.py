@@ -108,6 +108,7 @@ def run(args) -> int:
     if args.address is not None and not args.address.strip():
         raise CliError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
     from sfm_learn.experiments.sweep import (
+        check_budgets,
         check_envs,
         load_spec,
         pending,
@@ -119,6 +120,7 @@ def run(args) -> int:
     try:
         spec = load_spec(args.spec)
         check_envs(spec)
+        check_budgets(spec)  # every budget leaves its learner the rows it needs
     except ValueError as e:
         raise CliError(one_line(e)) from None
     if os.path.exists(args.out) and not os.path.isdir(args.out):

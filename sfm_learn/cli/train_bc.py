@@ -12,14 +12,23 @@ from __future__ import annotations
 import argparse
 import os
 
-from sfm_learn.baselines.bc import ACTION_NAMES, DEFAULTS, VALUE_NAMES, save, train
+from sfm_learn.baselines.bc import (
+    ACTION_NAMES,
+    DEFAULTS,
+    VALUE_NAMES,
+    check_rows,
+    save,
+    train,
+)
 from sfm_learn.cli.common import (
+    CliError,
     add_quiet_argument,
     check_output_path,
     check_outputs,
     fraction,
     int_in_range,
     load_dataset,
+    one_line,
     positive_float,
     positive_int,
     progress_for,
@@ -28,7 +37,9 @@ from sfm_learn.cli.common import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", metavar="DATA.npz", help="demonstrations (mkv record)")
+    p.add_argument("data", metavar="DATA.npz",
+                   help="demonstrations (mkv record); at least features + 1 steps (33 by default, "
+                        "11 for --features raw)")
     p.add_argument("--out", required=True, metavar="BC.zip",
                    help="model zip to write: an SB3 PPO zip holding the cloned policy, plus "
                         "mkv_meta.json (PPO.load reads it; run it as --policy bc:BC.zip)")
@@ -110,6 +121,11 @@ def run(args) -> int:
     check_output_path(args.out)
     check_outputs([args.data], [args.out])
     data = load_dataset(args.data)
+    try:  # before any training or writing (bc.min_rows says why this minimum)
+        check_rows(data, held_out=args.held_out, seed=args.seed, features=args.features,
+                   what=f"dataset {args.data}")
+    except ValueError as e:
+        raise CliError(one_line(e)) from None
     if data.n_episodes < 2 and args.held_out > 0:
         print(f"note: {args.data} has one episode; nothing held out")
     with progress_for(args, args.epochs, f"train-bc {os.path.basename(args.data)}",

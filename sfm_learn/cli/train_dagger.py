@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 from sfm_learn.baselines.bc import MIN_UPDATES
-from sfm_learn.baselines.dagger import DEFAULTS, save, train
+from sfm_learn.baselines.dagger import DEFAULTS, check_budget, save, train
 from sfm_learn.cli.common import (
     CliError,
     add_env_arguments,
@@ -40,7 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "mkv_meta.json (PPO.load reads it; run it as "
                         "--policy dagger:DAGGER.zip)")
     p.add_argument("--steps", type=steps_type, default=12_000, metavar="N",
-                   help="teacher queries (labelled steps) over all rounds (default 12000)")
+                   help="teacher queries (labelled steps) over all rounds (default 12000); at "
+                        "least 32 x rounds + 1, so round 0's fit has features + 1 rows")
     p.add_argument("--rounds", type=rounds_type, default=DEFAULTS["rounds"], metavar="R",
                    help=f"rounds; round 0 is the teacher driving (default {DEFAULTS['rounds']})")
     p.add_argument("--seed", type=seed, default=0, metavar="S",
@@ -58,10 +59,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     check_output_path(args.out)
     check_outputs([], [args.out])
-    if args.steps < 2 * args.rounds:
-        raise CliError(f"--steps {args.steps} is too small for {args.rounds} rounds "
-                       f"(at least {2 * args.rounds})")
     check_env_and_policies(args.env, args.env_kwargs, ["teacher"])
+    try:  # before any episode runs (dagger.min_steps says why this minimum)
+        check_budget(args.env, args.steps, args.rounds, args.env_kwargs, what="--steps")
+    except ValueError as e:
+        raise CliError(one_line(e)) from None
     with progress_for(args, args.rounds, f"train-dagger {args.env}", unit="round") as bar:
         def on_round(r, info):
             bar.update(1)

@@ -44,7 +44,8 @@ from sfm_common.files import atomic_path
 from sfm_learn.eigenspace.projector import EigenspaceProjector
 
 __all__ = ["SfMPolicy", "PolicyFileError", "fit_policy", "load_spec", "learn_thresholds",
-           "quantise", "FORMAT", "PRESETS", "preset"]
+           "quantise", "FORMAT", "PRESETS", "preset", "fit_columns", "min_fit_rows",
+           "check_fit_rows"]
 
 FORMAT = "mkv-sfm-policy"
 FORMAT_VERSION = 2  # 2: the complete projector (to_arrays); 1: run-time arrays only
@@ -404,6 +405,50 @@ def check_fit_size(n_rows: int, n_columns: int) -> None:
                          "machine's memory) is allowed: use fewer rows or features")
 
 
+def fit_columns(feature_spec: FeatureSpec, encoding: str = "signed") -> int:
+    """Columns of a stacked training row ``[features, commands]``: ``n_features`` plus one signed
+    column per command, or one one-hot column per command value."""
+    if encoding not in ("signed", "onehot"):
+        raise ValueError(f"encoding must be 'signed' or 'onehot', got {encoding!r}")
+    n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"
+                 else len(feature_spec.action_nvec))
+    return int(feature_spec.n_features) + int(n_targets)
+
+
+def min_fit_rows(feature_spec: FeatureSpec, encoding: str = "signed") -> int:
+    """Fewest training rows (time steps) an SfM fit of ``feature_spec`` accepts: one more than
+    the columns of a stacked row ``[features, commands]`` (``n_features`` plus 2 signed command
+    columns, or 6 one-hot ones).
+
+    Why: the projector centres the rows before its SVD, and ``n`` centred rows span at most
+    ``n - 1`` dimensions, so with ``n <= p`` rows (``p`` columns) the trailing ``p - n + 1``
+    singular values are zero by construction, whatever the robot did, and the rank rule (the
+    largest adjacent ratio ``s_i / s_(i+1)``, which needs two nonzero values to compare) finds
+    its cliff at ``n - 1``: an artefact of the row count (2 rows: rank 1 at a ratio of 1e16).
+    With ``p + 1`` rows every singular value can be nonzero, so the spectrum the rule ranks,
+    and the map solved from it, are properties of the data (the Gram matrix of the known
+    columns, which ``ols`` inverts, can then have full rank too). The code itself runs from 2
+    rows (:meth:`EigenspaceProjector.fit`); this is the identifiability floor, not a quality
+    bar: a fit at the floor is well posed, not good (issue 26 measures 1,200 teacher steps and
+    up). Learned thresholds need no more: a command value absent from the training rows is
+    never predicted (its threshold is stored at +-1e6), at any size.
+    """
+    return fit_columns(feature_spec, encoding) + 1
+
+
+def check_fit_rows(n_rows: int, feature_spec: FeatureSpec, encoding: str = "signed",
+                   what: str = "the training data") -> None:
+    """ValueError (one line, naming ``what``, its rows and the minimum) when ``n_rows`` is
+    below :func:`min_fit_rows`."""
+    need = min_fit_rows(feature_spec, encoding)
+    if n_rows < need:
+        n_cmd = need - 1 - feature_spec.n_features
+        raise ValueError(f"{what} {'have' if what.startswith('datasets ') else 'has'} "
+                         f"{n_rows} rows; an SfM fit of {feature_spec.n_features} features + "
+                         f"{n_cmd} command columns needs at least {need} (one more than the "
+                         "columns of a stacked row)")
+
+
 def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=None,
                solver: str = "ppca", rank_rtol: float = 1e-3, thresholds: str = "learned",
                alpha: float = 1e-3, encoding: str = "signed",
@@ -412,7 +457,8 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
 
     Args:
         data: the teacher's recording (any number of episodes), or a list of recordings with
-            the same sensor layout (e.g. wandering runs plus jam runs), stacked.
+            the same sensor layout (e.g. wandering runs plus jam runs), stacked; at least
+            :func:`min_fit_rows` steps in all (fewer: ValueError, before any work).
         feature_spec: the features; default
             :func:`~mkv_env.features.default_feature_spec`.
         n_components: kept eigenvectors; ``None`` = the paper's largest-ratio rule.
@@ -452,6 +498,7 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
     n_targets = (sum(feature_spec.action_nvec) if encoding == "onehot"
                  else len(feature_spec.action_nvec))
     check_fit_size(sum(d.n_steps for d in datasets), feature_spec.n_features + n_targets)
+    check_fit_rows(sum(d.n_steps for d in datasets), feature_spec, encoding)
     builder = FeatureBuilder(feature_spec)
     feats = np.concatenate([builder.transform(d["observations"], d["actions"], episode_starts(d))
                             for d in datasets])

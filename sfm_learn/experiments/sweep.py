@@ -23,7 +23,11 @@ Jobs. For a teacher-step learner one job is (learner, seed, budget): record the 
 ``10_000_000 + 10_000 * seed + i``, disjoint from every evaluation seed), fit or train, evaluate.
 For PPO one job is (learner, seed): one training run with a checkpoint at each budget (PPO's
 constant schedules make the checkpoint at ``b`` steps the same network a run of budget ``b``
-would end with), each checkpoint evaluated; it writes one row per budget.
+would end with), each checkpoint evaluated; it writes one row per budget. A teacher-step budget
+must leave its learner the rows its fit can identify (:func:`min_budget`: 35 for ``sfm``, 13
+for ``sfm`` with ``preset: paper``, 33 for ``bc``, 32 * rounds + 1 for ``dagger``, on the MK-V
+envs' 10 sensors); :func:`check_budgets` (``mkv sweep`` runs it before anything starts) refuses
+a smaller one in one line.
 
 Rows. Each job writes ``DIR/rows/<learner>__s<seed>__b<budget>.json`` atomically when it has
 finished (PPO: all its budgets at the end), so a killed sweep loses no finished job and a rerun
@@ -270,6 +274,80 @@ def check_envs(spec: dict) -> None:
             raise SpecError(str(e)) from None
 
 
+def teacher_rows(budget: int) -> int:
+    """Rows :func:`teacher_data` records for ``budget`` teacher steps: ``ceil(budget / 600)``
+    episodes of ``budget // episodes`` steps (fewer only if an episode ends early)."""
+    episodes = _teacher_episodes(budget)
+    return episodes * (budget // episodes)
+
+
+def _teacher_episodes(budget: int) -> int:
+    return max(1, math.ceil(budget / MAX_EPISODE_STEPS))
+
+
+def min_budget(spec: dict, name: str, sensor_names) -> tuple[int, str]:
+    """``(smallest budget, why)`` of teacher-step learner ``name``: the fewest teacher steps
+    whose training rows its fit can identify (``sfm``:
+    :func:`~sfm_learn.eigenspace.policy.min_fit_rows`, ``bc``:
+    :func:`~sfm_learn.baselines.bc.min_rows`, ``dagger``:
+    :func:`~sfm_learn.baselines.dagger.min_steps`)."""
+    lr = spec["learners"][name]
+    kind, opts = lr["kind"], lr["options"]
+    if kind == "dagger":
+        from sfm_learn.baselines import bc, dagger
+
+        n_features = bc.feature_spec(sensor_names, "default").n_features
+        rounds = opts.get("rounds", 4)
+        return dagger.min_steps(n_features, rounds), (
+            f"{rounds} DAgger round{'s' if rounds != 1 else ''}: round 0's fit on {n_features} "
+            f"features needs {bc.min_rows(n_features)} rows")
+    if kind == "sfm":
+        from sfm_learn.eigenspace.policy import min_fit_rows, preset
+
+        fspec, _ = preset(opts.get("preset", "default"), sensor_names)
+        rows = min_fit_rows(fspec)
+        why = (f"SfM preset {opts.get('preset', 'default')}: {fspec.n_features} features + "
+               f"{rows - 1 - fspec.n_features} command columns need {rows} rows")
+    elif kind == "bc":
+        from sfm_learn.baselines import bc
+
+        n_features = bc.feature_spec(sensor_names, "default").n_features
+        rows = bc.min_rows(n_features)
+        why = f"behaviour cloning on {n_features} features needs {rows} rows"
+    else:
+        raise ValueError(f"{kind} budgets are env steps, not teacher steps")
+    budget = rows
+    while teacher_rows(budget) < rows:
+        budget += 1
+    return budget, why
+
+
+def check_budgets(spec: dict) -> None:
+    """Every teacher-step budget of the spec leaves its learner the rows it needs
+    (:func:`min_budget`): SpecError (one line naming the budget and the minimum) before any
+    job runs, instead of an error row per job midway through the sweep. The teacher env is made
+    once to read its sensors. PPO budgets (env steps) are not checked here."""
+    names = [n for n, lr in spec["learners"].items() if lr["kind"] in TEACHER_KINDS]
+    if not names:
+        return
+    from mkv_env.recorder import make_env
+
+    try:
+        env = make_env(spec["teacher_env"])
+    except ValueError as e:
+        raise SpecError(str(e)) from None
+    try:
+        sensor_names = list(env.unwrapped.sensor_names)
+    finally:
+        env.close()
+    for name in names:
+        least, why = min_budget(spec, name, sensor_names)
+        small = [b for b in spec["learners"][name]["budgets"] if b < least]
+        if small:
+            raise SpecError(f"budgets.{name}: {small[0]} teacher steps is too small; the "
+                            f"smallest budget is {least} ({why})")
+
+
 # ---------------------------------------------------------------------- one job
 def teacher_data(spec: dict, seed: int, budget: int, out_dir: str):
     """The teacher's recording for (seed, budget), cached in ``out_dir/data``."""
@@ -282,7 +360,7 @@ def teacher_data(spec: dict, seed: int, budget: int, out_dir: str):
             return ds.load(path)
         except ValueError:
             pass  # damaged (a crash outside our atomic writes): record again
-    episodes = max(1, math.ceil(budget / MAX_EPISODE_STEPS))
+    episodes = _teacher_episodes(budget)
     data = record(spec["teacher_env"], "teacher", episodes,
                   TRAIN_SEED_BASE + 10_000 * seed, max_steps=budget // episodes)
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -529,5 +607,6 @@ def run_sweep(spec: dict, out_dir: str, *, backend: str = "local", workers: int 
     return counts
 
 
-__all__ = ["Job", "SpecError", "check_envs", "check_spec", "load_spec", "pending", "plan",
-           "read_rows", "row_name", "run_job", "run_sweep", "teacher_data"]
+__all__ = ["Job", "SpecError", "check_budgets", "check_envs", "check_spec", "load_spec",
+           "min_budget", "pending", "plan", "read_rows", "row_name", "run_job", "run_sweep",
+           "teacher_data", "teacher_rows"]

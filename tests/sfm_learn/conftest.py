@@ -39,3 +39,20 @@ def data_files(tmp_path_factory, small_train, wander_held):
     save(small_train, train)
     save(wander_held, held)
     return train, held
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory):
+    """``tiny_data(steps, episodes=1)``: the path of a teacher recording of ``episodes`` MKV-v0
+    episodes cut at ``steps`` steps each (made once per size; well under a second)."""
+    d = tmp_path_factory.mktemp("tiny_data")
+    made = {}
+
+    def make(steps: int, episodes: int = 1):
+        if (steps, episodes) not in made:
+            path = d / f"teacher_{episodes}x{steps}.npz"
+            save(record("MKV-v0", "teacher", episodes, 0, max_steps=steps), path)
+            made[steps, episodes] = path
+        return made[steps, episodes]
+
+    return make

@@ -370,3 +370,43 @@ def test_the_refit_says_it_is_the_saved_policy_and_where_its_epochs_come_from(te
         "reach --min-updates 100 at 6 minibatches per epoch; the held-out fit above ran 20 on "
         "its fewer rows)")
     assert "saved policy: 1500 training rows (10 episodes), 17 epochs (102 updates)" in stdout
+
+
+@pytest.mark.parametrize("steps, episodes, options, message", [
+    (2, 1, [], "has 2 rows; behaviour cloning on 32 default features needs at least 33"),
+    (32, 1, [], "has 32 rows; behaviour cloning on 32 default features needs at least 33"),
+    (10, 1, ["--features", "raw"], "has 10 rows; behaviour cloning on 10 raw features needs "
+                                   "at least 11"),
+    # 40 rows, but the held-out split leaves the validation network 20
+    (20, 2, [], "holding out 1 of 2 episodes (fraction 0.2) leaves 20 training rows; behaviour "
+                "cloning on 32 default features needs at least 33: hold out less"),
+])
+def test_too_few_rows_are_refused_before_training(tiny_data, tmp_path, capsys, steps, episodes,
+                                                  options, message):
+    data = tiny_data(steps, episodes)
+    out = tmp_path / "bc.zip"
+    code, text, err = run(capsys, "train-bc", str(data), "--out", str(out), *options)
+    assert code == 2 and text == ""
+    assert err.count("\n") == 1 and err.startswith(f"mkv train-bc: error: dataset {data}")
+    assert message in err
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="behaviour cloning on"):   # the library says it too
+        bc.train(ds.load(data), epochs=1, features=options[-1] if options else "default")
+
+
+@pytest.mark.parametrize("steps, episodes, options", [
+    (33, 1, []),                                  # features + 1
+    (11, 1, ["--features", "raw"]),
+    (20, 2, ["--held-out", "0"]),                 # nothing held out: all 40 rows train
+])
+def test_the_smallest_accepted_dataset_trains(tiny_data, tmp_path, capsys, steps, episodes,
+                                              options):
+    out = tmp_path / "bc.zip"
+    code, text, err = run(capsys, "train-bc", str(tiny_data(steps, episodes)), "--out", str(out),
+                          "--epochs", "1", "--min-updates", "0", "--quiet", *options)
+    assert code == 0, err
+    assert bc.read_metadata(out)["teacher_steps"] == steps * episodes
+
+
+def test_min_rows_is_one_more_than_the_features():
+    assert bc.min_rows(32) == 33 and bc.min_rows(10) == 11

@@ -63,6 +63,10 @@ def test_wrong_prefix_names_the_right_one(trained):
 
 @pytest.mark.parametrize("argv, message", [
     (["--steps", "3", "--rounds", "2"], "too small for 2 rounds"),
+    (["--steps", "128"], "--steps 128 is too small for 4 rounds (at least 129): round 0 gets 32 "
+                         "teacher steps and its fit on 32 features needs at least 33 rows"),
+    (["--steps", "2", "--rounds", "1"], "--steps 2 is too small for 1 round (at least 33)"),
+    (["--steps", "64", "--rounds", "2"], "round 0 gets 32 teacher steps"),
     (["--rounds", "0"], "--rounds"),
     (["--env", "Nope-v0"], "Nope-v0"),
 ])
@@ -82,3 +86,20 @@ def test_budget_is_met_exactly_when_episodes_end_early(tmp_path):
     log = meta["dagger"]["log"]
     assert [r["rows"] for r in log] == [165, 165] and [r["episodes"] for r in log] == [4, 4]
     assert meta["teacher_steps"] == 330
+
+
+def test_the_smallest_accepted_budget_trains(tmp_path, capsys):
+    out = tmp_path / "d.zip"
+    assert main(["train-dagger", "--env", "MKV-v1", "--steps", "33", "--rounds", "1",
+                 "--epochs", "1", "--min-updates", "0", "--out", str(out), "--quiet"]) == 0
+    assert dagger.read_metadata(out)["teacher_steps"] == 33
+
+
+def test_min_steps_gives_round_0_the_rows_its_fit_needs():
+    for rounds in (1, 2, 3, 4, 7):
+        need = dagger.min_steps(32, rounds)
+        assert dagger.round_steps(need, rounds)[0] == 33
+        assert dagger.round_steps(need - 1, rounds)[0] == 32
+        assert sum(dagger.round_steps(need, rounds)) == need
+    with pytest.raises(ValueError, match=r"steps 128 is too small for 4 rounds \(at least 129\)"):
+        dagger.train("MKV-v1", 128, rounds=4)

@@ -111,3 +111,47 @@ def test_sfm_spec_evaluates_through_mkv_eval(capsys, fitted):
                           "--episodes", "2", "--seed", "3", "--quiet")
     assert code == 0, err
     assert "escape rate" in text
+
+
+@pytest.mark.parametrize("steps, episodes, options, columns, need", [
+    (2, 1, [], "32 features + 2 command columns", 35),         # the 2-step dataset
+    (34, 1, [], "32 features + 2 command columns", 35),        # one row short
+    (2, 2, ["--preset", "paper"], "10 features + 2 command columns", 13),
+    (12, 1, ["--features", "raw"], "10 features + 2 command columns", 13),
+    (38, 1, ["--encoding", "onehot"], "32 features + 6 command columns", 39),
+    (5, 1, ["--history", "1"], "42 features + 2 command columns", 45),
+])
+def test_fit_refuses_fewer_rows_than_a_stacked_row_has_columns_plus_one(
+        capsys, tmp_path, tiny_data, steps, episodes, options, columns, need):
+    data = tiny_data(steps, episodes)
+    out, png = tmp_path / "p.npz", tmp_path / "s.png"
+    code, text, err = run(capsys, "fit", data, "--out", out, "--spectrum", png, *options)
+    assert code == 2 and text == ""
+    assert err.count("\n") == 1 and err.startswith("mkv fit: error: ")
+    assert (f"dataset {data} has {steps * episodes} rows; an SfM fit of {columns} needs at "
+            f"least {need}") in err
+    assert not out.exists() and not png.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_fit_counts_the_rows_of_every_dataset_together(capsys, tmp_path, tiny_data):
+    a, b = tiny_data(2), tiny_data(2, 2)
+    code, _, err = run(capsys, "fit", a, b, "--out", tmp_path / "p.npz")
+    assert code == 2 and f"datasets {a}, {b} (together) have 6 rows" in err
+    assert not (tmp_path / "p.npz").exists()
+    # 20 + 15 = 35 rows: enough together, though neither is alone
+    code, text, err = run(capsys, "fit", tiny_data(20), tiny_data(15), "--out",
+                          tmp_path / "p.npz")
+    assert code == 0, err
+    assert SfMPolicy.load(tmp_path / "p.npz").training["rows"] == 35
+
+
+@pytest.mark.parametrize("options, need", [([], 35), (["--preset", "paper"], 13)])
+def test_fit_accepts_the_smallest_identifiable_dataset(capsys, tmp_path, tiny_data, options,
+                                                       need):
+    out = tmp_path / "p.npz"
+    code, text, err = run(capsys, "fit", tiny_data(need), "--out", out, *options)
+    assert code == 0, err
+    p = SfMPolicy.load(out)
+    assert p.training["rows"] == need and f"fitted on {need} steps" in text
+    # every one of the stacked row's columns gets a singular value: the full spectrum
+    assert p.projector.singular_values_.size == p.projector.n_features_in_ == need - 1

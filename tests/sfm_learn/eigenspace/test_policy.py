@@ -16,6 +16,7 @@ from sfm_learn.eigenspace.policy import (
     episode_starts,
     fit_policy,
     learn_thresholds,
+    min_fit_rows,
     onehot_actions,
     preset,
     quantise,
@@ -348,3 +349,29 @@ def test_a_rarely_pressed_bumper_is_held_constant_in_the_default_fit(small_train
 def test_min_support_must_be_a_non_negative_integer(small_train):
     with pytest.raises(ValueError, match="min_support"):
         fit_policy(small_train, min_support=-1)
+
+
+# ---------------------------------------------------------------- the fewest rows a fit takes
+def test_min_fit_rows_is_one_more_than_the_stacked_columns(small_train):
+    names = small_train.sensor_names
+    for name, need in (("default", 35), ("paper", 13), ("ols", 35)):
+        assert min_fit_rows(preset(name, names)[0]) == need
+    assert min_fit_rows(default_feature_spec(names), "onehot") == 32 + 6 + 1
+    with pytest.raises(ValueError, match="encoding"):
+        min_fit_rows(default_feature_spec(names), "binary")
+
+
+def test_fit_policy_refuses_a_dataset_below_the_minimum(tiny_data):
+    """Below features + commands + 1 rows the trailing singular values are zero by
+    construction (centred rows span one dimension fewer than their count) and the rank rule
+    ranks the row count: refused before any work; at the minimum every value can be nonzero."""
+    from mkv_env.dataset import load
+
+    short, enough = load(tiny_data(34)), load(tiny_data(35))
+    with pytest.raises(ValueError, match=r"^the training data has 34 rows; an SfM fit of 32 "
+                                         r"features \+ 2 command columns needs at least 35"):
+        fit_policy(short)
+    p = fit_policy(enough)
+    assert p.training["rows"] == 35 and p.projector.singular_values_.size == 34
+    with pytest.raises(ValueError, match="needs at least 39"):
+        fit_policy(enough, encoding="onehot")

@@ -72,8 +72,16 @@ def test_interrupted_sweep_resumes_to_the_same_rows(full, tmp_path):
     assert sweep.run_sweep(spec, str(d))["skipped"] == 6
 
 
-def test_failing_job_is_reported_and_the_others_finish(tmp_path, capsys):
-    spec = dict(SPEC, learners={"sfm": {}, "dagger-bad": {"rounds": 50}},
+def test_failing_job_is_reported_and_the_others_finish(tmp_path, capsys, monkeypatch):
+    # a budget too small is refused before the sweep starts (below), so the failure here is a
+    # job that raises midway: DAgger's training, on a budget it could identify
+    from sfm_learn.baselines import dagger
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the teacher env lost its battery")
+
+    monkeypatch.setattr(dagger, "train", broken)
+    spec = dict(SPEC, learners={"sfm": {}, "dagger-bad": {"rounds": 1}},
                 budgets={"sfm": [200], "dagger-bad": [50]})
     d = tmp_path / "out"
     code = main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"])
@@ -82,7 +90,7 @@ def test_failing_job_is_reported_and_the_others_finish(tmp_path, capsys):
     assert "4 jobs: 0 already done, 2 ran, 2 failed" in out
     rows = {r["_file"]: r for r in sweep.read_rows(str(d))}
     bad = rows[sweep.row_name("dagger-bad", 0, 50)]
-    assert bad["status"] == "error" and "per round" in bad["error"]
+    assert bad["status"] == "error" and "lost its battery" in bad["error"]
     assert rows[sweep.row_name("sfm", 1, 200)]["status"] == "ok"
     # a rerun retries only the failed jobs
     assert main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"]) == 1
@@ -198,3 +206,50 @@ def test_temporary_files_of_an_interrupted_write_are_not_rows(full, tmp_path):
     assert len(sweep.read_rows(str(d))) == 6
     assert sweep.run_sweep(sweep.check_spec(SPEC), str(d))["skipped"] == 6
     assert not [n for n in os.listdir(d / "rows") if n.startswith(".")]   # cleaned up
+
+
+@pytest.mark.parametrize("learner, options, budgets, least", [
+    ("sfm", {}, [2], 35),                                 # the budget
+    ("sfm", {}, [34, 200], 35),
+    ("sfm-paper", {"preset": "paper"}, [12], 13),
+    ("sfm-ols", {"kind": "sfm", "preset": "ols"}, [600, 20], 35),
+    ("bc", {}, [32], 33),
+    ("dagger", {}, [128], 129),                           # 4 rounds: round 0 gets 32 rows
+    ("dagger", {"rounds": 1}, [2], 33),
+])
+def test_budgets_too_small_to_identify_are_refused_before_any_job(tmp_path, capsys, monkeypatch,
+                                                                  learner, options, budgets,
+                                                                  least):
+    def no_job(*args, **kwargs):
+        raise AssertionError("a job ran")
+
+    monkeypatch.setattr(sweep, "run_job", no_job)
+    spec = dict(SPEC, learners={learner: options}, budgets={learner: budgets})
+    d = tmp_path / "o"
+    assert main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"]) == 2
+    out, err = capsys.readouterr()
+    small = min(budgets)
+    assert err.count("\n") == 1 and out == ""
+    assert (f"mkv sweep: error: budgets.{learner}: {small} teacher steps is too small; the "
+            f"smallest budget is {least} (") in err
+    assert not d.exists()
+
+
+def test_the_smallest_budgets_pass_the_check_and_the_sfm_one_runs(tmp_path, capsys):
+    learners = {"sfm": {}, "sfm-paper": {"preset": "paper"}, "bc": {}, "dagger": {},
+                "dagger-1": {"kind": "dagger", "rounds": 1}, "ppo": {"env": "MKVJam-v1"}}
+    least = {"sfm": 35, "sfm-paper": 13, "bc": 33, "dagger": 129, "dagger-1": 33, "ppo": 2}
+    spec = sweep.check_spec(dict(SPEC, learners=learners,
+                                 budgets={n: [b] for n, b in least.items()}))
+    sweep.check_budgets(spec)                             # PPO's env steps are not checked
+    sensors = [f"s{i}" for i in range(10)]
+    assert {n: sweep.min_budget(spec, n, sensors)[0] for n in least if n != "ppo"} == {
+        n: b for n, b in least.items() if n != "ppo"}
+    # budgets above one episode record whole shares of it: 601 steps are 2 x 300 rows
+    assert sweep.teacher_rows(35) == 35 and sweep.teacher_rows(601) == 600
+    small = dict(SPEC, eval={"episodes": 1, "seed": 4_100_000}, seeds=[0],
+                 learners={"sfm": {}}, budgets={"sfm": [35]})
+    d = tmp_path / "o"
+    assert main(["sweep", write_spec(tmp_path, small), "--out", str(d), "--quiet"]) == 0
+    (row,) = sweep.read_rows(str(d))
+    assert row["status"] == "ok" and row["steps"] == 35
