@@ -10,8 +10,12 @@ truncated and damaged files (datasets, policies, CAL.json, CSV), out-of-range nu
 (random field values, infinities, deep nesting), sweep folders (damaged rows, ``--plot`` onto the
 sweep's files), FIFOs given as any file a command reads (a case that blocks for 20 s counts as a
 hang), ``sb3:`` zips and ``vecnormalize.pkl`` files carrying payloads that would create a marker
-file if unpickled (``code execution``), Minari ids, and CSV headers. The counts go into the issue
-notes.
+file if unpickled (``code execution``), Minari ids, and CSV headers. ``--interrupts N`` adds N
+Ctrl-C cases (issue 40): a long command in a subprocess sent SIGINT, to its process group or its
+main process alone, at a random 0.3-6 s (imports, worker start-up, work); it must print one line,
+exit 130, write nothing and leave no process. Library warnings before a one-line error count as
+a multi-line error (Python's default warning filters: what a user sees). The counts go into the
+issue notes.
 """
 
 from __future__ import annotations
@@ -75,10 +79,79 @@ def run(main, argv):
     return ("accepted" if code == 0 else "refused"), text
 
 
+INTERRUPT_SIGINT = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
+
+
+def interrupt_case(rng, d):
+    """One long command started in its own session and sent SIGINT (to its process group, as a
+    terminal's Ctrl-C, or to the main process alone) after a random 0.3-6 s: the outcome is
+    "interrupted" (one line, exit 130, no output, no process left), "finished" (it ended first)
+    or what went wrong."""
+    import subprocess
+    import time
+
+    import psutil
+
+    mkv = f"{INTERRUPT_SIGINT}; from sfm_learn.cli import main; sys.exit(main())"
+    calib = f"{INTERRUPT_SIGINT}; from calib.cli import main; sys.exit(main())"
+    out = os.path.join(d, "int_out")
+    shutil.rmtree(out, ignore_errors=True)
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(out)
+    prog, argv = rng.choice([
+        (mkv, ["eval", "--env", "MKVJam-v1", "--policy", "teacher", "--episodes", "5000",
+               "--workers", "2", "--json", out]),
+        (mkv, ["record", "--env", "MKV-v1", "--policy", "teacher", "--episodes", "500",
+               "--out", out + ".npz"]),
+        (mkv, ["train-ppo", "--env", "MKV-v0", "--timesteps", "200000", "--out", out + ".zip"]),
+        (mkv, ["train-bc", os.path.join(d, "data.npz"), "--epochs", "100000", "--out",
+               out + ".zip"]),
+        (mkv, ["train-dagger", "--env", "MKV-v1", "--steps", "100000", "--out", out + ".zip"]),
+        (mkv, ["sweep", os.path.join(d, "spec.json"), "--out", out, "--workers", "2"]),
+        (mkv, ["demo", "--out", out]),
+        (calib, ["trials", "--out", out, "--seeds", "50000", "--no-plots"]),
+        (calib, ["fit", os.path.join(d, "raw.csv"), "--dof", "3", "--bias", "--bootstrap",
+                 "100000", "--out", out + ".json"]),
+    ])
+    to = rng.choice(["group", "main"])
+    delay = rng.uniform(0.3, 6.0)
+    proc = subprocess.Popen([sys.executable, "-c", prog, *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, SDL_VIDEODRIVER="dummy"))
+    time.sleep(delay)
+    children = []
+    with contextlib.suppress(psutil.NoSuchProcess):
+        children = psutil.Process(proc.pid).children(recursive=True)
+    if proc.poll() is not None:
+        return "finished", argv
+    (os.killpg if to == "group" else os.kill)(proc.pid, signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        return "hang", argv
+    _, alive = psutil.wait_procs(children, timeout=15)
+    left = [p for p in (out, out + ".npz", out + ".zip", out + ".json") if os.path.exists(p)]
+    if "Traceback" in err:
+        return "traceback", (argv, to, delay, err[-300:])
+    if proc.returncode == 0:
+        return "finished", argv
+    if proc.returncode != 130 or err.count("\n") != 1:
+        return "multi-line error", (argv, to, delay, proc.returncode, err[-300:])
+    if alive:
+        return "process left", (argv, to, delay)
+    if left and "sweep" not in argv:  # a sweep keeps its finished rows by design (it resumes)
+        return "partial output", (argv, to, delay, left)
+    return "interrupted", None
+
+
 def main_() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=500)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cases", type=int, default=500, help="bad-input cases (in this process)")
+    ap.add_argument("--interrupts", type=int, default=0,
+                    help="also this many Ctrl-C cases: a long command in a subprocess sent "
+                    "SIGINT (group or main process) at a random moment")
+    ap.add_argument("--seed", type=int, default=0, help="random seed of the campaign")
     args = ap.parse_args()
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
     os.environ.setdefault("MPLBACKEND", "Agg")
@@ -359,13 +432,21 @@ def main_() -> int:
         by_cat[(cat, outcome)] += 1
         if outcome not in ("refused", "accepted"):
             problems.append((outcome, " ".join(str(a) for a in argv)[:160], text.strip()[:200]))
-    print(f"{args.cases} cases: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    for _ in range(args.interrupts):
+        outcome, detail = interrupt_case(rng, d)
+        counts[outcome] += 1
+        by_cat[("interrupt", outcome)] += 1
+        if outcome not in ("interrupted", "finished"):
+            problems.append((outcome, str(detail)[:300], ""))
+    print(f"{args.cases} cases, {args.interrupts} interrupts: "
+          + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
     for (cat, outcome), v in sorted(by_cat.items()):
         print(f"  {cat:<10} {outcome:<18} {v}")
     for p_ in problems[:30]:
         print("PROBLEM", *p_, sep="\n   ")
     return 1 if any(o in counts for o in ("traceback", "input destroyed", "partial output",
-                                          "multi-line error", "hang", "code execution")) else 0
+                                          "multi-line error", "hang", "code execution",
+                                          "process left")) else 0
 
 
 if __name__ == "__main__":
