@@ -155,16 +155,21 @@ def _unwhiten(cal: Calibration, s: np.ndarray, how: str,
             d[key] = np.asarray(d[key]) * s
     if "C_stderr" in d:
         C_se = np.asarray(d["C_stderr"]) / s[None, :]
-        if log_cov is not None and np.all(np.isfinite(log_cov)):
+        # p == dof: C is the shape's only inverse, the weights choose nothing
+        if (log_cov is not None and np.all(np.isfinite(log_cov))
+                and C.shape[1] > C.shape[0]):
             Dinv = s**2
-            A = (Dinv[:, None] * C.T) @ np.linalg.inv((C * Dinv[None, :]) @ C.T)
+            try:
+                A = (Dinv[:, None] * C.T) @ np.linalg.inv((C * Dinv[None, :]) @ C.T)
 
-            def fn(t, A=A, off=cal.offset):
-                w = np.exp(-2.0 * t)
-                Aw = A * w[:, None]
-                return off, np.linalg.solve(A.T @ Aw, Aw.T)
+                def fn(t, A=A, off=cal.offset):
+                    w = np.exp(-2.0 * t)
+                    Aw = A * w[:, None]
+                    return off, np.linalg.solve(A.T @ Aw, Aw.T)
 
-            _, C_se_w = propagate(fn, np.log(s), log_cov, len(s))
+                _, C_se_w = propagate(fn, np.log(s), log_cov, len(s))
+            except np.linalg.LinAlgError:  # C of lower rank than its rows: nothing to say
+                C_se_w = np.full(C.shape, np.inf)
             C_se = np.sqrt(C_se**2 + C_se_w**2)
         d["C_stderr"] = C_se
     d["channel_scale"] = {"scale": s, "method": how,
