@@ -248,3 +248,21 @@ def test_cli_bootstrap_bad_count_is_one_line(tmp_path, capsys):
                  str(tmp_path / "o.json")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "calib: error" in err
+
+
+def test_whitening_term_of_a_rank_deficient_c_is_infinite_not_an_error():
+    # the study met a degenerate centered fit whose C had lower rank than its rows: the weights'
+    # term of C_stderr cannot be formed there; it is infinite, and fit_bias does not crash
+    from calib.bias import _unwhiten
+    from calib.result import Calibration
+
+    C = np.zeros((3, 8))
+    C[0, 0] = C[1, 1] = 1.0  # rank 2 of 3 rows
+    cal = Calibration(C=C, offset=np.zeros(8), dof=3, method="centered",
+                      diagnostics={"C_stderr": np.ones((3, 8)), "offset_stderr": np.ones(8)})
+    out = _unwhiten(cal, np.ones(8), "factor analysis", np.eye(8) * 0.01)
+    assert np.all(np.isinf(out.diagnostics["C_stderr"]))
+    square = Calibration(C=np.eye(3), offset=np.zeros(3), dof=3, method="centered",
+                         diagnostics={"C_stderr": np.ones((3, 3))})
+    assert np.allclose(_unwhiten(square, np.ones(3), "channel spread",
+                                 np.eye(3) * 0.01).diagnostics["C_stderr"], 1.0)
