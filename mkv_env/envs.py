@@ -187,8 +187,8 @@ class MKVEnv(gym.Env):
             _check(_num(v) and v > 0, f"{name} must be a positive number, got {v!r}")
         _check(_num(escape_forward_m) and escape_forward_m >= 0,
                f"escape_forward_m must be a number >= 0, got {escape_forward_m!r}")
-        _check(_int(jam_steps) and jam_steps >= 1,
-               f"jam_steps must be a positive integer, got {jam_steps!r}")
+        _check(_int(jam_steps) and 1 <= jam_steps <= 2**31 - 1,
+               f"jam_steps must be an integer in 1..2147483647, got {jam_steps!r}")
         for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
                         ("collision_penalty", collision_penalty)):
             _check(_num(v), f"{name} must be a finite number, got {v!r}")
@@ -569,6 +569,9 @@ class MKVJamEnv(MKVEnv):
 
     def __init__(self, scenarios=SCENARIOS, escape_reward: float = 5.0, n_clutter: int = 10,
                  **kwargs):
+        _check(isinstance(scenarios, (str, tuple, list)),
+               f"scenarios must be a scenario name or a list of them (a non-empty subset of "
+               f"{SCENARIOS}), got {scenarios!r}")
         scenarios = tuple(scenarios) if not isinstance(scenarios, str) else (scenarios,)
         _check(len(scenarios) > 0 and set(scenarios) <= set(SCENARIOS),
                f"scenarios must be a non-empty subset of {SCENARIOS}, got {scenarios!r}")

@@ -54,6 +54,11 @@ from mkv_env.envs import TRAIL_MAX_POINTS as _TRAIL_MAX
 from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
 from mkv_env.jams import SCENARIO_DTYPE as _SCENARIO_DTYPE
 
+#: The most robots one vector env holds (each is a pymunk world of its own, tens of kB: 65,536
+#: of them are a few GB). Above it the constructor refuses in one line instead of allocating
+#: until the machine runs out of memory.
+MAX_ENVS = 65_536
+
 _MODES = {m.value: m for m in AutoresetMode}
 _VALID = frozenset(range(ACTION_NVEC[0]))  # values of an action's entries (both take 0, 1, 2)
 
@@ -82,8 +87,8 @@ class MKVVectorEnv(VectorEnv):
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
                  vector_infos: bool = True, num_threads: int = 1, **kwargs):
         if not (isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
-                and num_envs >= 1):
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+                and 1 <= num_envs <= MAX_ENVS):
+            raise ValueError(f"num_envs must be an integer in 1..{MAX_ENVS}, got {num_envs!r}")
         if max_episode_steps is not None and not (
                 isinstance(max_episode_steps, (int, np.integer)) and max_episode_steps >= 1):
             raise ValueError(f"max_episode_steps must be a positive integer or None, "
@@ -259,6 +264,9 @@ class MKVVectorEnv(VectorEnv):
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
 
     def step(self, actions):
+        if isinstance(actions, np.ma.MaskedArray):  # its masked entries would be stepped as is
+            raise TypeError("actions must be a plain array, not a masked array (np.ma): its "
+                            "masked entries would be stepped with whatever values they hold")
         if self._fast is not None and self._started and not self._dirty:
             out = self._step_fast(actions)  # the common case: the whole step in one call
             if out is not None:
@@ -302,8 +310,8 @@ class MKVVectorEnv(VectorEnv):
         extra = () if c_mask is None else (c_mask,)
         try:
             need = run(acts, active, *extra)
-        except ValueError:  # the kernel checks the values before it steps anything
-            raise self._bad_actions(actions) from None
+        except ValueError as e:  # the kernel checks the values before it steps anything
+            raise self._bad_actions(actions, e) from None
         while need is not None:  # robots that used up their noise block and cannot draw it
             for i in need:       # in C (kernel.NOISE_IN_C): the next, as the reference draws it
                 b.set_noise(i, envs[i]._sensors.draw_block())
@@ -419,8 +427,8 @@ class MKVVectorEnv(VectorEnv):
         try:
             r = self._fast(actions, self._elapsed, self._autoreset, self._max_steps,
                            self._col_spec, self.vector_infos)
-        except ValueError:
-            raise self._bad_actions(actions) from None
+        except ValueError as e:
+            raise self._bad_actions(actions, e) from None
         if r is None:
             return None
         obs, rewards, terminated, truncated, cols, info, reset, self._pending = r
@@ -438,9 +446,35 @@ class MKVVectorEnv(VectorEnv):
             envs[i]._c_world = True
             envs[i]._py_owns = False
 
-    def _bad_actions(self, actions) -> ValueError:
-        return ValueError(f"invalid actions {actions!r}: expected shape ({self.num_envs}, 2) "
-                          "of [drive, steer] with each in {0, 1, 2}")
+    def _as_array(self, actions) -> np.ndarray:
+        try:
+            return np.asarray(actions)
+        except (ValueError, TypeError):  # ragged lists and the like
+            raise self._bad_actions(actions) from None
+
+    def _bad_actions(self, actions, error: ValueError | None = None) -> ValueError:
+        """The one-line error for ``actions`` (its type, shape, dtype and first bad entry, never
+        the whole array); when the kernel raised ``error`` for actions that are valid, the
+        kernel's own error (a robot that left the arena is not an invalid action)."""
+        n = self.num_envs
+        try:
+            a = np.asarray(actions)
+        except Exception:  # noqa: BLE001 (anything np.asarray refuses is described by type)
+            a = None
+        if a is None or a.dtype == object:
+            got = type(actions).__name__
+        else:
+            got = f"{type(actions).__name__} of shape {a.shape} and dtype {a.dtype}"
+            if a.shape == (n, 2) and a.dtype.kind in "iubf":
+                ok = np.isin(a, (0, 1, 2))
+                if ok.all():
+                    if error is not None:
+                        return error
+                else:
+                    i, j = (int(k) for k in np.argwhere(~ok)[0])
+                    got += f", actions[{i}, {j}] = {a[i, j].item()!r}"
+        return ValueError(f"invalid actions ({got}): expected shape ({n}, 2) of [drive, steer] "
+                          "with each in {0, 1, 2}")
 
     def _c_resets(self, idx: list[int]) -> tuple:
         """Of the envs ``idx`` to reset, those the kernel resets in C (its bit generator bound to
@@ -494,10 +528,11 @@ class MKVVectorEnv(VectorEnv):
 
     def _actions(self, actions) -> np.ndarray:
         """Actions as a C-contiguous int64 (n, 2) array (the kernel checks the values)."""
-        a = actions if isinstance(actions, np.ndarray) else np.asarray(actions)
+        a = actions if isinstance(actions, np.ndarray) else self._as_array(actions)
         n = self.num_envs
         if a.ndim == 0 and a.dtype.kind in "iubfc":  # as SyncVectorEnv: a number can't iterate
-            raise TypeError(f"actions must be an array of shape ({n}, 2), got {actions!r}")
+            raise TypeError(f"actions must be an array of shape ({n}, 2), got a "
+                            f"{type(actions).__name__} {a!r}")
         if a.shape == (n, 2) and a.dtype.kind in "iubf":
             if a.dtype == np.int64 and a.flags.c_contiguous:
                 return a
@@ -607,10 +642,10 @@ class MKVVectorEnv(VectorEnv):
     # ------------------------------------------------------------------ pieces
     def _commands(self, actions) -> tuple[list[int], list[int]]:
         """Validated actions (n, 2) -> per-env drive and steer motor commands (-1/0/+1 each)."""
-        a = actions if isinstance(actions, np.ndarray) else np.asarray(actions)
+        a = actions if isinstance(actions, np.ndarray) else self._as_array(actions)
         if a.ndim == 0 and a.dtype.kind in "iubfc":  # as SyncVectorEnv: a number can't iterate
-            raise TypeError(f"actions must be an array of shape ({self.num_envs}, 2), "
-                            f"got {actions!r}")
+            raise TypeError(f"actions must be an array of shape ({self.num_envs}, 2), got a "
+                            f"{type(actions).__name__} {a!r}")
         if a.shape == (self.num_envs, 2) and a.dtype.kind in "iubf":
             flat = a.ravel().tolist()
             if set(flat) <= _VALID:  # floats must be whole numbers: 1.0 == 1 is in the set

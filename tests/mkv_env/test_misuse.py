@@ -1,0 +1,72 @@
+"""Issue 38's misuse reproducers that are input checks: each is one clear line, never a
+MaskError, an OverflowError, a 'NoneType' error, an allocation without end, or a message that
+prints the whole action array."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import mkv_env  # noqa: F401  (registers the ids)
+from mkv_env.vector import MAX_ENVS
+
+
+@pytest.fixture(scope="module")
+def vec():
+    v = gym.make_vec("MKV-v1", num_envs=3, vectorization_mode="vector_entry_point")
+    v.reset(seed=0)
+    yield v
+    v.close()
+
+
+def _one_line(e):
+    assert "\n" not in str(e), str(e)
+    return str(e)
+
+
+def test_a_masked_action_array_is_refused(vec):
+    a = np.ma.masked_array(np.ones((3, 2), int), mask=[[0, 1], [0, 0], [0, 0]])
+    with pytest.raises(TypeError, match="masked array") as e:
+        vec.step(a)
+    _one_line(e.value)
+
+
+@pytest.mark.parametrize("actions", [
+    np.full((3, 2), 7), np.array([[b"a", b"b"]] * 3), np.ones((3, 2), complex),
+    np.ones((3, 2)) * 0.5, np.ones((40, 2), int), [[1, 1]] * 3 + [[1]]])
+def test_bad_actions_are_one_line_without_the_array(vec, actions):
+    with pytest.raises((ValueError, TypeError)) as e:
+        vec.step(actions)
+    msg = _one_line(e.value)
+    assert "expected shape (3, 2)" in msg or "array of shape (3, 2)" in msg, msg
+    assert len(msg) < 300, msg
+
+
+def test_the_first_bad_entry_is_named(vec):
+    a = np.ones((3, 2), int)
+    a[2, 1] = 9
+    with pytest.raises(ValueError, match=r"actions\[2, 1\] = 9"):
+        vec.step(a)
+
+
+def test_valid_actions_step_after_refusals(vec):
+    obs, *_ = vec.step(np.ones((3, 2), int))
+    assert obs.shape[0] == 3
+
+
+@pytest.mark.parametrize("n", [0, -1, MAX_ENVS + 1, 2**40, 2.0, True])
+def test_num_envs_out_of_range_is_refused_before_allocating(n):
+    with pytest.raises(ValueError, match="num_envs") as e:
+        gym.make_vec("MKV-v0", num_envs=n, vectorization_mode="vector_entry_point")
+    _one_line(e.value)
+
+
+@pytest.mark.parametrize("kw,match", [({"jam_steps": 2**70}, "jam_steps"),
+                                      ({"jam_steps": 0}, "jam_steps"),
+                                      ({"scenarios": None}, "scenarios"),
+                                      ({"scenarios": 3}, "scenarios"),
+                                      ({"scenarios": ()}, "scenarios"),
+                                      ({"scenarios": ["wall", "nowhere"]}, "scenarios")])
+def test_jam_settings_out_of_range_are_one_line(kw, match):
+    with pytest.raises(ValueError, match=match) as e:
+        gym.make("MKVJam-v1", **kw)
+    _one_line(e.value)
