@@ -1268,8 +1268,14 @@ static int get_doubles(PyObject *obj, double *dst, Py_ssize_t want, const char *
 
 static void batch_dealloc(BatchObject *b)
 {
-    if (b->started && b->owner_pid != (long)getpid()) /* a forked copy: no threads to stop */
+    /* a forked copy: none of the parent's threads are here to stop or to wait for, and its
+       mutex and condition variable still count the parent's waiters (destroying them would
+       wait for those forever): leave them, the memory goes with the object */
+    int forked = b->started && b->owner_pid != (long)getpid();
+    if (forked) {
         b->started = 0;
+        b->running = 0;
+    }
     if (b->running) { /* a started step: let it end before the memory goes */
         finish_job(b);
         release_job(b);
@@ -1286,8 +1292,10 @@ static void batch_dealloc(BatchObject *b)
     free(b->workers);
     free(b->scratch);
     Py_XDECREF(b->spec);
-    pthread_mutex_destroy(&b->mu);
-    pthread_cond_destroy(&b->cv);
+    if (!forked) {
+        pthread_mutex_destroy(&b->mu);
+        pthread_cond_destroy(&b->cv);
+    }
     if (b->have_out)
         for (int k = 0; k < O_LEN; k++)
             PyBuffer_Release(&b->out[k]);

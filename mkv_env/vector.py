@@ -37,7 +37,9 @@ For Stable-Baselines3, wrap it with :class:`mkv_env.sb3_vec.SB3VecEnv`.
 
 from __future__ import annotations
 
+import functools
 import operator
+import threading
 from itertools import chain
 from typing import Any
 
@@ -60,6 +62,28 @@ from mkv_env.jams import SCENARIO_DTYPE as _SCENARIO_DTYPE
 MAX_ENVS = 65_536
 
 _MODES = {m.value: m for m in AutoresetMode}
+
+
+def _one_thread(method):
+    """Refuse a second thread while one is inside this vector env (its kernel state and buffers
+    are not shared-safe: two threads stepping one vector env corrupted the heap). A clear
+    ``RuntimeError`` instead; the same thread may re-enter (an RLock)."""
+
+    @functools.wraps(method)
+    def guarded(self, *args, **kwargs):
+        busy = self.__dict__.get("_busy")
+        if busy is None:
+            busy = self.__dict__.setdefault("_busy", threading.RLock())
+        if not busy.acquire(blocking=False):
+            raise RuntimeError(f"{type(self).__name__}.{method.__name__}: another thread is "
+                               "using this vector env; one vector env serves one thread at a "
+                               "time (give each thread its own)")
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            busy.release()
+
+    return guarded
 _VALID = frozenset(range(ACTION_NVEC[0]))  # values of an action's entries (both take 0, 1, 2)
 
 
@@ -227,6 +251,7 @@ class MKVVectorEnv(VectorEnv):
         return tuple(env.np_random for env in self.envs)
 
     # ------------------------------------------------------------------ Gymnasium API
+    @_one_thread
     def reset(self, *, seed: int | list | None = None, options: dict | None = None):
         n = self.num_envs
         if seed is None:
@@ -263,6 +288,7 @@ class MKVVectorEnv(VectorEnv):
         self.env_infos = infos
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
 
+    @_one_thread
     def step(self, actions):
         if isinstance(actions, np.ma.MaskedArray):  # its masked entries would be stepped as is
             raise TypeError("actions must be a plain array, not a masked array (np.ma): its "
@@ -604,6 +630,7 @@ class MKVVectorEnv(VectorEnv):
         info.update(extra)
         return obs.copy(), rewards, terminated, truncated, info
 
+    @_one_thread
     def render(self):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode= to "
@@ -613,6 +640,7 @@ class MKVVectorEnv(VectorEnv):
             raise gym.error.ResetNeeded("call reset() before render()")
         return tuple(env.render() for env in self.envs)
 
+    @_one_thread
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
         """Call method ``name`` of every env (or read attribute ``name``), as SyncVectorEnv."""
         out = []
@@ -625,6 +653,7 @@ class MKVVectorEnv(VectorEnv):
         """Attribute ``name`` of every env."""
         return tuple(getattr(env, name) for env in self.envs)
 
+    @_one_thread
     def set_attr(self, name: str, values: Any) -> None:
         """Set attribute ``name`` of every env: one value for all, or a list/tuple of num_envs."""
         if not isinstance(values, (list, tuple)):
@@ -635,6 +664,7 @@ class MKVVectorEnv(VectorEnv):
         for env, v in zip(self.envs, values, strict=True):
             setattr(env, name, v)
 
+    @_one_thread
     def close_extras(self, **kwargs):
         for env in self.envs:
             env.close()
