@@ -191,7 +191,8 @@ class MKVEnv(gym.Env):
                f"jam_steps must be an integer in 1..2147483647, got {jam_steps!r}")
         for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
                         ("collision_penalty", collision_penalty)):
-            _check(_num(v), f"{name} must be a finite number, got {v!r}")
+            _check(_weight(v), f"{name} must be a number with |{name}| <= "
+                   f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
         try:
             self.robot_params = RobotParams.from_overrides(robot_params)
         except TypeError as e:
@@ -575,7 +576,8 @@ class MKVJamEnv(MKVEnv):
         scenarios = tuple(scenarios) if not isinstance(scenarios, str) else (scenarios,)
         _check(len(scenarios) > 0 and set(scenarios) <= set(SCENARIOS),
                f"scenarios must be a non-empty subset of {SCENARIOS}, got {scenarios!r}")
-        _check(_num(escape_reward), f"escape_reward must be a finite number, got {escape_reward!r}")
+        _check(_weight(escape_reward), f"escape_reward must be a number with |escape_reward| <= "
+               f"{REWARD_WEIGHT_MAX:g}, got {escape_reward!r}")
         super().__init__(n_clutter=n_clutter, **kwargs)
         self.scenarios = scenarios
         self.escape_reward = float(escape_reward)
@@ -675,7 +677,8 @@ class MKVEnvV1(MKVEnv):
                  collision_penalty: float = 0.05, **kwargs):
         for name, v in (("coverage_reward", coverage_reward), ("still_penalty", still_penalty),
                         ("jam_penalty", jam_penalty)):
-            _check(_num(v), f"{name} must be a finite number, got {v!r}")
+            _check(_weight(v), f"{name} must be a number with |{name}| <= "
+                   f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
         super().__init__(stuck_penalty=stuck_penalty, collision_penalty=collision_penalty,
                          **kwargs)
         self.coverage_reward = float(coverage_reward)
@@ -748,7 +751,8 @@ class MKVJamEnvV1(MKVJamEnv):
                  stuck_penalty: float = 0.05, collision_penalty: float = 0.05,
                  shaping: float = 0.5, **kwargs):
         for name, v in (("time_penalty", time_penalty), ("shaping", shaping)):
-            _check(_num(v), f"{name} must be a finite number, got {v!r}")
+            _check(_weight(v), f"{name} must be a number with |{name}| <= "
+                   f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
         super().__init__(escape_reward=escape_reward, stuck_penalty=stuck_penalty,
                          collision_penalty=collision_penalty, **kwargs)
         self.time_penalty, self.shaping = float(time_penalty), float(shaping)
@@ -822,6 +826,15 @@ def _python_overrides(cls) -> list[str]:
 def _num(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
         and math.isfinite(v)
+
+
+#: The largest magnitude of a reward weight (a reward is a weighted sum of per-step quantities
+#: of order 1-100 over a few hundred steps: weights near 1.7e308 gave infinite rewards).
+REWARD_WEIGHT_MAX = 1e6
+
+
+def _weight(v) -> bool:
+    return _num(v) and abs(v) <= REWARD_WEIGHT_MAX
 
 
 def _int(v) -> bool:

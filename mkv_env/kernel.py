@@ -205,7 +205,18 @@ def params(env) -> array.array:
          BATTERY_NOMINAL_V, BATTERY_INTERNAL_OHM)
     out = array.array("d", map(float, p))
     assert len(out) == N_PARAMS
+    from mkv_env.envs import REWARD_WEIGHT_MAX
+
+    for name, v in zip(_WEIGHTS, out[9:18], strict=True):  # set_attr reaches here too
+        if not abs(v) <= REWARD_WEIGHT_MAX:
+            raise ValueError(f"{name} must be a number with |{name}| <= {REWARD_WEIGHT_MAX:g}, "
+                             f"got {v!r}")
     return out
+
+
+#: The reward weights of :func:`params` (entries 9-17), by name.
+_WEIGHTS = ("progress_reward", "stuck_penalty", "collision_penalty", "escape_reward",
+            "coverage_reward", "still_penalty", "jam_penalty", "time_penalty", "shaping")
 
 
 def sensor_constants(sensors) -> np.ndarray:

@@ -133,6 +133,7 @@ class MKVVectorEnv(VectorEnv):
             raise ValueError(f"observation={kwargs['observation']!r} is an option of single envs; "
                              "the native vector env gives raw readings: use "
                              "gym.make_vec(..., vectorization_mode='sync') or rescale the batch")
+        _check_env_cls(env_cls)
         self.num_envs = int(num_envs)
         self.envs: list[MKVEnv] = [env_cls(**kwargs) for _ in range(self.num_envs)]
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
@@ -799,6 +800,20 @@ def _column(n: int, idx: list[int], vals) -> np.ndarray:
     for i, v in zip(idx, vals, strict=True):
         arr[i] = v
     return arr
+
+
+def _check_env_cls(env_cls) -> None:
+    """``env_cls`` must be an MK-V env class whose step and reset are its package base's: the
+    vector env steps and resets every robot itself (compiled kernel or Python reference) and
+    would silently skip a subclass's own ``step``/``reset``."""
+    if not (isinstance(env_cls, type) and issubclass(env_cls, MKVEnv)):
+        raise TypeError(f"env_cls must be MKVEnv or a subclass, got {env_cls!r}")
+    base = next(c for c in env_cls.__mro__ if c in (MKVJamEnvV1, MKVJamEnv, MKVEnvV1, MKVEnv))
+    for name in ("step", "reset"):
+        if getattr(env_cls, name) is not getattr(base, name):
+            raise TypeError(f"{env_cls.__name__} overrides {name}(), which MKVVectorEnv never "
+                            f"calls (it steps every robot itself): vectorise it with "
+                            "gymnasium.vector.SyncVectorEnv instead")
 
 
 def _creator(env_cls):

@@ -147,3 +147,43 @@ def test_a_forked_child_steps_closes_and_collects_without_hanging(threads):
             os.waitpid(pid, 0)
         v.close()
         assert status == 0, f"{what} at {threads} threads: {'hung' if status is None else status}"
+
+
+@pytest.mark.parametrize("name", ["progress_reward", "stuck_penalty", "collision_penalty"])
+def test_reward_weights_are_bounded_at_construction_and_after_set_attr(name):
+    """Weights near 1.7e308 gave infinite rewards."""
+    from mkv_env.envs import REWARD_WEIGHT_MAX
+
+    with pytest.raises(ValueError, match=name) as e:
+        gym.make("MKV-v1", **{name: 1.7e308})
+    _one_line(e.value)
+    v = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    v.reset(seed=0)
+    v.set_attr(name, [REWARD_WEIGHT_MAX * 10, 1.0])
+    with pytest.raises(ValueError, match=name):
+        for _ in range(3):
+            v.step(np.ones((2, 2), int))
+            v.reset(seed=1)
+    v.close()
+
+
+def test_a_subclass_overriding_step_is_refused_not_silently_ignored():
+    from mkv_env.envs import MKVEnv
+    from mkv_env.vector import MKVVectorEnv
+
+    class OwnStep(MKVEnv):
+        def step(self, action):  # pragma: no cover - never called: that is the point
+            raise AssertionError
+
+    with pytest.raises(TypeError, match="overrides step") as e:
+        MKVVectorEnv(2, OwnStep)
+    _one_line(e.value)
+    with pytest.raises(TypeError, match="env_cls"):
+        MKVVectorEnv(2, dict)
+
+    class Tuned(MKVEnv):  # a subclass that changes only parameters is fine
+        pass
+
+    v = MKVVectorEnv(2, Tuned)
+    v.reset(seed=0)
+    v.close()
