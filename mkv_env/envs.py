@@ -191,7 +191,7 @@ class MKVEnv(gym.Env):
                f"jam_steps must be an integer in 1..2147483647, got {jam_steps!r}")
         for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
                         ("collision_penalty", collision_penalty)):
-            _check(_weight(v), f"{name} must be a number with |{name}| <= "
+            _check(_weight(v), f"{name} must be a finite number with |{name}| <= "
                    f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
         try:
             self.robot_params = RobotParams.from_overrides(robot_params)
@@ -576,8 +576,8 @@ class MKVJamEnv(MKVEnv):
         scenarios = tuple(scenarios) if not isinstance(scenarios, str) else (scenarios,)
         _check(len(scenarios) > 0 and set(scenarios) <= set(SCENARIOS),
                f"scenarios must be a non-empty subset of {SCENARIOS}, got {scenarios!r}")
-        _check(_weight(escape_reward), f"escape_reward must be a number with |escape_reward| <= "
-               f"{REWARD_WEIGHT_MAX:g}, got {escape_reward!r}")
+        _check(_weight(escape_reward), "escape_reward must be a finite number with "
+               f"|escape_reward| <= {REWARD_WEIGHT_MAX:g}, got {escape_reward!r}")
         super().__init__(n_clutter=n_clutter, **kwargs)
         self.scenarios = scenarios
         self.escape_reward = float(escape_reward)
@@ -677,7 +677,7 @@ class MKVEnvV1(MKVEnv):
                  collision_penalty: float = 0.05, **kwargs):
         for name, v in (("coverage_reward", coverage_reward), ("still_penalty", still_penalty),
                         ("jam_penalty", jam_penalty)):
-            _check(_weight(v), f"{name} must be a number with |{name}| <= "
+            _check(_weight(v), f"{name} must be a finite number with |{name}| <= "
                    f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
         super().__init__(stuck_penalty=stuck_penalty, collision_penalty=collision_penalty,
                          **kwargs)
@@ -751,7 +751,7 @@ class MKVJamEnvV1(MKVJamEnv):
                  stuck_penalty: float = 0.05, collision_penalty: float = 0.05,
                  shaping: float = 0.5, **kwargs):
         for name, v in (("time_penalty", time_penalty), ("shaping", shaping)):
-            _check(_weight(v), f"{name} must be a number with |{name}| <= "
+            _check(_weight(v), f"{name} must be a finite number with |{name}| <= "
                    f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
         super().__init__(escape_reward=escape_reward, stuck_penalty=stuck_penalty,
                          collision_penalty=collision_penalty, **kwargs)
@@ -828,9 +828,8 @@ def _num(v) -> bool:
         and math.isfinite(v)
 
 
-#: The largest magnitude of a reward weight (a reward is a weighted sum of per-step quantities
-#: of order 1-100 over a few hundred steps: weights near 1.7e308 gave infinite rewards).
-REWARD_WEIGHT_MAX = 1e6
+#: The largest magnitude of a reward weight (:data:`mkv_env.kernel.REWARD_WEIGHT_MAX`).
+REWARD_WEIGHT_MAX = _kernel.REWARD_WEIGHT_MAX
 
 
 def _weight(v) -> bool:

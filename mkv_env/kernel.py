@@ -205,13 +205,17 @@ def params(env) -> array.array:
          BATTERY_NOMINAL_V, BATTERY_INTERNAL_OHM)
     out = array.array("d", map(float, p))
     assert len(out) == N_PARAMS
-    from mkv_env.envs import REWARD_WEIGHT_MAX
-
     for name, v in zip(_WEIGHTS, out[9:18], strict=True):  # set_attr reaches here too
         if not abs(v) <= REWARD_WEIGHT_MAX:
-            raise ValueError(f"{name} must be a number with |{name}| <= {REWARD_WEIGHT_MAX:g}, "
-                             f"got {v!r}")
+            raise ValueError(f"{name} must be a finite number with |{name}| <= "
+                             f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
     return out
+
+
+#: The largest magnitude of a reward weight (a reward is a weighted sum of per-step quantities
+#: of order 1-100 over a few hundred steps: weights near 1.7e308 gave infinite rewards); the
+#: envs check it at construction, :func:`params` when a changed weight reaches the kernel.
+REWARD_WEIGHT_MAX = 1e6
 
 
 #: The reward weights of :func:`params` (entries 9-17), by name.
