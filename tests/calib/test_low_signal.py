@@ -6,23 +6,11 @@ bound's, its stated standard errors covering the true errors at about their nomi
 with a channel more than 20 % of span off accepted without a warning naming it, and warnings on
 few fits (on 200 sensors: p95 0.89x the bound, coverage 94.8 %, 0 silent, 2 % warned)."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "calib_low_signal.py"
 
-
-def _script():
-    spec = importlib.util.spec_from_file_location("calib_low_signal", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_joint_reaches_the_bound_and_states_its_errors(monkeypatch):
-    mod = _script()
+def test_joint_reaches_the_bound_and_states_its_errors(monkeypatch, load_script):
+    mod = load_script("calib_low_signal")
     monkeypatch.setattr(mod, "ROUTES", ("joint",))
     res = [mod.one(seed) for seed in range(1000, 1024)]
     bound = np.concatenate([r["bound"] for r in res])
@@ -36,8 +24,8 @@ def test_joint_reaches_the_bound_and_states_its_errors(monkeypatch):
     assert np.mean([f["warned"] for f in fits]) <= 0.25
 
 
-def test_the_table_reports_every_route():
-    mod = _script()
+def test_the_table_reports_every_route(load_script):
+    mod = load_script("calib_low_signal")
     res = [mod.one(seed) for seed in range(1100, 1103)]
     text = mod.table(res)
     for name in ("Cramer-Rao bound", "joint", "centered", "paper"):

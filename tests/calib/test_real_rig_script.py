@@ -1,22 +1,12 @@
 """scripts/calib_real_rig.py (the issue-23 protocol on a real rig's logs) on a simulated rig written
 in the real data's file layout: the table and ``--diagnose`` run and report what they should."""
 
-import importlib.util
 import re
 from pathlib import Path
 
 import numpy as np
 
 from calib.simulate import simulate_rig
-
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "calib_real_rig.py"
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("calib_real_rig", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _write_set(folder: Path, k: int, rig) -> None:
@@ -31,11 +21,11 @@ def _write_set(folder: Path, k: int, rig) -> None:
                    comments="")
 
 
-def test_protocol_and_diagnosis_on_a_simulated_rig(tmp_path, capsys):
+def test_protocol_and_diagnosis_on_a_simulated_rig(tmp_path, capsys, load_script):
     rig = simulate_rig(np.random.default_rng(5), poses=12, samples=120, nonlinearity=0.0,
                        drift=0.0, wander=0.0, creep=0.0, hysteresis=0.0)
     _write_set(tmp_path, 0, rig)
-    _script().main(["--data", str(tmp_path), "--diagnose"])
+    load_script("calib_real_rig").main(["--data", str(tmp_path), "--diagnose"])
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if line.startswith("| 0 |"))
     ratios = [float(x) for x in re.findall(r"([\d.]+)x", row)]
