@@ -189,7 +189,7 @@ def main_() -> int:
         policy_kwargs={"net_arch": [8]}).save(os.path.join(d, "ppo.zip"))
     with open(os.path.join(d, "spec.json"), "w") as f:
         json.dump({"name": "fz", "env": ["MKVJam-v1"], "eval": {"episodes": 1, "seed": 9},
-                   "seeds": [0], "learners": {"sfm": {}}, "budgets": {"sfm": [300]}}, f)
+                   "seeds": [0], "learners": {"sfm": {}}, "budgets": {"sfm": [1200]}}, f)
     sweep_dir = os.path.join(d, "sweepdir")
     assert mkv(["sweep", os.path.join(d, "spec.json"), "--out", sweep_dir, "--quiet"]) == 0
     marker = os.path.join(d, "PWNED")
