@@ -63,9 +63,11 @@ def children_ignore_sigint(ctx=None):
     leaves it half-started (its traceback: ``FileNotFoundError`` rebuilding a semaphore the main
     process has already removed). Here, while the processes start:
 
-    - SIGINT is blocked in this thread; a signal mask survives fork and exec, so the processes
-      start with SIGINT blocked and keep it so (the workers' initializer also ignores it): only
-      the main process sees Ctrl-C, and stops them (one line, exit 130);
+    - a forkserver started here starts with SIGINT ignored (an ignored disposition survives
+      exec), and every worker it forks inherits that; SIGINT is also blocked in this thread
+      while processes start (a ``spawn`` child may or may not keep the mask: its worker
+      initializer ignores SIGINT as its first step): only the main process sees Ctrl-C, and
+      stops them (one line, exit 130);
     - a Ctrl-C delivered to another thread of this process is only recorded, and raised as
       ``KeyboardInterrupt`` when the block ends (no process is left half-started).
 
@@ -78,16 +80,34 @@ def children_ignore_sigint(ctx=None):
         yield
         return
     caught = []
-    previous = signal.signal(signal.SIGINT, lambda *a: caught.append(a))
+    previous = signal.getsignal(signal.SIGINT)
+    # an ignored SIGINT (a background job) stays ignored; a handler set outside Python (None)
+    # cannot be put back, so it is left alone (the mask still keeps it from the children)
+    record = previous not in (signal.SIG_IGN, None)
+    if record:
+        signal.signal(signal.SIGINT, lambda *a: caught.append(a))
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         if ctx is not None and ctx.get_start_method() == "forkserver":
             from multiprocessing import forkserver
 
-            forkserver.ensure_running()
+            # started with SIGINT ignored: an ignored disposition survives exec (a mask may
+            # not: measured blocked in some runs, not in others), and the server hands it on to
+            # every worker it forks; a Ctrl-C in these few milliseconds is lost, not raised
+            if record:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+            try:
+                forkserver.ensure_running()
+            finally:
+                if record:
+                    signal.signal(signal.SIGINT, lambda *a: caught.append(a))
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        if record:
+            signal.signal(signal.SIGINT, previous)
         signal.pthread_sigmask(signal.SIG_SETMASK, old)  # a pending Ctrl-C is delivered here
-    if caught:
-        raise KeyboardInterrupt
+    if caught:  # delivered to another thread meanwhile: the handler it would have met
+        if callable(previous):
+            previous(signal.SIGINT, None)  # default_int_handler raises KeyboardInterrupt
+        else:
+            raise KeyboardInterrupt  # SIG_DFL would have ended the process

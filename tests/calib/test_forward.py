@@ -166,6 +166,36 @@ def test_cli_fits_one_reading_per_pose_with_a_predicted_error(tmp_path, capsys):
     assert len(cal.diagnostics["joint"]["starts"]) >= 4
 
 
+def test_cli_default_route_is_joint_with_two_known_loads_else_centered(tmp_path, capsys):
+    """`calib fit --bias` without --method: joint with >= 2 known loads, centered with fewer;
+    a joint-only option with too few known loads is one line, exit 2, nothing written."""
+    import csv
+
+    from calib.io import load_calibration
+
+    _write_payload(tmp_path, 11, poses=60)
+    out = tmp_path / "cal.json"
+    base = ["fit", tmp_path / "raw.csv", "--dof", 3, "--bias", "--out", out,
+            "--allow-unreliable"]
+    code, _, err = _cli(base + ["--known", tmp_path / "known.csv"], capsys)
+    assert code == 0, err
+    assert load_calibration(out)[0].method == "joint"
+    rows = list(csv.reader(open(tmp_path / "known.csv")))
+    with open(tmp_path / "one.csv", "w", newline="") as f:
+        csv.writer(f).writerows(rows[:2])  # the header and one known load
+    out.unlink()
+    code, _, err = _cli(base + ["--magnitude", 7.5], capsys)  # no known loads: centered
+    assert code == 0, err
+    assert load_calibration(out)[0].method == "centered"
+    out.unlink()
+    code, _, err = _cli(base + ["--known", tmp_path / "one.csv", "--known-samples", 1], capsys)
+    assert code == 2 and err.count("\n") == 1 and "--known-samples" in err, err
+    # one known load and no joint option: the centered route, which needs 2 to fix the frame
+    code, _, err = _cli(base + ["--known", tmp_path / "one.csv"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "rotation" in err, err
+    assert not out.exists()
+
+
 def test_cli_refuses_a_narrow_log_in_one_line(tmp_path, capsys):
     _write_payload(tmp_path, 7, poses=60, tilt_deg=(0, 34))
     code, out, err = _cli(["fit", tmp_path / "raw.csv", "--dof", 3, "--method", "joint",

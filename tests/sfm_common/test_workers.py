@@ -48,3 +48,49 @@ def test_kill_9_of_a_sweep_leaves_no_worker_behind(tmp_path):
     gone, alive = psutil.wait_procs(family, timeout=5)
     assert not alive, f"still running 5 s after kill -9 of the main process: {alive}"
     assert not list(out.glob("rows/*.json")), "a job finished: the test proved nothing"
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signal masks")
+def test_children_ignore_sigint_holds_a_ctrl_c_and_children_start_with_it_blocked():
+    from sfm_common.workers import children_ignore_sigint
+
+    reached_end = []
+    with pytest.raises(KeyboardInterrupt):
+        with children_ignore_sigint():
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while processes would be starting
+            time.sleep(0.05)
+            reached_end.append(True)  # not interrupted inside the block
+    assert reached_end == [True]
+
+    # an ignored SIGINT (a background job) stays ignored: nothing is raised
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with children_ignore_sigint():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+    # a fresh interpreter (no forkserver running yet): a worker of the forkserver started
+    # inside the block ignores SIGINT (bit 2 of SigIgn) before any initializer runs
+    code = """
+import multiprocessing as mp, signal, sys, time
+from sfm_common.workers import children_ignore_sigint
+if __name__ == "__main__":
+    ctx = mp.get_context("forkserver")
+    with children_ignore_sigint(ctx):
+        c = ctx.Process(target=time.sleep, args=(3,))
+        c.start()
+    time.sleep(0.5)  # past the forked child's restoring the server's original handlers
+    with open(f"/proc/{c.pid}/status") as f:
+        st = {l.split(":")[0]: int(l.split()[1], 16) for l in f
+              if l.startswith(("SigIgn", "SigBlk"))}
+    c.terminate(); c.join()
+    bit = 1 << (signal.SIGINT - 1)
+    sys.exit(0 if (st["SigIgn"] | st["SigBlk"]) & bit else 1)
+"""
+    import multiprocessing as mp
+
+    if "forkserver" not in mp.get_all_start_methods() or not os.path.exists("/proc/self/status"):
+        return
+    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
