@@ -4,7 +4,7 @@ Reports the wall time of ``calib.bias.fit_bias`` (centered route: Gram-matrix PC
 ellipsoid fit) against numpy's own thin SVD of the same matrix measured in the same run, and the
 peak extra memory (tracemalloc, which sees numpy's allocations) relative to the input array.
 
-Targets (issue 3): < 1 s; peak extra memory <= 3x the input array.
+Targets: < 1 s; peak extra memory <= 3x the input array.
 
     .venv/bin/python benchmarks/calib_speed.py [--n 1000000] [--repeat 5]
 """

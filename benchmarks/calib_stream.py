@@ -10,7 +10,7 @@ first) in the same run. Each measurement runs in a fresh subprocess, so the peak
 sizes (``resource.getrusage(RUSAGE_SELF).ru_maxrss``: the peak of the whole process, interpreter,
 numpy and scipy included) do not mix.
 
-Target (issue 16): 1e8 x 8 in under 1 GB peak RSS.
+Target: 1e8 x 8 in under 1 GB peak RSS.
 
     .venv/bin/python benchmarks/calib_stream.py [--rows 1e8] [--peer-rows 2e6] [--seed 0]
 """

@@ -3,7 +3,7 @@
 Same hyperparameters for both (the packaged MKVJam-v1 settings: 8 sync envs x 256 steps,
 minibatch 256, 10 epochs, MLP 64x64, one torch thread), raw observations, alternating rounds,
 medians; MKV-v0 also on its native vector env (``SB3VecEnv``) with 8 envs, and with 64 envs x 32
-steps (the same 2048 samples per rollout, so the same training work per sample). Issue 15's
+steps (the same 2048 samples per rollout, so the same training work per sample). The
 target: MKV-v0 >= LunarLander-v3 in the same run.
 
     python benchmarks/ppo_env_speed.py [--steps 40960] [--rounds 3]

@@ -1,6 +1,6 @@
 """Fit and per-observation speed of the eigenspace projector, against named peers in the same run.
 
-Targets (issue 5): fit on 100,000 samples in under 0.1 s; per-observation prediction at least 10x
+Targets: fit on 100,000 samples in under 0.1 s; per-observation prediction at least 10x
 faster than an SB3 PPO MlpPolicy ``predict`` on an observation of the same size.
 
 Peers, timed here on the same data:

@@ -82,7 +82,7 @@ def fit_bias(
     magnitude : load magnitude used as scale when no known pairs are given
     whiten : divide every channel by its noise level (:func:`calib.sfm.noise_scale`, factor
         analysis of the readings' covariance) before the route's SVD, and scale the result back:
-        the calibrated loads then do not depend on the channels' units (issue 37). The centered
+        the calibrated loads then do not depend on the channels' units. The centered
         route is also independent of the channels' offsets (it subtracts the mean); the paper
         route is not, with noise (its SVD of the uncentred readings weighs the offset). False
         runs the route on the raw readings, as the paper does (the paper's trials use it); the

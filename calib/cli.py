@@ -1,4 +1,5 @@
-"""Command line: ``calib fit``, ``apply``, ``evaluate``, ``plan``, ``trials`` (DESIGN.md section 6).
+"""Command line: ``calib fit``, ``apply``, ``evaluate``, ``plan``, ``trials`` (docs/design.md
+section 6).
 
 Bad input ends the command with exit status 2 and one line on stderr, ``calib: error: ...``.
 Calibration warnings (poor excitation, hyperboloid, mirror ambiguity) are printed as one line
@@ -215,7 +216,7 @@ def _fit(args) -> str:
     from .sfm import fit_sfm
 
     _check_outputs([args.raw, args.known], args.out)
-    # the default route: the maximum-likelihood joint fit wherever it applies (issue 37);
+    # the default route: the maximum-likelihood joint fit wherever it applies;
     # a known file with fewer than 2 loads falls back to centered once it is read
     default_method = args.method is None
     if default_method:

@@ -1,4 +1,4 @@
-"""Issue 37 low-signal study: shape from motion with bias on sensors whose shortest load axis has a
+"""Low-signal study: shape from motion with bias on sensors whose shortest load axis has a
 signal-to-noise ratio of 20-50, directions within a 60 degree cap, 4 known pairs.
 
     python scripts/calib_low_signal.py [--sensors 200] [--workers 2] [--doc docs/calib_study.md]
@@ -147,7 +147,7 @@ def main(argv=None) -> int:
             i, j = text.index(BEGIN) + len(BEGIN), text.index(END)
             text = text[:i] + "\n" + block + "\n" + text[j:]
         else:
-            text += ("\n## Low signal, 60 degree cap (issue 37)\n\n" + BEGIN + "\n" + block
+            text += ("\n## Low signal, 60 degree cap\n\n" + BEGIN + "\n" + block
                      + "\n" + END + "\n")
         tmp = a.doc + ".tmp"
         with open(tmp, "w") as f:

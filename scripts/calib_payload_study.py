@@ -1,4 +1,4 @@
-"""Robot-held payload rigs (issue 37): the joint route against least squares and the oracle.
+"""Robot-held payload rigs: the joint route against least squares and the oracle.
 
 Rigs from :func:`calib.simulate.simulate_payload_rig`: a gripper (0.3-3 kg, centre of mass 2-15 cm
 off the sensor) on a 6-axis force/torque sensor read through raw gauges that mix forces and
@@ -148,7 +148,7 @@ def main(argv=None):
         a, b = "<!-- calib_payload_study:begin -->", "<!-- calib_payload_study:end -->"
         block = f"{a}\n{text}\n{b}"
         doc = (doc[: doc.index(a)] + block + doc[doc.index(b) + len(b):]) if a in doc else (
-            doc.rstrip("\n") + "\n\n## Robot-held payload rigs (issue 37)\n\n" + block + "\n")
+            doc.rstrip("\n") + "\n\n## Robot-held payload rigs\n\n" + block + "\n")
         with open(args.write, "w") as f:
             f.write(doc)
 

@@ -1,4 +1,4 @@
-"""Every route on realistic static-pose rigs (issue 23): held-out error against least squares.
+"""Every route on realistic static-pose rigs: held-out error against least squares.
 
 Rigs from :func:`calib.simulate.simulate_rig`: a 10 N mass in 12 random poses, 200 readings each,
 an 8-channel 3-axis sensor (random shape, condition 1-10), and per case the imperfections below
@@ -147,7 +147,7 @@ def main(argv=None):
         a, b = "<!-- calib_rig_study:begin -->", "<!-- calib_rig_study:end -->"
         block = f"{a}\n{text}\n{b}"
         doc = (doc[: doc.index(a)] + block + doc[doc.index(b) + len(b):]) if a in doc else (
-            doc.rstrip("\n") + "\n\n## Realistic rigs (issue 23)\n\n" + block + "\n")
+            doc.rstrip("\n") + "\n\n## Realistic rigs\n\n" + block + "\n")
         with open(path, "w") as f:
             f.write(doc)
 

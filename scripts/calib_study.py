@@ -1,4 +1,4 @@
-"""Issue 16 study: every calibration route x every case, medians and 95th percentiles over
+"""The calibration study: every calibration route x every case, medians and 95th percentiles over
 random sensors. Writes docs/calib_study.md (committed), the same tables into docs/calib.md (between
 its study markers), and prints them.
 
@@ -18,8 +18,8 @@ Cases (3-DOF, seeded; sensor k uses seed k):
 
 Routes: least squares with every load known (``bias=True``), centered (auto prior = the
 route's default; always prior tau 0.1; no prior), paper (centered and paper whiten their
-channels by default, issue 37), joint (``calib fit --bias`` with 2 or more known loads uses it
-by default since issue 37). Every shape-from-motion route gets 4 known
+channels by default), joint (``calib fit --bias`` with 2 or more known loads uses it
+by default). Every shape-from-motion route gets 4 known
 pairs (motion cases: the first 4 samples with their true loads) for its frame. The joint route
 is told the accuracy of its known pairs: single readings in the motion cases
 (``known_samples=1``), pose means of 100 readings on the rig (``known_samples=100``).

@@ -1,4 +1,4 @@
-"""Per learner and budget over training sets, and paired comparisons (issue 26), from sweeps.
+"""Per learner and budget over training sets, and paired comparisons, from sweeps.
 
     python scripts/claims_summary.py SWEEP_DIR [SWEEP_DIR ...] > docs/claims_20_sets.md
     python scripts/claims_summary.py --bundle OUT.json SWEEP_DIR [SWEEP_DIR ...]

@@ -11,7 +11,7 @@ truncated and damaged files (datasets, policies, CAL.json, CSV), out-of-range nu
 sweep's files), FIFOs given as any file a command reads (a case that blocks for 20 s counts as a
 hang), ``sb3:`` zips and ``vecnormalize.pkl`` files carrying payloads that would create a marker
 file if unpickled (``code execution``), Minari ids, and CSV headers. ``--interrupts N`` adds N
-Ctrl-C cases (issue 40): a long command in a subprocess sent SIGINT, to its process group or its
+Ctrl-C cases: a long command in a subprocess sent SIGINT, to its process group or its
 main process alone, at a random 0.3-6 s (imports, worker start-up, work); it must print one line,
 exit 130, write nothing and leave no process. Library warnings before a one-line error count as
 a multi-line error (Python's default warning filters: what a user sees). The counts go into the

@@ -1,6 +1,6 @@
 """The architecture as a test: imports only go down the layers, and there are no import cycles.
 
-Layers, lowest first (DESIGN.md section 8)::
+Layers, lowest first (docs/design.md section 8)::
 
     sfm_common                         helpers shared by everything
     mkv_env | calib                    the robot side and the calibration side (never each other)

@@ -80,7 +80,7 @@ DEFAULTS = {"epochs": 30, "batch_size": 256, "lr": 1e-3, "held_out": 0.2,
 def planned_epochs(n_rows: int, epochs: int, batch_size: int, min_updates: int) -> int:
     """Epochs a fit runs: ``epochs``, or more when that gives fewer than ``min_updates`` minibatch
     updates (small data). At 1,200 rows 30 epochs are 150 Adam steps and left BC underfitted (it
-    failed on 9 of 20 development training sets; 150 epochs: 1 of 20, 600: 0 of 20; issue 26)."""
+    failed on 9 of 20 development training sets; 150 epochs: 1 of 20, 600: 0 of 20)."""
     batches = max(1, -(-int(n_rows) // int(batch_size)))
     return max(int(epochs), -(-int(min_updates) // batches))
 
@@ -97,7 +97,7 @@ def min_rows(n_features: int) -> int:
     statistics need 2 rows, a minibatch shorter than ``batch_size`` is one full-batch Adam step
     (:func:`planned_epochs` counts the updates, so fewer rows than ``--batch-size`` still get
     ``--min-updates`` of them), and a command value absent from the rows is simply never the
-    majority class. A floor of identifiability, not of quality (issue 26: 1,200 teacher steps
+    majority class. A floor of identifiability, not of quality (1,200 teacher steps
     and up)."""
     return int(n_features) + 1
 
@@ -203,7 +203,7 @@ def train(
     (:func:`planned_epochs`): when ``min_updates`` raises them, its larger minibatch count per
     epoch gives fewer epochs than the held-out fit ran. So the validation never costs the
     policy data (at 1,200 teacher steps a 20 % split left BC on two thirds of its data and
-    failed on 2 of 3 new training sets, issue 26). ``refit=False`` returns the validation
+    failed on 2 of 3 new training sets). ``refit=False`` returns the validation
     network itself. Fewer rows than :func:`min_rows` (in all, or left for the validation
     network by the split) raise ValueError before any training (:func:`check_rows`).
     """

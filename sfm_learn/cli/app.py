@@ -1,4 +1,4 @@
-"""The ``mkv`` command line (DESIGN.md section 6): the command table, the parser and ``main``.
+"""The ``mkv`` command line (docs/design.md section 6): the command table, the parser and ``main``.
 
 Each command lives in its own module of :mod:`sfm_learn.cli` with ``add_arguments(parser)`` and
 ``run(args) -> int``; the module is imported only when the parser is built, so it must import

@@ -1,6 +1,6 @@
 """The shape-from-motion policy: features -> eigenspace projector -> three-valued motor commands.
 
-Training (the paper's section 9, DESIGN.md section 4): every time step of the teacher's runs
+Training (the paper's section 9, docs/design.md section 4): every time step of the teacher's runs
 becomes one row ``[sensor features, motor commands]``; :class:`~sfm_learn.eigenspace.projector.
 EigenspaceProjector` standardises the columns, takes the SVD and keeps the leading eigenvectors.
 At run time only the sensor part is known: the projector solves the eigenspace coefficients from
@@ -429,7 +429,7 @@ def min_fit_rows(feature_spec: FeatureSpec, encoding: str = "signed") -> int:
     and the map solved from it, are properties of the data (the Gram matrix of the known
     columns, which ``ols`` inverts, can then have full rank too). The code itself runs from 2
     rows (:meth:`EigenspaceProjector.fit`); this is the identifiability floor, not a quality
-    bar: a fit at the floor is well posed, not good (issue 26 measures 1,200 teacher steps and
+    bar: a fit at the floor is well posed, not good (measured: 1,200 teacher steps and
     up). Learned thresholds need no more: a command value absent from the training rows is
     never predicted (its threshold is stored at +-1e6), at any size.
     """
@@ -470,7 +470,7 @@ def fit_policy(data, feature_spec: FeatureSpec | None = None, *, n_components=No
         min_support: a sensor channel that leaves its most common value in fewer than this many
             training rows (a bump switch pressed once or twice) is held constant in the fit, it
             and every feature made from it, so the policy ignores it instead of extrapolating a
-            response fitted to one or two rows (:func:`rare_channels`; issue 26: a rear bump seen
+            response fitted to one or two rows (:func:`rare_channels`; a rear bump seen
             once gave a trace coefficient of -7.4 on the drive command, and the policy reversed
             into walls for good). 0 (the paper) uses every channel; the default and ols presets
             use 5 (chosen on development sets 100-139 against 0 and 20: at 1,200 teacher steps

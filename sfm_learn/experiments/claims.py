@@ -1,4 +1,4 @@
-"""Claims over many training sets (issue 26): per-point spread, failure rates, paired verdicts.
+"""Claims over many training sets: per-point spread, failure rates, paired verdicts.
 
 A sweep's rows give one value per (learner, budget, training seed). For every point this module
 reports the mean with a percentile-bootstrap interval over training sets, the median, the 10th

@@ -1,4 +1,4 @@
-"""Issue 37 item 2: units never matter.
+"""Units never matter.
 
 Every route's calibrated loads are unchanged (to 1e-6 of the load magnitude; the rig fit to
 1e-4, its iterations' stopping tolerances: from other units it may stop from another start at

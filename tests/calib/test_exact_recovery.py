@@ -1,7 +1,7 @@
 """Noise-free data: C and offsets are recovered to 1e-8 relative (2-, 3- and 6-DOF, every route).
 
 With more channels than load components any left inverse of the shape is exact on noise-free
-readings; the routes that weigh channels by their noise (the bias routes' whitening, issue 37)
+readings; the routes that weigh channels by their noise (the bias routes' whitening)
 return a weighted one, not the minimum-norm ``d.C``: for them ``C S^T = I`` is the check."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Issue 16 item 3: the joint estimator (magnitude rows + known pairs in one weighted fit)."""
+"""The joint estimator (magnitude rows + known pairs in one weighted fit)."""
 
 import json
 import warnings
@@ -45,7 +45,7 @@ def test_noise_free_rig_is_recovered_exactly():
 
 
 def test_joint_beats_centered_and_paper_on_static_pose_rigs():
-    # seeded regression: 12 poses, 4 known loads; measured medians in the issue 16 study (200
+    # seeded regression: 12 poses, 4 known loads; measured medians in the docs/calib.md study (200
     # rigs): see docs/calib_study.md; joint with its default accuracy rule here
     e = {k: [] for k in ("ls", "joint", "centered", "paper")}
     with warnings.catch_warnings():

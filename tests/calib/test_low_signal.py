@@ -1,4 +1,4 @@
-"""Issue 37, low signal: shape from motion with bias at a shortest-axis signal-to-noise ratio of
+"""Low signal: shape from motion with bias at a shortest-axis signal-to-noise ratio of
 20-50 over a 60 degree cap, 4 known pairs (scripts/calib_low_signal.py's generator, seeds it
 does not use for its published table). The default route with known pairs (joint: the forward
 maximum-likelihood fit) against the Cramer-Rao bound: its p95 offset error within 1.5x the

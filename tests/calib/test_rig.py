@@ -1,4 +1,4 @@
-"""Issue 23: realistic static-pose rigs, pose finding, the pose-level joint fit, reliability
+"""Realistic static-pose rigs, pose finding, the pose-level joint fit, reliability
 checks (exit 3), held-out estimates (``--cv poses``, ``calib evaluate``) and ``calib plan``."""
 
 import json

@@ -1,4 +1,4 @@
-"""Issue 16 items 1-2: the isotropy prior only where the data support it; standard errors,
+"""The isotropy prior only where the data support it; standard errors,
 bootstrap intervals and the 'offset not identified' warning (both routes and p = r)."""
 
 import json

@@ -1,4 +1,4 @@
-"""Issue 38's misuse reproducers that are input checks: each is one clear line, never a
+"""Misuse reproducers that are input checks: each is one clear line, never a
 MaskError, an OverflowError, a 'NoneType' error, an allocation without end, or a message that
 prints the whole action array."""
 

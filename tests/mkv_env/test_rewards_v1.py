@@ -1,4 +1,4 @@
-"""MKV-v1 / MKVJam-v1: rewards whose maximum is the intended behaviour (issue 13)."""
+"""MKV-v1 / MKVJam-v1: rewards whose maximum is the intended behaviour."""
 
 from __future__ import annotations
 

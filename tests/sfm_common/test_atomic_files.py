@@ -90,7 +90,7 @@ def test_outputs_must_differ_from_inputs_and_each_other(tmp_path):
 
 def test_a_failed_write_names_the_users_path_not_the_temporary_one(tmp_path, monkeypatch):
     """A read-only or full file system fails inside mkstemp or the write of the temporary file:
-    the error names the path the user gave (issue 40: ".../ro/.tmp-a5lp8rjb.zip" was printed)."""
+    the error names the path the user gave (".../ro/.tmp-a5lp8rjb.zip" was printed)."""
     import errno
     import tempfile
 

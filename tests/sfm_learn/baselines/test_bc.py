@@ -49,7 +49,7 @@ def test_held_out_accuracy_beats_the_majority_class(teacher_data, trained):
     train, held = data.split(0.2, seed=0)
     meta = bc.read_metadata(trained)
     # the held-out metrics come from a network trained on the other episodes; the saved policy
-    # was refitted on every step (issue 26: validation never costs the policy data)
+    # was refitted on every step (validation never costs the policy data)
     assert meta["validation_trained_steps"] == train.n_steps
     assert meta["held_out_steps"] == held.n_steps
     assert meta["teacher_steps"] == data.n_steps and meta["refit_on_all"] is True
@@ -288,7 +288,7 @@ def test_corrupt_bc_zip_is_one_line(trained, tmp_path, capsys):
 
 @pytest.mark.parametrize("features", ["default", "raw"])
 def test_plain_sb3_runs_a_bc_zip_with_no_project_code(teacher_data, tmp_path, features):
-    """Issue 25: a BC zip is a PPO model zip whose network takes the env's own observation
+    """A BC zip is a PPO model zip whose network takes the env's own observation
     (gym.make(env_id, **make_kwargs)); plain PPO.load acts exactly as bc: does, and as the
     in-memory network before folding on all but rounding ties."""
     import gymnasium as gym
@@ -335,7 +335,7 @@ def test_planned_epochs_is_the_least_that_reaches_the_minimum(n, epochs, batch, 
 
 
 def test_small_data_gets_the_minimum_number_of_updates(teacher_data, tmp_path, capsys):
-    # issue 26: at 1,200 teacher steps 30 epochs were 150 updates and BC underfitted; the default
+    # at 1,200 teacher steps 30 epochs were 150 updates and BC underfitted; the default
     # runs at least bc.MIN_UPDATES minibatch updates, and says so
     data = ds.load(teacher_data)  # 1,500 rows: 6 minibatches, so 30 epochs are 180 updates
     out = tmp_path / "bc.zip"

@@ -276,7 +276,7 @@ def test_metadata_reader_roundtrip_through_bytes(trained):
 
 
 def test_tensorboard_logs_training_and_evaluations(tmp_path, capsys):
-    """Issue 25: ``mkv train-ppo --tensorboard DIR`` writes SB3's TensorBoard events with the
+    """``mkv train-ppo --tensorboard DIR`` writes SB3's TensorBoard events with the
     evaluation points; a DIR that is a file is refused in one line before anything runs."""
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

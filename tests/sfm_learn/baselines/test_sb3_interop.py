@@ -189,7 +189,7 @@ def test_sb3_spec_refuses_a_model_of_other_spaces(tmp_path, capsys):
 
 @pytest.mark.parametrize("observation", ["raw", "features"])
 def test_plain_sb3_recipe_runs_every_ppo_zip_with_no_wrapper(tmp_path, observation):
-    """Issue 25: the README's three lines (PPO.load, then gymnasium.make with the kwargs the zip
+    """The README's three lines (PPO.load, then gymnasium.make with the kwargs the zip
     records) run a ``mkv train-ppo`` zip of either observation mode with no project wrapper,
     and act as ``mkv eval ppo:`` and ``sb3:PPO:`` do."""
     import json

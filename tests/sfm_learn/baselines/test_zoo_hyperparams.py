@@ -80,7 +80,7 @@ def test_env_kwargs_name_the_observation_and_nothing_else(tmp_path):
 
 
 def test_the_packaged_file_trains_under_rl_zoo3_and_its_zip_runs_in_mkv(tmp_path):
-    """Issue 25: the packaged hyperparameters are a valid rl-zoo3 yml (2,048 steps of
+    """The packaged hyperparameters are a valid rl-zoo3 yml (2,048 steps of
     ``python -m rl_zoo3.train ... --gym-packages mkv_env``), and the run's zip, trained on
     gym.make(id, observation="features"), runs through ``sb3:PPO:`` on a plain env exactly as
     plain SB3 runs it on the features env."""

@@ -1,4 +1,4 @@
-"""Issue 40 item 1: every long command answers Ctrl-C with one line and exit 130, writes nothing
+"""Every long command answers Ctrl-C with one line and exit 130, writes nothing
 partial and leaves no process behind, whether the signal goes to the whole process group (Ctrl-C
 in a terminal) or to the main process alone (``kill -INT``).
 

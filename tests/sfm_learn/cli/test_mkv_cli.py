@@ -187,7 +187,7 @@ def test_console_script_runs(tmp_path):
 
 
 def test_library_warnings_before_a_one_line_error_are_dropped(monkeypatch, capsys):
-    """Issue 40: a warning raised by a library while a command runs (Gymnasium's "MKV-v0 is out
+    """A warning raised by a library while a command runs (Gymnasium's "MKV-v0 is out
     of date") is shown when the command succeeds and dropped when it fails: the one-line error
     is then the only line on stderr."""
     import argparse

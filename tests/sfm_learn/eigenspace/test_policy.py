@@ -268,7 +268,7 @@ def test_onehot_policy_decodes_by_argmax(small_train, tmp_path):
     assert back.decode(v).tolist() == [[1, 0]]
 
 
-# ---------------------------------------------------------------- seeded science (issue 5)
+# ---------------------------------------------------------------- seeded science
 @pytest.fixture(scope="module")
 def wander_policy(wander_train):
     return fit_policy(wander_train)
@@ -308,7 +308,7 @@ def test_a_policy_that_sees_nothing_useful_fails_the_escape_target(wander_train)
     assert evaluate("MKVJam-v0", blind, 30, 1000).metrics["escape_rate"] < 0.9 * teacher
 
 
-# ---------------------------------------------------------------- rare channels (issue 26)
+# ---------------------------------------------------------------- rare channels
 @given(n=st.integers(1, 200), active=st.integers(0, 200), min_support=st.integers(0, 50))
 def test_rare_channels_counts_rows_away_from_the_mode(n, active, min_support):
     active = min(active, n // 2)              # the mode stays the resting value

@@ -16,6 +16,8 @@ import time
 import pytest
 
 pytest.importorskip("ray")
+# Ray instances share machine-wide state (ports, /tmp/ray): one xdist worker runs them all
+pytestmark = pytest.mark.xdist_group("ray")
 
 SPEC = {"name": "stale", "teacher_env": "MKV-v1", "env": ["MKVJam-v1"],
         "eval": {"episodes": 2, "seed": 4_600_000}, "seeds": [0],

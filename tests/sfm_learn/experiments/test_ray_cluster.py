@@ -10,6 +10,8 @@ import pytest
 
 ray = pytest.importorskip("ray")
 cluster_utils = pytest.importorskip("ray.cluster_utils")
+# Ray instances share machine-wide state (ports, /tmp/ray): one xdist worker runs them all
+pytestmark = pytest.mark.xdist_group("ray")
 
 from sfm_learn.experiments import sweep  # noqa: E402
 

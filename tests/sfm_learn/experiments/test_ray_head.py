@@ -8,10 +8,13 @@ import shutil
 import socket
 import subprocess
 import sys
+import time
 
 import pytest
 
 pytest.importorskip("ray")
+# Ray instances share machine-wide state (ports, /tmp/ray): one xdist worker runs them all
+pytestmark = pytest.mark.xdist_group("ray")
 
 SPEC = {"name": "head", "teacher_env": "MKV-v1", "env": ["MKVJam-v1"],
         "eval": {"episodes": 2, "seed": 4_500_000}, "seeds": [0, 1],
@@ -45,6 +48,12 @@ def head():
                        capture_output=True, text=True, timeout=180)
     if r.returncode != 0:
         pytest.skip(f"ray start failed here: {r.stderr.strip().splitlines()[-1:]}")
+    # `ray start` returns before the head's node is registered; on a loaded machine (the suite
+    # runs on 2 xdist workers) a driver connecting at once can time out: wait until it answers
+    deadline = time.monotonic() + 180
+    while subprocess.run([ray_cli, "status", f"--address=127.0.0.1:{port}"], capture_output=True,
+                         timeout=120).returncode != 0 and time.monotonic() < deadline:
+        time.sleep(1.0)
     try:
         yield f"127.0.0.1:{port}"
     finally:
