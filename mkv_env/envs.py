@@ -156,9 +156,7 @@ class MKVEnv(gym.Env):
             kernel = "python" if custom else _kernel.default_kernel()
         _check(kernel in ("c", "python"),
                f"kernel must be 'c', 'python' or None, got {kernel!r}")
-        _check(kernel == "python" or _kernel.AVAILABLE,
-               "kernel='c' needs the compiled extension mkv_env._fastsim, which is not built "
-               "(no C compiler at install time); use kernel='python'")
+        _check(kernel == "python" or _kernel.AVAILABLE, _kernel.unavailable_reason())
         _check(kernel == "python" or not custom,
                f"kernel='c' runs the rewards of the MK-V ids only; {type(self).__name__} "
                f"overrides {', '.join(custom)}: use kernel='python' (the default for it)")

@@ -42,7 +42,7 @@ import array
 
 import numpy as np
 
-from mkv_env import _chipmunk
+from mkv_env import _chipmunk, chipmunk
 from mkv_env import robot as _robot
 from mkv_env.params import SENSOR_NAMES
 
@@ -115,6 +115,15 @@ COLLECT = AVAILABLE and hasattr(_fastsim.Batch, "collect")
 C_RESET = NOISE_IN_C and _chipmunk.RESET and hasattr(_fastsim.Batch, "adopt")
 
 #: The env classes' reward/termination rules, as the kernel numbers them.
+def unavailable_reason() -> str:
+    """Why ``kernel='c'`` cannot run here, in one line."""
+    if chipmunk.PROBLEMS:
+        return (f"kernel='c' is off: {chipmunk.PROBLEMS[0]} (mkv_env.chipmunk checks pymunk at "
+                "import); use kernel='python' (same results)")
+    return ("kernel='c' needs the compiled extension mkv_env._fastsim, which is not built "
+            "(no C compiler at install time); use kernel='python'")
+
+
 KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
 
 #: Names of the kernel's output buffers, in Batch.outputs order: (dtype, width).
@@ -382,8 +391,8 @@ def adopt_world(env, batch, slot: int) -> bool:
     if got is None:
         return False
     space_p, static_p, body_p, shape_ps, static_cap, walls, boxes, cylinders, patches, start = got
-    space = _chipmunk.wrap_space(space_p)
-    _chipmunk.wrap_body(static_p, space, static=True)  # (kept as space.static_body)
+    space = chipmunk.wrap_space(space_p)
+    chipmunk.wrap_body(static_p, space, static=True)  # (kept as space.static_body)
     W = H = env.arena_size_m
     lay = Layout(W, H)
     lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
@@ -395,8 +404,8 @@ def adopt_world(env, batch, slot: int) -> bool:
     _chipmunk.install_contacts(world)
     robot = _robot.Robot.__new__(_robot.Robot)
     robot.params = env.robot_params
-    robot.body = _chipmunk.wrap_body(body_p, space)
-    robot.shapes = tuple(_chipmunk.wrap_shape(cls, ptr, robot.body, space) for cls, ptr in zip(
+    robot.body = chipmunk.wrap_body(body_p, space)
+    robot.shapes = tuple(chipmunk.wrap_shape(cls, ptr, robot.body, space) for cls, ptr in zip(
         (pymunk.Poly, pymunk.Segment, pymunk.Segment, pymunk.Segment), shape_ps, strict=True))
     robot._state = _robot.WheelState()
     robot._sync = None

@@ -24,31 +24,29 @@ from dataclasses import dataclass
 
 import pymunk
 
+# pymunk's own cffi layer (the same calls its properties make, minus the wrappers) and the same
+# loop compiled (setup.py builds it): None when absent or when mkv_env.chipmunk's import-time
+# check finds the installed pymunk differs from what they assume
+from mkv_env.chipmunk import address as _address
+from mkv_env.chipmunk import addresses as _addresses
+from mkv_env.chipmunk import c_object as _c
+from mkv_env.chipmunk import cp as _cp
+from mkv_env.chipmunk import fastsim as _fastsim
+from mkv_env.chipmunk import pending as _pending
 from mkv_env.params import GRAVITY_MPS2, RobotParams
-
-try:  # pymunk's own cffi layer: the same calls its properties make, minus the wrappers
-    from pymunk._chipmunk import ffi as _ffi
-    from pymunk._chipmunk import lib as _cp
-except ImportError:  # pragma: no cover - other pymunk builds
-    _cp = _ffi = None
-
-try:  # the same loop compiled (setup.py builds it; without a compiler it is skipped)
-    from mkv_env import _fastsim
-except ImportError:  # pragma: no cover - installed without a C compiler
-    _fastsim = None
 
 
 def bind_kernel(hypot=math.hypot) -> None:
     """Hand the compiled loop Chipmunk's entry points (from pymunk's cffi module) and the
     ``hypot`` it calls back (``math.hypot``; tests pass a counting wrapper)."""
-    _fastsim.bind(*(int(_ffi.cast("uintptr_t", _ffi.addressof(_cp, name))) for name in (
+    _fastsim.bind(*_addresses(
         "cpBodyGetVelocity", "cpBodyGetAngularVelocity", "cpBodyGetAngle", "cpBodySetForce",
-        "cpBodySetTorque", "cpSpaceStep")), hypot)
+        "cpBodySetTorque", "cpSpaceStep"), hypot)
 
 
 if _fastsim is not None and _cp is not None:
     bind_kernel()
-else:  # pragma: no cover
+else:
     _fastsim = None
 
 #: Which implementation of :meth:`Robot.advance` runs by default: ``"c"`` (the compiled loop),
@@ -138,10 +136,10 @@ class Robot:
         self.shapes = (chassis, fl, fr, rb)
         for s, ctype in zip(self.shapes, (CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR), strict=True):
             if _cp is not None:  # the calls pymunk's property setters make, without their wrappers
-                _cp.cpShapeSetCollisionType(s._shape, ctype)
-                _cp.cpShapeSetFriction(s._shape, p.chassis_friction)
-                _cp.cpShapeSetElasticity(s._shape, 0.0)
-                _cp.cpShapeSetFilter(s._shape, ROBOT_FILTER)
+                _cp.cpShapeSetCollisionType(_c(s), ctype)
+                _cp.cpShapeSetFriction(_c(s), p.chassis_friction)
+                _cp.cpShapeSetElasticity(_c(s), 0.0)
+                _cp.cpShapeSetFilter(_c(s), ROBOT_FILTER)
             else:  # pragma: no cover - pymunk builds without cffi
                 s.collision_type, s.friction, s.elasticity = ctype, p.chassis_friction, 0.0
                 s.filter = ROBOT_FILTER
@@ -191,8 +189,7 @@ class Robot:
         compiled loop. Never pickled: a copy has new Chipmunk objects."""
         ptrs = self._ptrs
         if ptrs is None or ptrs[0] is not space:
-            ptrs = self._ptrs = (space, int(_ffi.cast("uintptr_t", self.body._body)),
-                                 int(_ffi.cast("uintptr_t", space._space)))
+            ptrs = self._ptrs = (space, _address(self.body), _address(space))
         return ptrs
 
     def __getstate__(self):
@@ -203,7 +200,7 @@ class Robot:
 
     def can_use_c(self, space) -> bool:
         """True when :meth:`advance` on ``space`` runs the compiled loop."""
-        return self.kernel == "c" and _fastsim is not None and not space._bodies_to_check
+        return self.kernel == "c" and _fastsim is not None and not _pending(space)
 
     def set_floor_friction_scale(self, scale: float) -> None:
         """Multiply the tyre friction (slippery floor patches under the robot)."""
@@ -220,7 +217,7 @@ class Robot:
         otherwise the Python loop below, with state in locals and pymunk touched through its
         cffi layer (``pymunk._chipmunk.lib``, ``"cffi"``) or its public properties (``"api"``).
         """
-        if self.kernel == "c" and _fastsim is not None and not space._bodies_to_check:
+        if self.kernel == "c" and _fastsim is not None and not _pending(space):
             _, body_ptr, space_ptr = self.pointers(space)
             _fastsim.advance(self.kernel_constants, body_ptr, space_ptr, drive_cmd, steer_cmd, dt,
                              n, self._mu_scale, self.state)
@@ -363,15 +360,15 @@ class Robot:
     def _accessors(self, space):
         """(get_velocity, get_angular_velocity, get_angle, set_force, set_torque,
         space_step, body_handle), through cffi when possible, else the public pymunk API."""
-        if _cp is not None and not space._bodies_to_check and self.kernel != "api":
-            cpspace = space._space
+        if _cp is not None and not _pending(space) and self.kernel != "api":
+            cpspace = _c(space)
             cp_step = _cp.cpSpaceStep
 
             def step(dt):
                 cp_step(cpspace, dt)
 
             return (_cp.cpBodyGetVelocity, _cp.cpBodyGetAngularVelocity, _cp.cpBodyGetAngle,
-                    _cp.cpBodySetForce, _cp.cpBodySetTorque, step, self.body._body)
+                    _cp.cpBodySetForce, _cp.cpBodySetTorque, step, _c(self.body))
         b = self.body
 
         def set_f(_, f):
@@ -387,7 +384,7 @@ class Robot:
     def pose(self) -> tuple[float, float, float]:
         """(x [m], y [m], heading [rad], not wrapped) of the chassis centre."""
         if _cp is not None:
-            b = self.body._body
+            b = _c(self.body)
             v = _cp.cpBodyGetPosition(b)
             return v.x, v.y, _cp.cpBodyGetAngle(b)
         x, y = self.body.position
@@ -395,7 +392,7 @@ class Robot:
 
     def angle(self) -> float:
         """Heading [rad], not wrapped."""
-        return _cp.cpBodyGetAngle(self.body._body) if _cp is not None else self.body.angle
+        return _cp.cpBodyGetAngle(_c(self.body)) if _cp is not None else self.body.angle
 
     def forward_speed(self) -> float:
         """Chassis speed along its heading [m/s] (ground truth)."""

@@ -51,6 +51,7 @@ from gymnasium.vector.utils import batch_space
 from mkv_env import kernel as _kernel
 from mkv_env import robot as _robot
 from mkv_env.actions import ACTION_NVEC, OFF
+from mkv_env.chipmunk import pending as _chipmunk_pending
 from mkv_env.envs import TRAIL_DROP_POINTS as _TRAIL_DROP
 from mkv_env.envs import TRAIL_MAX_POINTS as _TRAIL_MAX
 from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
@@ -699,7 +700,7 @@ class MKVVectorEnv(VectorEnv):
                 w.robot.set_floor_friction_scale(w.floor_friction_scale())
         fast = _robot._fastsim
         if fast is not None and bodies is not None and not any(
-                w.space._bodies_to_check for w in worlds):
+                _chipmunk_pending(w.space) for w in worlds):
             fast.advance_many(robots[0].kernel_constants, bodies, spaces, drives, steers,
                               self._dt, self._substeps, [r._mu_scale for r in robots], states)
         else:  # pure-Python build (or kernel switched off): the same loop, one robot at a time

@@ -16,6 +16,9 @@ import numpy as np
 import pymunk
 
 from mkv_env import _chipmunk
+from mkv_env.chipmunk import c_object
+from mkv_env.chipmunk import cp as _cp
+from mkv_env.chipmunk import ffi as _ffi
 from mkv_env.params import RobotParams
 from mkv_env.robot import (
     BUMP_FL,
@@ -25,8 +28,6 @@ from mkv_env.robot import (
     OBSTACLE,
     ROBOT_FILTER,
     Robot,
-    _cp,
-    _ffi,
 )
 
 WALL_RADIUS_M = 0.04
@@ -322,7 +323,7 @@ class World:
     def is_clear(self, x: float, y: float, radius: float = ROBOT_CLEARANCE_M) -> bool:
         """True when no obstacle lies within ``radius`` of (x, y) (robot shapes ignored)."""
         if _cp is not None:  # Chipmunk's own query (pymunk's wraps the same call)
-            return _cp.cpSpacePointQueryNearest(self.space._space, (x, y), radius, ROBOT_FILTER,
+            return _cp.cpSpacePointQueryNearest(c_object(self.space), (x, y), radius, ROBOT_FILTER,
                                                 _ffi.NULL) == _ffi.NULL
         return self.space.point_query_nearest((x, y), radius, ROBOT_FILTER) is None
 
