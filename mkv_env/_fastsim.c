@@ -1,14 +1,17 @@
-/* mkv_env._fastsim: the MK-V's wheel/motor substep loop (mkv_env.robot.Robot.advance) in C.
+/* mkv_env._fastsim: the MK-V's wheel/motor substep loop (mkv_env.robot.Robot.advance) in C, and
+ * the step kernel built on it (Batch: N robots' whole control period; see mkv_env/kernel.py).
  *
  * The same arithmetic as the Python loop in robot.py, operation for operation and in the same
  * order, so the two give the same bits: IEEE doubles, no FMA contraction (-ffp-contract=off),
- * libm's cos/sin called one by one (-fno-builtin-sin/-cos: no sincos merging), and Python's own
- * math.hypot (CPython's vector_norm, not libm's hypot) called back for the rare sliding branch.
- * Chipmunk is reached through function pointers taken from pymunk's cffi module (bind()), so
- * this module links against nothing but libm.
+ * libm's cos/sin called one by one (-fno-builtin-sin/-cos: no sincos merging), and math.hypot
+ * as CPython computes it (its vector_norm, not libm's hypot) for the rare sliding branch: called
+ * back in Python by advance()/advance_many(), copied in C (_native/pyfloat.c) by the kernel.
+ * Chipmunk is reached through function pointers taken from pymunk's cffi module (the bind*()
+ * functions), so this module links no Chipmunk library: it links libm and, when built with
+ * numpy (setup.py), numpy's random library libnpyrandom (the sensor noise drawn in C).
  *
- * State in and out: the WheelState object's attributes (drive_omega, steer, steer_rate,
- * drive_angle, roller_angle, drive_budget, drive_current, steer_current).
+ * State in and out of advance(): the WheelState object's attributes (drive_omega, steer,
+ * steer_rate, drive_angle, roller_angle, drive_budget, drive_current, steer_current).
  */
 /*
  * Layout: a unity build. This file is the extension's one translation unit; the code lives in

@@ -5,7 +5,7 @@
  * point the kernel calls, and the pointer slots themselves (NULL until bind(), bind_kernel(),
  * bind_shapes() and bind_reset() in bind.c fill them with addresses from pymunk's cffi module).
  * Relies on: <stdint.h> (uintptr_t); the struct layouts must match the Chipmunk that pymunk
- * ships (pymunk is pinned by the package). */
+ * ships (pyproject.toml requires pymunk>=7.0,<8). */
 #ifndef MKV_NATIVE_ABI_H
 #define MKV_NATIVE_ABI_H
 

@@ -139,9 +139,10 @@ static PyObject *conclude_job(BatchObject *b)
     return result;
 }
 
-/* step(actions (n x 2 int64, values 0..2), active (n bool) or None) -> None, or the list of
- * active slots that need a new noise block first (nothing stepped then). Every active robot is
- * stepped with the GIL released, on num_threads threads. */
+/* step(actions (n x 2 int64, values 0..2), active (n bool) or None[, resets (n bool) or None])
+ * -> None, or the list of active slots that need a new noise block first (nothing stepped then).
+ * Every active robot is stepped (a slot flagged in resets is reset in C instead) with the GIL
+ * released, on num_threads threads. */
 static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     PyObject *need;
@@ -162,10 +163,10 @@ static PyObject *batch_step(BatchObject *b, PyObject *const *args, Py_ssize_t na
     return conclude_job(b);
 }
 
-/* step_start(actions, active) -> None (the worker threads are stepping the active robots; call
- * step_finish() next, and touch no active slot in between), or the list of slots that need
- * noise first (nothing started). With one thread nothing runs until step_finish(). Inactive
- * slots may be reset (bind, load, set_noise, read) while the workers run. */
+/* step_start(actions, active[, resets]) -> None (the worker threads are stepping the active
+ * robots; call step_finish() next, and touch no active slot in between), or the list of slots
+ * that need noise first (nothing started). With one thread nothing runs until step_finish().
+ * Inactive slots may be reset (bind, load, set_noise, read) while the workers run. */
 static PyObject *batch_step_start(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     PyObject *need;
@@ -198,8 +199,8 @@ static PyObject *batch_step_finish(BatchObject *b, PyObject *unused)
     return conclude_job(b);
 }
 
-/* physics(actions, active) -> None: only the physics of every active robot (the floor the
- * benchmark compares against); sensors, tracker and outputs untouched. */
+/* physics(actions) -> None: only the physics of every bound robot (the floor the benchmark
+ * compares against); sensors, tracker and outputs untouched. */
 static PyObject *batch_physics(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer av;

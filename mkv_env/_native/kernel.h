@@ -9,7 +9,7 @@
 #ifndef MKV_NATIVE_KERNEL_H
 #define MKV_NATIVE_KERNEL_H
 
-/* Layout of the constants vector K (see Robot._kernel_constants). */
+/* Layout of the constants vector K (made by mkv_env.robot.kernel_constants(params)). */
 enum {
     K_XD, K_XS, K_RW, K_INV_RS, K_LIM, K_IM, K_II, K_TIRE_MU, K_N_DRIVE, K_N_STEER,
     K_S_V, K_S_K, K_S_R, K_S_J, K_S_C, K_FRIC, K_D_V, K_D_K, K_D_R, K_D_J, K_D_C,
@@ -31,7 +31,8 @@ enum { S_WW, S_DELTA, S_RATE, S_DRIVE_ANGLE, S_ROLLER_ANGLE, S_BUDGET, S_I_DRIVE
 #define NOISE_ROWS 256
 #define OBSTACLE_TYPE 10
 
-/* Parameters of a batch (the env's constructor arguments), in the order of envs.kernel_params. */
+/* Parameters of a batch (the env's constructor arguments), in the order of
+ * mkv_env.kernel.params(env). */
 enum {
     P_DT, P_SUBSTEPS, P_PERIOD, P_STUCK_SPEED, P_JAM_STEPS, P_ESC_DIST, P_ESC_FWD, P_FREE_CLEAR,
     P_KIND, P_PROGRESS, P_STUCK_PEN, P_COLL_PEN, P_ESC_REWARD, P_COVERAGE, P_STILL_PEN,

@@ -1,7 +1,8 @@
 /* _native/module.c: the CPython glue.
  *
- * Owns: the Batch type object (methods, getters), hypot() and pymod() (the kernel's float
- * semantics, for the tests), the module's method table and PyInit__fastsim.
+ * Owns: the Batch type object (methods, getters), hypot() and pymod() (the kernel's copies
+ * of math.hypot and float %; hypot() also sets the variant, chosen at import by
+ * mkv_env.kernel), the module's method table and PyInit__fastsim.
  * Relies on: every other file (it names their functions); numpy's import_array when MKV_NUMPY. */
 
 static PyObject *batch_get_n(BatchObject *b, void *closure) { return PyLong_FromSsize_t(b->n); }

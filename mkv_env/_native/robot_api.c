@@ -1,7 +1,7 @@
 /* _native/robot_api.c: the one-robot entry points Python calls outside a Batch.
  *
  * Owns: advance() and advance_many() (Robot.advance), quantize() (SensorSuite.read's ADC step),
- * drive_until_jammed() (MKVJam's start search).
+ * drive_until_jammed() (MKVJamEnv's start search, mkv_env.envs._drive_until_jammed).
  * Relies on: wheels.c (advance_one, floor_scale), convert.c (load_state, store_state,
  * get_constants, get_doubles), bind.c (check_bound), pyfloat.c (py_hypot). */
 

@@ -126,7 +126,7 @@ fail_lists:
 }
 
 /* static_release(capsule) -> list of the shapes' addresses; the capsule no longer owns them
- * (mkv_env.kernel.adopt_static hands them to pymunk, which frees them from then on). */
+ * (mkv_env._chipmunk.adopt_static hands them to pymunk, which frees them from then on). */
 static PyObject *fs_static_release(PyObject *self, PyObject *cap)
 {
     StaticShapes *ss = PyCapsule_GetPointer(cap, "mkv_env.static_shapes");

@@ -6,7 +6,6 @@
  * threads.c (start_workers, launch_job, finish_job), sensing.c (needs_noise). */
 
 #ifdef MKV_NUMPY
-/* A fresh numpy copy of output buffer k (shape (n,) or (n, width)). */
 /* A fresh numpy array shaped like output buffer k ((n,) or (n, width)); filled later. */
 static PyObject *out_new(BatchObject *b, int k)
 {
@@ -16,14 +15,6 @@ static PyObject *out_new(BatchObject *b, int k)
     return PyArray_SimpleNew(O_WIDTH[k] > 1 ? 2 : 1, dims, types[(int)O_FMT[k]]);
 }
 
-/* collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, terminated,
- * truncated, cols, info or None): a vector env's per-step bookkeeping after step(), in one call
- * (MKVVectorEnv._step_kernel, the same operations as its Python fallback): fresh copies of this
- * step's outputs; elapsed (int64, n) += 1 for every stepped robot (active, bool n, or None for
- * all); truncated = elapsed >= max_steps (never when max_steps < 0) for stepped robots;
- * autoreset (bool n, or None) = terminated | truncated; cols = {name: copy of output index} for
- * each (name, mask_name, index) of spec; info = cols plus {mask_name: fresh all-True bool n}
- * when want_info (Gymnasium's vector info of robots that all report every key). */
 /* A step's result arrays, made (collect_alloc, with the GIL) before they are filled from the
  * output buffers (collect_fill, which touches no Python object: vstep makes them while the worker
  * threads step). arr[k] is the array of output k, or NULL when the step does not return it. */
@@ -184,6 +175,14 @@ static int vec_args(BatchObject *b, const char *name, PyObject *const *args, Py_
     return 0;
 }
 
+/* collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, terminated,
+ * truncated, cols, info or None): a vector env's per-step bookkeeping after step(), in one call
+ * (MKVVectorEnv._step_kernel, the same operations as its Python fallback): fresh copies of this
+ * step's outputs; elapsed (int64, n) += 1 for every stepped robot (active, bool n, or None for
+ * all); truncated = elapsed >= max_steps (never when max_steps < 0) for stepped robots;
+ * autoreset (bool n, or None) = terminated | truncated; cols = {name: copy of output index} for
+ * each (name, mask_name, index) of spec; info = cols plus {mask_name: fresh all-True bool n}
+ * when want_info (Gymnasium's vector info of robots that all report every key). */
 static PyObject *batch_collect(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_ssize_t n = b->n;
