@@ -143,9 +143,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=LIMIT)
     args = ap.parse_args(argv)
     rows, bad = check(args.files or None, args.limit)
-    for p, name, first, length in rows:
-        rel = p.resolve().relative_to(ROOT) if p.resolve().is_relative_to(ROOT) else p
-        print(f"{length:5d}  {name}  ({rel}:{first})")
+    try:
+        for p, name, first, length in rows:
+            rel = p.resolve().relative_to(ROOT) if p.resolve().is_relative_to(ROOT) else p
+            print(f"{length:5d}  {name}  ({rel}:{first})")
+        sys.stdout.flush()
+    except BrokenPipeError:  # (piped into head)
+        sys.stdout = None
     if bad:
         print(f"{len(bad)} function(s) of {args.limit} lines or more", file=sys.stderr)
         return 1
