@@ -12,7 +12,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # torch==2.13.0 first: an unpinned torch (pulled by stable-baselines3) would fetch GB of CUDA wheels.
-$(STAMP): $(BIN)/python pyproject.toml setup.py mkv_env/_fastsim.c
+$(STAMP): $(BIN)/python pyproject.toml setup.py mkv_env/_fastsim.c $(wildcard mkv_env/_native/*.c mkv_env/_native/*.h)
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e ".[all]"
 	touch $(STAMP)

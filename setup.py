@@ -9,9 +9,13 @@ with numpy's array API (``Batch.collect``); mkv_env checks at import that those 
 are ``Generator.standard_normal``'s (``mkv_env.kernel.NOISE_IN_C``) and otherwise draws in Python.
 """
 
+import glob
 import os
 
 from setuptools import Extension, setup
+
+# _fastsim.c is a unity build: it #includes every file of mkv_env/_native (one translation unit)
+_NATIVE = sorted(glob.glob(os.path.join("mkv_env", "_native", "*.[ch]")))
 
 
 def _npyrandom() -> dict:
@@ -34,6 +38,7 @@ setup(
         Extension(
             "mkv_env._fastsim",
             ["mkv_env/_fastsim.c"],
+            depends=_NATIVE,
             # same bits as the Python loop: no FMA contraction, no sin/cos -> sincos merging
             extra_compile_args=["-O2", "-ffp-contract=off", "-fno-builtin-sin",
                                 "-fno-builtin-cos", "-fno-fast-math"],
