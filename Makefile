@@ -24,8 +24,11 @@ install: $(STAMP)
 demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv demo --out demo_out
 
+# Two xdist workers (one per core; Ray's tests share one worker: they share machine-wide state), and
+# one BLAS/OpenMP thread per worker so the two do not oversubscribe the cores.
 test: $(STAMP)
-	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/python -m pytest -q tests
+	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+		$(BIN)/python -m pytest -q -n 2 --dist loadgroup tests
 
 lint: $(STAMP)
 	$(BIN)/ruff check mkv_env sfm_learn calib tests benchmarks

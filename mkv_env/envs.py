@@ -779,7 +779,7 @@ def _drive_until_jammed(world: World, env: MKVEnv, rng,
     """Drive forward (steering held at a random command) until stuck for jam_steps steps."""
     steer = int(rng.integers(-1, 2))
     limit = env._tracker.stuck_speed_mps * env.control_period_s
-    if env.kernel == "c":  # the same loop compiled (mkv_env/_fastsim.c)
+    if env.kernel == "c":  # the same loop compiled (mkv_env/_native/)
         robot = world.robot
         _, body, space = robot.pointers(world.space)
         jammed, robot._mu_scale = _robot._fastsim.drive_until_jammed(

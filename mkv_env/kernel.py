@@ -67,7 +67,7 @@ def _hypot_probes() -> list[tuple[float, float]]:
 
 def _pick_hypot() -> bool:
     """Make the kernel use the ``math.hypot`` algorithm of this Python (CPython changed it in
-    3.12; both are in _fastsim.c): the one that reproduces ``math.hypot`` on every probe.
+    3.12; both are in _native/pyfloat.c): the one that reproduces ``math.hypot`` on every probe.
     False if neither does (then the kernel is not used: the reference runs)."""
     import math
 
@@ -199,7 +199,7 @@ def new_batch(env, n: int, num_threads: int = 1):
 
 
 def params(env) -> array.array:
-    """The kernel's parameter vector (``P_*`` in _fastsim.c) of an env."""
+    """The kernel's parameter vector (``P_*`` in _native/kernel.h) of an env."""
     from mkv_env.sensors import BATTERY_INTERNAL_OHM, BATTERY_NOMINAL_V
     from mkv_env.tracker import FREE_CLEARANCE_M
 
@@ -340,7 +340,7 @@ def pull(env, batch, slot: int) -> None:
 
 # ---------------------------------------------------------------------- resets in C
 def reset_constants(env) -> array.array:
-    """The constants of a reset in C (``R_*`` in _fastsim.c) for envs configured like ``env``:
+    """The constants of a reset in C (``R_*`` in _native/kernel.h) for envs configured like ``env``:
     the arena, obstacles, space, start-pose search and the robot's body and shapes, each
     computed as :class:`~mkv_env.world.World`, :class:`~mkv_env.robot.Robot` and
     :func:`~mkv_env.world.random_free_pose` compute it."""

@@ -10,7 +10,7 @@ stall force against traction. The caster carries load only.
 
 Everything here is pure float arithmetic on a handful of values, read from and written to the
 pymunk body once per substep: this is the simulator's hot path. It exists twice: the Python loop
-below (readable, the reference) and the same loop in C (``mkv_env/_fastsim.c``, built by
+below (readable, the reference) and the same loop in C (``mkv_env/_native/wheels.c``, built by
 setup.py; about 4x faster), written operation for operation so both give the same bits
 (``tests/mkv_env/test_kernel.py`` compares whole episodes). Without a C compiler the Python loop
 runs and nothing else changes.
@@ -81,7 +81,7 @@ def moment_of_inertia(p: RobotParams) -> float:
 
 def kernel_constants(p: RobotParams) -> array.array:
     """The compiled loop's constants for robots of parameters ``p``, in the order of
-    ``_fastsim.c``'s ``K_*`` enum (each computed as :meth:`Robot._precompute` computes it)."""
+    ``_native/kernel.h``'s ``K_*`` enum (each computed as :meth:`Robot._precompute` computes it)."""
     m = p.mass_kg
     moment = moment_of_inertia(p)
     dm, sm = p.drive_motor, p.steer_motor
@@ -213,7 +213,7 @@ class Robot:
         ``drive_cmd``/``steer_cmd`` are -1, 0 or +1 (steer +1 = left). Each substep: steering
         motor, drive motor (implicit), wheel-floor impulses, then ``space.step(dt)`` for
         positions and contacts. With ``self.kernel == "c"`` the compiled copy of this loop runs
-        (``mkv_env/_fastsim.c``, the same operations in the same order, so the same bits);
+        (``mkv_env/_native/wheels.c``, the same operations in the same order, so the same bits);
         otherwise the Python loop below, with state in locals and pymunk touched through its
         cffi layer (``pymunk._chipmunk.lib``, ``"cffi"``) or its public properties (``"api"``).
         """

@@ -97,7 +97,7 @@ class SensorSuite:
             i_d + nz[7], i_s + nz[8],
             BATTERY_NOMINAL_V - BATTERY_INTERNAL_OHM * (abs(i_d) + abs(i_s)) + nz[9],
         )
-        if _fastsim is not None:  # the same arithmetic compiled (mkv_env/_fastsim.c)
+        if _fastsim is not None:  # the same arithmetic compiled (mkv_env/_native/)
             _fastsim.quantize(truth, self._inv_q, self._q, self.low, self.high, self._out)
             return self._out.copy()
         return np.array(
