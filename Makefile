@@ -24,11 +24,13 @@ install: $(STAMP)
 demo: $(STAMP)
 	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg $(BIN)/mkv demo --out demo_out
 
-# Two xdist workers (one per core; Ray's tests share one worker: they share machine-wide state), and
-# one BLAS/OpenMP thread per worker so the two do not oversubscribe the cores.
+# Two xdist workers (one per core), one BLAS/OpenMP thread each so the two do not oversubscribe
+# the cores; then the Ray tests in one process (they share machine-wide state, and a Ray head
+# started from an xdist worker does not answer).
+TEST_ENV := SDL_VIDEODRIVER=dummy MPLBACKEND=Agg OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 test: $(STAMP)
-	SDL_VIDEODRIVER=dummy MPLBACKEND=Agg OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
-		$(BIN)/python -m pytest -q -n 2 --dist loadgroup tests
+	$(TEST_ENV) $(BIN)/python -m pytest -q -n 2 -m "not ray" tests
+	$(TEST_ENV) $(BIN)/python -m pytest -q -m ray tests
 
 lint: $(STAMP)
 	$(BIN)/ruff check mkv_env sfm_learn calib tests benchmarks

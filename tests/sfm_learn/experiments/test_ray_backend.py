@@ -5,8 +5,9 @@ import json
 import pytest
 
 ray = pytest.importorskip("ray")
-# Ray instances share machine-wide state (ports, /tmp/ray): one xdist worker runs them all
-pytestmark = pytest.mark.xdist_group("ray")
+# Ray instances share machine-wide state (ports, /tmp/ray), and a head started from an xdist
+# worker does not answer (measured): `make test` runs these after the others, in one process
+pytestmark = pytest.mark.ray
 
 from sfm_learn.cli import main  # noqa: E402
 from sfm_learn.evaluation import evaluate_many, evaluations_json  # noqa: E402

@@ -10,8 +10,9 @@ import pytest
 
 ray = pytest.importorskip("ray")
 cluster_utils = pytest.importorskip("ray.cluster_utils")
-# Ray instances share machine-wide state (ports, /tmp/ray): one xdist worker runs them all
-pytestmark = pytest.mark.xdist_group("ray")
+# Ray instances share machine-wide state (ports, /tmp/ray), and a head started from an xdist
+# worker does not answer (measured): `make test` runs these after the others, in one process
+pytestmark = pytest.mark.ray
 
 from sfm_learn.experiments import sweep  # noqa: E402
 

@@ -13,8 +13,9 @@ import time
 import pytest
 
 pytest.importorskip("ray")
-# Ray instances share machine-wide state (ports, /tmp/ray): one xdist worker runs them all
-pytestmark = pytest.mark.xdist_group("ray")
+# Ray instances share machine-wide state (ports, /tmp/ray), and a head started from an xdist
+# worker does not answer (measured): `make test` runs these after the others, in one process
+pytestmark = pytest.mark.ray
 
 SPEC = {"name": "head", "teacher_env": "MKV-v1", "env": ["MKVJam-v1"],
         "eval": {"episodes": 2, "seed": 4_500_000}, "seeds": [0, 1],
@@ -34,7 +35,7 @@ def _mkv(*args, env=None):
     e.pop("RAY_ADDRESS", None)
     e.update(env or {})
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=e,
-                          timeout=600)
+                          timeout=600, stdin=subprocess.DEVNULL)
 
 
 @pytest.fixture(scope="module")
@@ -45,14 +46,16 @@ def head():
     port = _free_port()
     r = subprocess.run([ray_cli, "start", "--head", f"--port={port}", "--num-cpus=2",
                         "--include-dashboard=false", "--disable-usage-stats"],
-                       capture_output=True, text=True, timeout=180)
+                       capture_output=True, text=True, timeout=180,
+                       stdin=subprocess.DEVNULL)
     if r.returncode != 0:
         pytest.skip(f"ray start failed here: {r.stderr.strip().splitlines()[-1:]}")
     # `ray start` returns before the head's node is registered; on a loaded machine (the suite
     # runs on 2 xdist workers) a driver connecting at once can time out: wait until it answers
     deadline = time.monotonic() + 180
     while subprocess.run([ray_cli, "status", f"--address=127.0.0.1:{port}"], capture_output=True,
-                         timeout=120).returncode != 0 and time.monotonic() < deadline:
+                         timeout=120, stdin=subprocess.DEVNULL).returncode != 0 \
+            and time.monotonic() < deadline:
         time.sleep(1.0)
     try:
         yield f"127.0.0.1:{port}"
