@@ -42,7 +42,7 @@ import array
 
 import numpy as np
 
-from mkv_env import _chipmunk, chipmunk
+from mkv_env import _chipmunk, chipmunk, layouts
 from mkv_env import robot as _robot
 from mkv_env.params import SENSOR_NAMES
 
@@ -126,14 +126,39 @@ def unavailable_reason() -> str:
 
 KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
 
-#: Names of the kernel's output buffers, in Batch.outputs order: (dtype, width).
-OUTPUTS = (
-    ("obs", np.float32, len(SENSOR_NAMES)), ("reward", np.float64, 0),
-    ("terminated", np.bool_, 0), ("stuck", np.bool_, 0), ("bumped", np.bool_, 0),
-    ("collision", np.bool_, 0), ("distance_m", np.float64, 0), ("jams", np.int64, 0),
-    ("escapes", np.int64, 0), ("collisions", np.int64, 0), ("in_jam", np.bool_, 0),
-    ("pose", np.float64, 3), ("cells_visited", np.int64, 0), ("escaped", np.bool_, 0),
-)
+#: The kernel's output buffers (layout O) by the kernel's name: (the name Python uses, dtype,
+#: width per slot, 0 for a scalar). :data:`OUTPUTS` puts them in the kernel's order.
+_OUTPUTS = {
+    "OBS": ("obs", np.float32, len(SENSOR_NAMES)), "REW": ("reward", np.float64, 0),
+    "TERM": ("terminated", np.bool_, 0), "STUCK": ("stuck", np.bool_, 0),
+    "BUMPED": ("bumped", np.bool_, 0), "COLL": ("collision", np.bool_, 0),
+    "DIST": ("distance_m", np.float64, 0), "JAMS": ("jams", np.int64, 0),
+    "ESC": ("escapes", np.int64, 0), "COLLS": ("collisions", np.int64, 0),
+    "IN_JAM": ("in_jam", np.bool_, 0), "POSE": ("pose", np.float64, 3),
+    "CELLS": ("cells_visited", np.int64, 0), "ESCAPED": ("escaped", np.bool_, 0),
+}
+_FORMATS = {"f": np.float32, "d": np.float64, "?": np.bool_, "q": np.int64}
+
+
+def _outputs() -> tuple:
+    """:data:`_OUTPUTS` in the order of the kernel's layout O, each checked against the kernel's
+    buffer format and width (:class:`mkv_env.layouts.LayoutMismatch` when they differ)."""
+    if not layouts.LAYOUTS:
+        return tuple(_OUTPUTS.values())
+    layouts.check_names("O", _OUTPUTS)
+    out = []
+    for name, _, width, fmt in layouts.fields("O"):
+        py, dtype, w = _OUTPUTS[name]
+        if _FORMATS.get(fmt) is not dtype or max(w, 1) != width:
+            raise layouts.LayoutMismatch(f"layout O: output {name} is {fmt!r} x {width} in the "
+                                         f"compiled kernel, {np.dtype(dtype).char!r} x {max(w, 1)} "
+                                         "in Python: the build is stale (rebuild mkv_env)")
+        out.append((py, dtype, w))
+    return tuple(out)
+
+
+#: Names of the kernel's output buffers, in Batch.outputs order: (name, dtype, width).
+OUTPUTS = _outputs()
 
 
 def default_kernel() -> str:
@@ -204,21 +229,19 @@ def params(env) -> array.array:
     from mkv_env.tracker import FREE_CLEARANCE_M
 
     t = env._tracker
-    g = getattr
-    p = (env.control_period_s / env.substeps, env.substeps, t.period_s, t.stuck_speed_mps,
-         t.jam_steps, t.escape_distance_m, t.escape_forward_m, FREE_CLEARANCE_M,
-         env._KERNEL_KIND, g(env, "progress_reward", 0.0), env.stuck_penalty,
-         env.collision_penalty, g(env, "escape_reward", 0.0), g(env, "coverage_reward", 0.0),
-         g(env, "still_penalty", 0.0), g(env, "jam_penalty", 0.0), g(env, "time_penalty", 0.0),
-         g(env, "shaping", 0.0), g(env, "_COVERAGE_CELL_M", 0.25), env._sensors._tick_angle,
-         BATTERY_NOMINAL_V, BATTERY_INTERNAL_OHM)
-    out = array.array("d", map(float, p))
-    assert len(out) == N_PARAMS
-    for name, v in zip(_WEIGHTS, out[9:18], strict=True):  # set_attr reaches here too
+    weights = {key: float(getattr(env, attr, 0.0)) for key, attr in _WEIGHTS.items()}
+    for key, v in weights.items():  # set_attr reaches here too
+        name = _WEIGHTS[key]
         if not abs(v) <= REWARD_WEIGHT_MAX:
             raise ValueError(f"{name} must be a finite number with |{name}| <= "
                              f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
-    return out
+    return layouts.pack("P", {
+        "DT": env.control_period_s / env.substeps, "SUBSTEPS": env.substeps,
+        "PERIOD": t.period_s, "STUCK_SPEED": t.stuck_speed_mps, "JAM_STEPS": t.jam_steps,
+        "ESC_DIST": t.escape_distance_m, "ESC_FWD": t.escape_forward_m,
+        "FREE_CLEAR": FREE_CLEARANCE_M, "KIND": env._KERNEL_KIND, **weights,
+        "CELL": getattr(env, "_COVERAGE_CELL_M", 0.25), "TICK": env._sensors._tick_angle,
+        "BATT_V": BATTERY_NOMINAL_V, "BATT_R": BATTERY_INTERNAL_OHM})
 
 
 #: The largest magnitude of a reward weight (a reward is a weighted sum of per-step quantities
@@ -227,9 +250,12 @@ def params(env) -> array.array:
 REWARD_WEIGHT_MAX = 1e6
 
 
-#: The reward weights of :func:`params` (entries 9-17), by name.
-_WEIGHTS = ("progress_reward", "stuck_penalty", "collision_penalty", "escape_reward",
-            "coverage_reward", "still_penalty", "jam_penalty", "time_penalty", "shaping")
+#: The reward weights of :func:`params`: the kernel's name -> the env's attribute (0 when the
+#: env's class has none).
+_WEIGHTS = {"PROGRESS": "progress_reward", "STUCK_PEN": "stuck_penalty",
+            "COLL_PEN": "collision_penalty", "ESC_REWARD": "escape_reward",
+            "COVERAGE": "coverage_reward", "STILL_PEN": "still_penalty",
+            "JAM_PEN": "jam_penalty", "TIME_PEN": "time_penalty", "SHAPING": "shaping"}
 
 
 def sensor_constants(sensors) -> np.ndarray:
@@ -241,10 +267,13 @@ def sensor_constants(sensors) -> np.ndarray:
 def _layout_constants() -> np.ndarray:
     from mkv_env import world as w
 
-    return np.array([w.CLUTTER_MARGIN_M, w.CLUTTER_TRIES, *w.BOX_SIDE_M, *w.CYLINDER_RADIUS_M,
-                     *w.WALL_PIECE_LENGTH_M, *w.CORNER_ARM_M, *w.DEAD_END_GAP_M,
-                     *w.DEAD_END_DEPTH_M, *w.CLUTTER_GAP_M, *w.PATCH_SIDE_M, w.WALL_RADIUS_M,
-                     *w._CLUTTER_CDF], dtype=np.float64)
+    pairs = {"BOX": w.BOX_SIDE_M, "CYL": w.CYLINDER_RADIUS_M, "WALL": w.WALL_PIECE_LENGTH_M,
+             "ARM": w.CORNER_ARM_M, "GAP": w.DEAD_END_GAP_M, "DEPTH": w.DEAD_END_DEPTH_M,
+             "CGAP": w.CLUTTER_GAP_M, "PATCH": w.PATCH_SIDE_M}
+    values = {f"{k}{i}": v[i] for k, v in pairs.items() for i in (0, 1)}
+    return np.array(layouts.pack("L", {
+        "MARGIN": w.CLUTTER_MARGIN_M, "TRIES": w.CLUTTER_TRIES, **values,
+        "WALL_R": w.WALL_RADIUS_M, "CDF": w._CLUTTER_CDF}), dtype=np.float64)
 
 
 _LAYOUT_CONSTANTS = None
@@ -274,10 +303,16 @@ def generate_layout(rng: np.random.Generator, width_m: float = 4.0, height_m: fl
 
 
 # ---------------------------------------------------------------------- state in and out
-_WHEEL = ("drive_omega", "steer", "steer_rate", "drive_angle", "roller_angle", "drive_budget",
-          "drive_current", "steer_current")
-_TRACK = ("x", "y", "heading", "distance_m", "last_step_m", "stuck_run", "jams", "escapes",
-          "in_jam", "jam_x", "jam_y", "collisions", "forward_run_m", "_events")
+#: A slot's doubles (layouts S and V) by the kernel's names: the wheel state's attributes ...
+_WHEEL = {"WW": "drive_omega", "DELTA": "steer", "RATE": "steer_rate",
+          "DRIVE_ANGLE": "drive_angle", "ROLLER_ANGLE": "roller_angle", "BUDGET": "drive_budget",
+          "I_DRIVE": "drive_current", "I_STEER": "steer_current"}
+#: ... and the tracker's (the rest of V: MU, TICK_D, TICK_R and PHI are the robot's, the
+#: sensors' and the env's)
+_TRACK = {"X": "x", "Y": "y", "HEAD": "heading", "DIST": "distance_m", "LAST": "last_step_m",
+          "STUCK_RUN": "stuck_run", "JAMS": "jams", "ESCAPES": "escapes", "IN_JAM": "in_jam",
+          "JAM_X": "jam_x", "JAM_Y": "jam_y", "COLLS": "collisions", "FWD": "forward_run_m",
+          "EVENTS": "_events"}
 _TRACK_INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events"))
 
 
@@ -299,11 +334,11 @@ def push(env, batch, slot: int) -> None:
     st, t, s = robot._state, env._tracker, env._sensors
     _, body, space = robot.pointers(world.space)
     batch.bind(slot, body, space, world.contacts, world.layout.patches)
-    values = array.array("d", [getattr(st, k) for k in _WHEEL])
-    values.append(robot._mu_scale)
-    values.extend(map(float, s._last_ticks))
-    values.extend(float(getattr(t, k)) for k in _TRACK)
-    values.append(getattr(env, "_phi", 0.0))
+    values = layouts.pack("S", {k: getattr(st, a) for k, a in _WHEEL.items()})
+    values.extend(layouts.pack("V", {
+        "MU": robot._mu_scale, "TICK_D": s._last_ticks[0], "TICK_R": s._last_ticks[1],
+        **{k: getattr(t, a) for k, a in _TRACK.items()}, "PHI": getattr(env, "_phi", 0.0)},
+        start=len(values)))
     if s._block is not None:
         batch.set_noise(slot, s._block)
     if NOISE_IN_C:  # the slot draws its next blocks from the episode's generator itself (a
@@ -321,15 +356,16 @@ def pull(env, batch, slot: int) -> None:
     values, row, noise, cells = batch.state(slot)
     robot = env.world.robot
     st, t, s = robot._state, env._tracker, env._sensors
-    for k, v in zip(_WHEEL, values, strict=False):
-        setattr(st, k, v)
-    robot._mu_scale = values[8]
-    s._last_ticks = (int(values[9]), int(values[10]))
-    for k, v in zip(_TRACK, values[11:], strict=False):
-        setattr(t, k, int(v) if k in _TRACK_INT else v)
+    wheel, v = layouts.unpack("S", values), layouts.unpack("V", values)
+    for k, a in _WHEEL.items():
+        setattr(st, a, wheel[k])
+    robot._mu_scale = v["MU"]
+    s._last_ticks = (int(v["TICK_D"]), int(v["TICK_R"]))
+    for k, a in _TRACK.items():
+        setattr(t, a, int(v[k]) if a in _TRACK_INT else v[k])
     t.in_jam = bool(t.in_jam)
     if hasattr(env, "_phi"):
-        env._phi = values[-1]
+        env._phi = v["PHI"]
     if hasattr(env, "_cells"):
         env._cells = set(cells)
     if row != s._row or s._block is None or s._block.tobytes() != noise:
@@ -349,16 +385,20 @@ def reset_constants(env) -> array.array:
     p = env.robot_params
     verts, bumpers, r = _robot.shape_geometry(p)
     W = env.arena_size_m
-    R = (W, W, env.n_clutter, env.n_patches, env.patch_friction, w.WALL_RADIUS_M,
-         w.OBSTACLE_FRICTION, w.OBSTACLE_ELASTICITY, _robot.OBSTACLE, w.SPACE_ITERATIONS,
-         w.SPACE_DAMPING, w.ROBOT_CLEARANCE_M + w.WALL_RADIUS_M, w.ROBOT_CLEARANCE_M,
-         w.START_POSE_TRIES, w.LAYOUT_ATTEMPTS, p.mass_kg, _robot.moment_of_inertia(p),
-         p.chassis_friction, _robot.CHASSIS, _robot.BUMP_FL, _robot.BUMP_FR, _robot.BUMP_REAR,
-         *(c for v in verts for c in v), *(c for seg in bumpers for pt in seg for c in pt), r,
-         _robot.ROBOT_FILTER.group, *_chipmunk.HANDLER_OFFSETS)
-    out = array.array("d", map(float, R))
-    assert len(out) == _fastsim.N_RESET
-    return out
+    fl, fr, rb = ([c for pt in seg for c in pt] for seg in bumpers)
+    begin, separate, data = _chipmunk.HANDLER_OFFSETS
+    return layouts.pack("R", {
+        "W": W, "H": W, "NCLUTTER": env.n_clutter, "NPATCH": env.n_patches,
+        "PSCALE": env.patch_friction, "WALL_R": w.WALL_RADIUS_M, "OBS_FRIC": w.OBSTACLE_FRICTION,
+        "OBS_ELAST": w.OBSTACLE_ELASTICITY, "OBS_TYPE": _robot.OBSTACLE,
+        "ITER": w.SPACE_ITERATIONS, "DAMP": w.SPACE_DAMPING,
+        "MARGIN": w.ROBOT_CLEARANCE_M + w.WALL_RADIUS_M, "CLEAR": w.ROBOT_CLEARANCE_M,
+        "TRIES": w.START_POSE_TRIES, "ATTEMPTS": w.LAYOUT_ATTEMPTS, "MASS": p.mass_kg,
+        "MOMENT": _robot.moment_of_inertia(p), "FRIC": p.chassis_friction,
+        "TYPES": (_robot.CHASSIS, _robot.BUMP_FL, _robot.BUMP_FR, _robot.BUMP_REAR),
+        "CHASSIS": [c for v in verts for c in v], "FL": fl, "FR": fr, "RB": rb, "BUMP_R": r,
+        "GROUP": _robot.ROBOT_FILTER.group, "H_BEGIN": begin, "H_SEP": separate,
+        "H_DATA": data})
 
 
 def setup_resets(env, batch) -> bool:

@@ -33,6 +33,7 @@ from mkv_env.chipmunk import c_object as _c
 from mkv_env.chipmunk import cp as _cp
 from mkv_env.chipmunk import fastsim as _fastsim
 from mkv_env.chipmunk import pending as _pending
+from mkv_env.layouts import pack as _pack
 from mkv_env.params import GRAVITY_MPS2, RobotParams
 
 
@@ -86,16 +87,17 @@ def kernel_constants(p: RobotParams) -> array.array:
     moment = moment_of_inertia(p)
     dm, sm = p.drive_motor, p.steer_motor
     weight = m * GRAVITY_MPS2
-    k = array.array("d", (
-        p.drive_x_m, p.steer_x_m, p.drive_wheel_radius_m, 1.0 / p.steer_wheel_radius_m,
-        p.steer_limit_rad, 1.0 / m, 1.0 / moment, p.tire_friction,
-        p.drive_load_fraction * weight, p.steer_load_fraction * weight, sm.supply_v,
-        sm.k_nm_per_a, sm.resistance_ohm, sm.inertia_kgm2,
-        sm.k_nm_per_a**2 / sm.resistance_ohm + sm.viscous_nms, p.steer_coulomb_nm,
-        dm.supply_v, dm.k_nm_per_a, dm.resistance_ohm, dm.inertia_kgm2,
-        dm.k_nm_per_a**2 / dm.resistance_ohm + dm.viscous_nms, m, moment))
-    if _fastsim is not None:
-        assert len(k) == _fastsim.N_CONSTANTS
+    k = _pack("K", {
+        "XD": p.drive_x_m, "XS": p.steer_x_m, "RW": p.drive_wheel_radius_m,
+        "INV_RS": 1.0 / p.steer_wheel_radius_m, "LIM": p.steer_limit_rad, "IM": 1.0 / m,
+        "II": 1.0 / moment, "TIRE_MU": p.tire_friction,
+        "N_DRIVE": p.drive_load_fraction * weight, "N_STEER": p.steer_load_fraction * weight,
+        "S_V": sm.supply_v, "S_K": sm.k_nm_per_a, "S_R": sm.resistance_ohm,
+        "S_J": sm.inertia_kgm2, "S_C": sm.k_nm_per_a**2 / sm.resistance_ohm + sm.viscous_nms,
+        "FRIC": p.steer_coulomb_nm, "D_V": dm.supply_v, "D_K": dm.k_nm_per_a,
+        "D_R": dm.resistance_ohm, "D_J": dm.inertia_kgm2,
+        "D_C": dm.k_nm_per_a**2 / dm.resistance_ohm + dm.viscous_nms, "MASS": m,
+        "MOMENT": moment})
     return k
 
 

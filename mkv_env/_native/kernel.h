@@ -9,14 +9,25 @@
 #ifndef MKV_NATIVE_KERNEL_H
 #define MKV_NATIVE_KERNEL_H
 
-/* Layout of the constants vector K (made by mkv_env.robot.kernel_constants(params)). */
-enum {
-    K_XD, K_XS, K_RW, K_INV_RS, K_LIM, K_IM, K_II, K_TIRE_MU, K_N_DRIVE, K_N_STEER,
-    K_S_V, K_S_K, K_S_R, K_S_J, K_S_C, K_FRIC, K_D_V, K_D_K, K_D_R, K_D_J, K_D_C,
-    K_MASS, K_MOMENT, K_LEN
-};
-/* Layout of the state vector. */
-enum { S_WW, S_DELTA, S_RATE, S_DRIVE_ANGLE, S_ROLLER_ANGLE, S_BUDGET, S_I_DRIVE, S_I_STEER, S_LEN };
+/* The layouts shared with Python, each ONE list X(name, width) from which both the enum below
+ * and the extension's LAYOUTS table (module.c) are generated; Python builds and reads these
+ * vectors by name through mkv_env/layouts.py, which checks the names against LAYOUTS, so a field
+ * added, removed or moved here cannot silently shift the other side. An enumerator NAME_LAST_
+ * marks the last index of every field (a field of width w spans NAME .. NAME + w - 1). */
+#define MKV_ENUM_FIELD(name, width) name, name##_LAST_ = name + (width) - 1,
+
+/* The constants vector K (made by mkv_env.robot.kernel_constants(params)). */
+#define K_FIELDS(X) \
+    X(K_XD, 1) X(K_XS, 1) X(K_RW, 1) X(K_INV_RS, 1) X(K_LIM, 1) X(K_IM, 1) X(K_II, 1) \
+    X(K_TIRE_MU, 1) X(K_N_DRIVE, 1) X(K_N_STEER, 1) X(K_S_V, 1) X(K_S_K, 1) X(K_S_R, 1) \
+    X(K_S_J, 1) X(K_S_C, 1) X(K_FRIC, 1) X(K_D_V, 1) X(K_D_K, 1) X(K_D_R, 1) X(K_D_J, 1) \
+    X(K_D_C, 1) X(K_MASS, 1) X(K_MOMENT, 1)
+enum { K_FIELDS(MKV_ENUM_FIELD) K_LEN };
+/* The wheel state vector (its Python names: STATE_NAMES in convert.c, the WheelState fields). */
+#define S_FIELDS(X) \
+    X(S_WW, 1) X(S_DELTA, 1) X(S_RATE, 1) X(S_DRIVE_ANGLE, 1) X(S_ROLLER_ANGLE, 1) \
+    X(S_BUDGET, 1) X(S_I_DRIVE, 1) X(S_I_STEER, 1)
+enum { S_FIELDS(MKV_ENUM_FIELD) S_LEN };
 
 /* ============================================================================ the step kernel
  * Batch: N robots' whole control period after the action is decoded (physics, sensors, tracker,
@@ -33,31 +44,42 @@ enum { S_WW, S_DELTA, S_RATE, S_DRIVE_ANGLE, S_ROLLER_ANGLE, S_BUDGET, S_I_DRIVE
 
 /* Parameters of a batch (the env's constructor arguments), in the order of
  * mkv_env.kernel.params(env). */
-enum {
-    P_DT, P_SUBSTEPS, P_PERIOD, P_STUCK_SPEED, P_JAM_STEPS, P_ESC_DIST, P_ESC_FWD, P_FREE_CLEAR,
-    P_KIND, P_PROGRESS, P_STUCK_PEN, P_COLL_PEN, P_ESC_REWARD, P_COVERAGE, P_STILL_PEN,
-    P_JAM_PEN, P_TIME_PEN, P_SHAPING, P_CELL, P_TICK, P_BATT_V, P_BATT_R, P_LEN
-};
+#define P_FIELDS(X) \
+    X(P_DT, 1) X(P_SUBSTEPS, 1) X(P_PERIOD, 1) X(P_STUCK_SPEED, 1) X(P_JAM_STEPS, 1) \
+    X(P_ESC_DIST, 1) X(P_ESC_FWD, 1) X(P_FREE_CLEAR, 1) X(P_KIND, 1) X(P_PROGRESS, 1) \
+    X(P_STUCK_PEN, 1) X(P_COLL_PEN, 1) X(P_ESC_REWARD, 1) X(P_COVERAGE, 1) X(P_STILL_PEN, 1) \
+    X(P_JAM_PEN, 1) X(P_TIME_PEN, 1) X(P_SHAPING, 1) X(P_CELL, 1) X(P_TICK, 1) X(P_BATT_V, 1) \
+    X(P_BATT_R, 1)
+enum { P_FIELDS(MKV_ENUM_FIELD) P_LEN };
 enum { KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 };
 /* A slot's doubles: the wheel state (S_*, advance_one's layout) and then the rest. */
-enum {
-    V_MU = S_LEN, V_TICK_D, V_TICK_R, V_X, V_Y, V_HEAD, V_DIST, V_LAST, V_STUCK_RUN, V_JAMS,
-    V_ESCAPES, V_IN_JAM, V_JAM_X, V_JAM_Y, V_COLLS, V_FWD, V_EVENTS, V_PHI, V_LEN
-};
+#define V_FIELDS(X) \
+    X(V_MU, 1) X(V_TICK_D, 1) X(V_TICK_R, 1) X(V_X, 1) X(V_Y, 1) X(V_HEAD, 1) X(V_DIST, 1) \
+    X(V_LAST, 1) X(V_STUCK_RUN, 1) X(V_JAMS, 1) X(V_ESCAPES, 1) X(V_IN_JAM, 1) X(V_JAM_X, 1) \
+    X(V_JAM_Y, 1) X(V_COLLS, 1) X(V_FWD, 1) X(V_EVENTS, 1) X(V_PHI, 1)
+enum { V_BASE_ = S_LEN - 1, V_FIELDS(MKV_ENUM_FIELD) V_LEN };
 /* Output buffers, registered by Batch.outputs(). */
-enum {
-    O_OBS, O_REW, O_TERM, O_STUCK, O_BUMPED, O_COLL, O_DIST, O_JAMS, O_ESC, O_COLLS, O_IN_JAM,
-    O_POSE, O_CELLS, O_ESCAPED, O_LEN
-};
-static const char O_FMT[O_LEN] = {'f', 'd', '?', '?', '?', '?', 'd', 'q', 'q', 'q', '?', 'd', 'q', '?'};
-static const int O_WIDTH[O_LEN] = {NCH, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1};
+/* O(name, buffer format, width per slot) */
+#define O_FIELDS(O) \
+    O(O_OBS, 'f', NCH) O(O_REW, 'd', 1) O(O_TERM, '?', 1) O(O_STUCK, '?', 1) \
+    O(O_BUMPED, '?', 1) O(O_COLL, '?', 1) O(O_DIST, 'd', 1) O(O_JAMS, 'q', 1) O(O_ESC, 'q', 1) \
+    O(O_COLLS, 'q', 1) O(O_IN_JAM, '?', 1) O(O_POSE, 'd', 3) O(O_CELLS, 'q', 1) \
+    O(O_ESCAPED, '?', 1)
+#define MKV_O_ENUM(name, fmt, width) name,
+#define MKV_O_FMT(name, fmt, width) fmt,
+#define MKV_O_WIDTH(name, fmt, width) width,
+enum { O_FIELDS(MKV_O_ENUM) O_LEN };
+static const char O_FMT[O_LEN] = {O_FIELDS(MKV_O_FMT)};
+static const int O_WIDTH[O_LEN] = {O_FIELDS(MKV_O_WIDTH)};
 
 enum { ERR_NONE, ERR_NONFINITE, ERR_CELL, ERR_MEMORY, ERR_UNBOUND, ERR_NOPOSE };
 
-enum {
-    L_MARGIN, L_TRIES, L_BOX0, L_BOX1, L_CYL0, L_CYL1, L_WALL0, L_WALL1, L_ARM0, L_ARM1, L_GAP0,
-    L_GAP1, L_DEPTH0, L_DEPTH1, L_CGAP0, L_CGAP1, L_PATCH0, L_PATCH1, L_WALL_R, L_CDF, L_LEN = L_CDF + 5
-};
+#define L_FIELDS(X) \
+    X(L_MARGIN, 1) X(L_TRIES, 1) X(L_BOX0, 1) X(L_BOX1, 1) X(L_CYL0, 1) X(L_CYL1, 1) \
+    X(L_WALL0, 1) X(L_WALL1, 1) X(L_ARM0, 1) X(L_ARM1, 1) X(L_GAP0, 1) X(L_GAP1, 1) \
+    X(L_DEPTH0, 1) X(L_DEPTH1, 1) X(L_CGAP0, 1) X(L_CGAP1, 1) X(L_PATCH0, 1) X(L_PATCH1, 1) \
+    X(L_WALL_R, 1) X(L_CDF, 5)
+enum { L_FIELDS(MKV_ENUM_FIELD) L_LEN };
 
 typedef struct {
     void *body, *space;
@@ -91,12 +113,13 @@ typedef struct {
 
 /* A reset's constants (Batch.set_reset, from mkv_env.kernel.reset_constants): the arena, the
  * obstacles, the space, the start-pose search and the robot's body and shapes. */
-enum {
-    R_W, R_H, R_NCLUTTER, R_NPATCH, R_PSCALE, R_WALL_R, R_OBS_FRIC, R_OBS_ELAST, R_OBS_TYPE,
-    R_ITER, R_DAMP, R_MARGIN, R_CLEAR, R_TRIES, R_ATTEMPTS, R_MASS, R_MOMENT, R_FRIC,
-    R_TYPES, R_CHASSIS = R_TYPES + 4, R_FL = R_CHASSIS + 8, R_FR = R_FL + 4, R_RB = R_FR + 4,
-    R_BUMP_R = R_RB + 4, R_GROUP, R_H_BEGIN, R_H_SEP, R_H_DATA, R_LEN
-};
+#define R_FIELDS(X) \
+    X(R_W, 1) X(R_H, 1) X(R_NCLUTTER, 1) X(R_NPATCH, 1) X(R_PSCALE, 1) X(R_WALL_R, 1) \
+    X(R_OBS_FRIC, 1) X(R_OBS_ELAST, 1) X(R_OBS_TYPE, 1) X(R_ITER, 1) X(R_DAMP, 1) \
+    X(R_MARGIN, 1) X(R_CLEAR, 1) X(R_TRIES, 1) X(R_ATTEMPTS, 1) X(R_MASS, 1) X(R_MOMENT, 1) \
+    X(R_FRIC, 1) X(R_TYPES, 4) X(R_CHASSIS, 8) X(R_FL, 4) X(R_FR, 4) X(R_RB, 4) \
+    X(R_BUMP_R, 1) X(R_GROUP, 1) X(R_H_BEGIN, 1) X(R_H_SEP, 1) X(R_H_DATA, 1)
+enum { R_FIELDS(MKV_ENUM_FIELD) R_LEN };
 
 typedef struct BatchObject BatchObject;
 

@@ -11,6 +11,61 @@ static PyObject *batch_get_threads(BatchObject *b, void *closure)
     return PyLong_FromLong(b->nthreads);
 }
 
+/* LAYOUTS: {"K": ((name, offset, width), ...), ...} from the X-macro lists of kernel.h (names
+ * without their prefix; O's entries carry the buffer format too). mkv_env/layouts.py builds
+ * and reads every vector by these names. */
+#define MKV_ADD_FIELD(name, width) \
+    if (add_field(list, #name, (Py_ssize_t)(name), (Py_ssize_t)(width), 0) < 0) goto fail;
+#define MKV_ADD_O(name, fmt, width) \
+    if (add_field(list, #name, (Py_ssize_t)(name), (Py_ssize_t)(width), fmt) < 0) goto fail;
+
+static int add_field(PyObject *list, const char *name, Py_ssize_t offset, Py_ssize_t width,
+                     char fmt)
+{
+    const char *bare = strchr(name, '_') + 1; /* K_XD -> XD */
+    PyObject *item = fmt ? Py_BuildValue("(snnC)", bare, offset, width, (int)fmt)
+                         : Py_BuildValue("(snn)", bare, offset, width);
+    if (item == NULL)
+        return -1;
+    int rc = PyList_Append(list, item);
+    Py_DECREF(item);
+    return rc;
+}
+
+static int add_layout(PyObject *d, const char *key, PyObject *list)
+{
+    PyObject *t = list ? PyList_AsTuple(list) : NULL;
+    Py_XDECREF(list);
+    int rc = t ? PyDict_SetItemString(d, key, t) : -1;
+    Py_XDECREF(t);
+    return rc;
+}
+
+static PyObject *make_layouts(void)
+{
+    PyObject *d = PyDict_New(), *list = NULL;
+    if (d == NULL)
+        return NULL;
+#define MKV_LAYOUT(key, FIELDS, ADD) \
+    if ((list = PyList_New(0)) == NULL) goto fail; \
+    FIELDS(ADD) \
+    if (add_layout(d, key, list) < 0) { list = NULL; goto fail; } \
+    list = NULL;
+    MKV_LAYOUT("K", K_FIELDS, MKV_ADD_FIELD)
+    MKV_LAYOUT("S", S_FIELDS, MKV_ADD_FIELD)
+    MKV_LAYOUT("P", P_FIELDS, MKV_ADD_FIELD)
+    MKV_LAYOUT("V", V_FIELDS, MKV_ADD_FIELD)
+    MKV_LAYOUT("O", O_FIELDS, MKV_ADD_O)
+    MKV_LAYOUT("L", L_FIELDS, MKV_ADD_FIELD)
+    MKV_LAYOUT("R", R_FIELDS, MKV_ADD_FIELD)
+#undef MKV_LAYOUT
+    return d;
+fail:
+    Py_XDECREF(list);
+    Py_DECREF(d);
+    return NULL;
+}
+
 static PyMethodDef batch_methods[] = {
     {"set_reset", (PyCFunction)(void (*)(void))batch_set_reset, METH_FASTCALL,
      "set_reset(R, layout_constants): the constants of resets in C (MKV-v0, MKV-v1)."},
@@ -165,7 +220,8 @@ PyMODINIT_FUNC PyInit__fastsim(void)
         PyModule_AddIntConstant(m, "N_VALUES", V_LEN) < 0 ||
         PyModule_AddIntConstant(m, "NOISE_ROWS", NOISE_ROWS) < 0 ||
         PyModule_AddIntConstant(m, "N_CONSTANTS", K_LEN) < 0 ||
-        PyModule_AddIntConstant(m, "N_RESET", R_LEN) < 0) {
+        PyModule_AddIntConstant(m, "N_RESET", R_LEN) < 0 ||
+        PyModule_AddObject(m, "LAYOUTS", make_layouts()) < 0) {
         Py_DECREF(m);
         return NULL;
     }
