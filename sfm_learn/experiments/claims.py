@@ -1,17 +1,26 @@
 """Claims over many training sets: per-point spread, failure rates, paired verdicts.
 
-A sweep's rows give one value per (learner, budget, training seed). For every point this module
-reports the mean with a percentile-bootstrap interval over training sets, the median, the 10th
-percentile and the *failure rate*: the share of training sets whose policy escapes fewer than
-:data:`ESCAPE_FAIL` of MKVJam-v1 jams or wanders less than :data:`DISTANCE_FAIL` m per MKV-v1
-episode (each test only where that env was evaluated). Two learners are ranked only by a *paired*
-comparison: the per-training-set differences of the escape rate over the seeds both have (same
-training seed, same evaluation episodes), with a percentile-bootstrap interval; the verdict names
-the higher learner only when the interval excludes 0 over at least :data:`MIN_PAIRED` sets, and
-says "no clear difference" otherwise.
+A sweep's rows give one value per (learner, budget, training seed), and, when the sweep's spec
+names evaluation ``banks``, every episode's outcome. For every point this module reports the
+mean with a percentile-bootstrap interval, the median, the 10th percentile and the *failure
+rate*: the share of training sets whose policy escapes fewer than :data:`ESCAPE_FAIL` of
+MKVJam-v1 jams or wanders less than :data:`DISTANCE_FAIL` m per MKV-v1 episode (each test only
+where that env was evaluated).
+
+What an interval covers (:func:`design`): with per-episode outcomes, training sets *and*
+evaluation episodes (and banks, with three or more), resampled independently
+(:mod:`sfm_learn.experiments.crossed`): the interval is about the learner, not about the
+episodes that happened to be drawn. Rows without them (sweeps before banks) give intervals over
+training sets only, the episodes held fixed, and say so.
+
+Two learners are ranked only by a *paired* comparison (same training seeds, same episodes), and
+only when Holm's family-wise adjustment over the comparisons of the budget's table rejects "no
+difference" (each comparison's interval is shown at its Holm step's level, so it excludes 0
+exactly then) over at least :data:`MIN_PAIRED` sets; otherwise "no clear difference". Each table
+also states the smallest difference its design detects (:func:`crossed.min_detectable_effect`).
 Every ranking sentence the README and ``mkv demo`` print comes from :func:`claim_sentences`.
 
-Bootstraps are seeded (2,000 resamples), so the same rows give the same text.
+Bootstraps are seeded, so the same rows give the same text.
 """
 
 from __future__ import annotations
@@ -24,6 +33,8 @@ import textwrap
 from collections import defaultdict
 
 import numpy as np
+
+from sfm_learn.experiments import crossed
 
 JAM, WANDER = "MKVJam-v1", "MKV-v1"
 ESCAPE_FAIL = 0.8
@@ -48,8 +59,35 @@ def by_point(rows) -> dict:
         out[(r["learner"], int(r["budget"]))][int(r["seed"])] = {
             "escape": m.get(JAM, {}).get("escape_rate"),
             "distance": m.get(WANDER, {}).get("distance_m"),
+            "episodes": (r.get("episodes") or {}).get(JAM),
         }
     return dict(out)
+
+
+def outcomes(sets: dict) -> crossed.Outcomes | None:
+    """The escape outcomes of one point (``by_point`` value) for the bootstrap: per episode when
+    every set has them on the same episodes (``design`` "sets x episodes"), else each set's
+    escape rate as its one value (the episodes held fixed); None without escapes."""
+    seeds = sorted(s for s in sets if sets[s]["escape"] is not None)
+    if not seeds:
+        return None
+    eps = [sets[s].get("episodes") for s in seeds]
+    if all(e and e.get("escaped") is not None for e in eps) and all(
+            e["bank"] == eps[0]["bank"] for e in eps):
+        return crossed.Outcomes(tuple(seeds), np.array([e["escaped"] for e in eps], float),
+                                np.array(eps[0]["bank"]))
+    return crossed.Outcomes(tuple(seeds), np.array([[sets[s]["escape"]] for s in seeds]),
+                            np.zeros(1, int))
+
+
+def design(out: crossed.Outcomes | None) -> str:
+    """What an interval over ``out`` covers, in words."""
+    if out is None or out.values.shape[1] == 1:
+        return "training sets (the evaluation episodes held fixed)"
+    banks = len(np.unique(out.banks))
+    level = ", banks resampled" if banks >= crossed.MIN_BANKS_AS_LEVEL else ""
+    return (f"training sets and evaluation episodes ({out.values.shape[1]} in {banks} "
+            f"bank{'s' if banks > 1 else ''}{level})")
 
 
 def bootstrap_mean_ci(values, rng, resamples: int = RESAMPLES) -> tuple[float, float]:
@@ -72,25 +110,48 @@ def point_summary(sets: dict, seed: int = 0) -> dict:
             for s in seeds]
     out = {"n": len(seeds), "failures": int(sum(fail))}
     if len(esc):
-        out.update(escape_mean=float(esc.mean()), escape_ci=bootstrap_mean_ci(esc, rng),
-                   escape_median=float(np.median(esc)), escape_p10=float(np.percentile(esc, 10)))
+        lv = crossed.level(outcomes(sets), seed=seed, resamples=RESAMPLES)
+        out.update(escape_mean=float(esc.mean()), escape_ci=lv["ci"],
+                   escape_median=float(np.median(esc)), escape_p10=float(np.percentile(esc, 10)),
+                   covers=design(outcomes(sets)))
     if len(dist):
         out.update(distance_mean=float(dist.mean()), distance_ci=bootstrap_mean_ci(dist, rng))
     return out
 
 
+def budget_table(points: dict, budget: int, seed: int = 0, pairs=PAIRS) -> dict:
+    """The paired comparisons ``pairs`` (default :data:`PAIRS`) at ``budget`` as one Holm family:
+    ``{(a, b): {"n", "mean", "ci", "confidence", "p_adjusted", "verdict", "mde", "covers"}}``
+    (``verdict`` a learner name or None; None also below :data:`MIN_PAIRED` common sets)."""
+    family = {}
+    for a, b in pairs:
+        oa, ob = outcomes(points.get((a, budget), {})), outcomes(points.get((b, budget), {}))
+        if oa is None or ob is None:
+            continue
+        if oa.values.shape[1] != ob.values.shape[1] or not np.array_equal(oa.banks, ob.banks):
+            # one of them without per-episode outcomes: compare the per-set rates
+            oa, ob = (crossed.Outcomes(o.sets, o.values.mean(axis=1, keepdims=True),
+                                       np.zeros(1, int)) for o in (oa, ob))
+        family[(a, b)] = (oa, ob)
+    got = crossed.table(family, seed=seed, resamples=RESAMPLES)
+    out = {}
+    for (a, b), r in got.items():
+        verdict = {"a": a, "b": b}.get(r["verdict"]) if r["n"] >= MIN_PAIRED else None
+        out[(a, b)] = {**r, "verdict": verdict, "covers": design(family[(a, b)][0])}
+    return out
+
+
 def paired(points: dict, a: str, b: str, budget: int, seed: int = 0) -> dict | None:
-    """Paired escape-rate difference ``a - b`` at ``budget`` over their common training seeds:
-    ``{"n", "mean", "ci", "verdict"}``; None when they share no seed."""
-    da, db = points.get((a, budget), {}), points.get((b, budget), {})
-    seeds = sorted(s for s in set(da) & set(db)
-                   if da[s]["escape"] is not None and db[s]["escape"] is not None)
-    if not seeds:
-        return None
-    diff = np.array([da[s]["escape"] - db[s]["escape"] for s in seeds])
-    lo, hi = bootstrap_mean_ci(diff, np.random.default_rng(seed))
-    verdict = None if len(seeds) < MIN_PAIRED else a if lo > 0 else b if hi < 0 else None
-    return {"n": len(seeds), "mean": float(diff.mean()), "ci": (lo, hi), "verdict": verdict}
+    """Paired escape-rate difference ``a - b`` at ``budget``: its row of :func:`budget_table`
+    (Holm-adjusted over the budget's :data:`PAIRS`), or, for a pair outside them, a family of
+    one; None when they share no seed."""
+    if (a, b) in PAIRS:
+        return budget_table(points, budget, seed).get((a, b))
+    if (b, a) in PAIRS:
+        r = budget_table(points, budget, seed).get((b, a))
+        return None if r is None else {**r, "mean": -r["mean"],
+                                       "ci": (-r["ci"][1], -r["ci"][0])}
+    return budget_table(points, budget, seed, pairs=((a, b),)).get((a, b))
 
 
 def _name(learner: str) -> str:
@@ -116,18 +177,18 @@ def tables(rows) -> str:
         dist = f"{p['distance_mean']:.2f}" if "distance_mean" in p else "-"
         lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
                      f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
-    lines += ["", "| pair | budget | paired mean difference in escape [bootstrap 95%] | verdict |",
-              "|---|---:|---|---|"]
-    budgets = sorted({b for _, b in points})
-    for a, c in PAIRS:
-        for b in budgets:
-            r = paired(points, a, c, b)
-            if r is None:
-                continue
+    lines += ["", "Intervals of a level cover " + "; ".join(sorted({
+        f"{design(outcomes(v))}" for v in points.values() if outcomes(v) is not None})) + ".",
+        "", "| pair | budget | paired mean difference in escape [bootstrap, Holm step level] "
+        "| Holm-adjusted p | verdict | detectable difference (80 % power) |",
+        "|---|---:|---|---:|---|---:|"]
+    for b in sorted({b for _, b in points}):
+        for (a, c), r in budget_table(points, b).items():
             verdict = (f"{r['verdict']} higher" if r["verdict"] else "no clear difference"
                        if r["n"] >= MIN_PAIRED else f"too few sets (< {MIN_PAIRED})")
             lines.append(f"| {a} - {c} | {b:,} | {r['mean']:+.3f} [{r['ci'][0]:+.3f}, "
-                         f"{r['ci'][1]:+.3f}] (n={r['n']}) | {verdict} |")
+                         f"{r['ci'][1]:+.3f}] ({100 * r['confidence']:.1f} %, n={r['n']}) | "
+                         f"{r['p_adjusted']:.3f} | {verdict} | {r['mde']:.3f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -147,11 +208,8 @@ def claim_sentences(rows) -> list[str]:
                          f"{p['escape_ci'][1]:.3f}], failing on {p['failures']} of {p['n']}")
         if not parts:
             continue
-        verdicts = []
-        for a, c in PAIRS:
-            r = paired(points, a, c, b)
-            if r is None:
-                continue
+        verdicts, table = [], budget_table(points, b)
+        for (a, c), r in table.items():
             ci = f"{r['mean']:+.3f} [{r['ci'][0]:+.3f}, {r['ci'][1]:+.3f}]"
             if r["n"] < MIN_PAIRED:
                 verdicts.append(f"{_name(a)} and {_name(c)}: too few common sets ({r['n']}) "
@@ -162,9 +220,16 @@ def claim_sentences(rows) -> list[str]:
                                 f"{_name(c)} {ci})")
             else:
                 verdicts.append(f"{_name(a)} and {_name(c)}: no clear difference ({ci})")
-        out.append(f"At {b:,} teacher steps the escape rates (mean [95% bootstrap over training "
-                   f"sets]) are {'; '.join(parts)}. Paired over the same sets: "
-                   f"{'; '.join(verdicts)}.")
+        first = next(lr for lr in ("sfm", "bc", "dagger", "sfm-ols", "sfm-paper")
+                     if (lr, b) in points)
+        covers = design(outcomes(points[(first, b)]))
+        mde = (f" The design detects paired differences of about "
+               f"{float(np.median([r['mde'] for r in table.values()])):.3f} (80 % power)."
+               if table else "")
+        out.append(f"At {b:,} teacher steps the escape rates (mean [95% bootstrap over {covers}]) "
+                   f"are {'; '.join(parts)}. Paired over the same sets and episodes, ranked only "
+                   f"where Holm's adjustment over these {len(table)} comparisons excludes 0 "
+                   f"(intervals at its step levels): {'; '.join(verdicts)}.{mde}")
     for learner in sorted({lr for lr, _ in points if lr.startswith("ppo")}):
         parts = []
         for b in sorted(b for lr, b in points if lr == learner):

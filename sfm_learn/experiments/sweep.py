@@ -59,6 +59,11 @@ TRAIN_SEED_BASE = 10_000_000
 """Demonstrations of training seed ``s`` use env seeds ``TRAIN_SEED_BASE + 10_000 s + i``."""
 MAX_EPISODE_STEPS = 600
 METRICS = ("escape_rate", "distance_m", "stuck_fraction", "mean_return")
+MAX_BANKS = 20
+"""Most evaluation banks a spec may name (``eval.banks``)."""
+BANK_STRIDE = 100_000
+"""Evaluation bank k of a spec starts ``BANK_STRIDE * k`` seeds after ``eval.seed`` (the most
+episodes a bank may have, so banks never share a seed)."""
 
 
 class SpecError(ValueError):
@@ -185,12 +190,14 @@ def check_spec(doc) -> dict:
     if not isinstance(doc.get("teacher_env", ""), str):
         raise SpecError("teacher_env must be an env id")
     ev = doc.get("eval", {})
-    if not isinstance(ev, dict) or set(ev) - {"episodes", "seed"}:
-        raise SpecError("eval must be a mapping with 'episodes' and 'seed'")
+    if not isinstance(ev, dict) or set(ev) - {"episodes", "seed", "banks"}:
+        raise SpecError("eval must be a mapping with 'episodes', 'seed' and optionally 'banks'")
     spec["eval"] = {"episodes": _int_list([ev.get("episodes", 50)], "eval.episodes", 1,
                                           100_000)[0],
                     "seed": _int_list([ev.get("seed", 5_000_000)], "eval.seed", 0,
                                       2**62)[0]}
+    if "banks" in ev:  # absent: one bank, rows as before
+        spec["eval"]["banks"] = _int_list([ev["banks"]], "eval.banks", 1, MAX_BANKS)[0]
     spec["seeds"] = _int_list(doc["seeds"], "seeds", 0, 99_999)
     if not isinstance(doc["learners"], dict) or not doc["learners"]:
         raise SpecError("learners must map names to options")
@@ -368,14 +375,34 @@ def teacher_data(spec: dict, seed: int, budget: int, out_dir: str):
     return data
 
 
-def _evaluate(spec: dict, policy_spec: str, env_ids: Sequence[str]) -> dict:
-    from sfm_learn.evaluation import evaluate
+def bank_seeds(ev: dict) -> list[int]:
+    """The first evaluation seed of every bank of a spec's ``eval`` (bank k starts
+    :data:`BANK_STRIDE` x k after ``seed``: disjoint for any allowed episode count)."""
+    return [ev["seed"] + BANK_STRIDE * k for k in range(ev.get("banks", 1))]
 
-    out = {}
+
+def _evaluate(spec: dict, policy_spec: str, env_ids: Sequence[str]) -> tuple[dict, dict | None]:
+    """(metrics per env over every bank's episodes, per-episode outcomes per env or None).
+    The outcomes (``{"bank": [...], "escaped": [...] | None, "distance_m": [...]}``) are kept
+    when the spec names ``banks``: claims then bootstrap over training sets and episodes."""
+    from sfm_learn.evaluation import evaluate
+    from sfm_learn.evaluation.records import aggregate
+
+    out, episodes = {}, {}
     for env_id in env_ids:
-        m = evaluate(env_id, policy_spec, spec["eval"]["episodes"], spec["eval"]["seed"]).metrics
+        records, bank = [], []
+        for k, first in enumerate(bank_seeds(spec["eval"])):
+            got = evaluate(env_id, policy_spec, spec["eval"]["episodes"], first).records
+            records += got
+            bank += [k] * len(got)
+        m = aggregate(records)
         out[env_id] = {k: m.get(k) for k in METRICS}
-    return out
+        esc = [r.escaped for r in records]
+        episodes[env_id] = {"bank": bank,
+                            "escaped": None if any(e is None for e in esc) else
+                            [int(bool(e)) for e in esc],
+                            "distance_m": [float(r.distance_m) for r in records]}
+    return out, (episodes if "banks" in spec["eval"] else None)
 
 
 def _min_updates(opts) -> dict:
@@ -429,10 +456,12 @@ def run_job(spec: dict, job: Job, out_dir: str) -> list[dict]:
             budget = job.budgets[0]
             policy_spec, used = _train_teacher_learner(spec, job, kind, opts, budget, pol_dir)
             train_s = time.perf_counter() - t0
-            metrics = _evaluate(spec, policy_spec, eval_envs)
+            metrics, episodes = _evaluate(spec, policy_spec, eval_envs)
             rows = [{**base_row, "budget": budget, "steps": int(used), "status": "ok",
                      "policy": policy_spec, "metrics": metrics, "train_s": round(train_s, 3),
                      "wall_s": round(time.perf_counter() - t0, 3)}]
+            if episodes is not None:
+                rows[0]["episodes"] = episodes
     except KeyboardInterrupt:
         raise
     except Exception as e:  # noqa: BLE001 - a job's failure is data, not a crash of the sweep
@@ -463,11 +492,13 @@ def _run_ppo(spec, job, opts, eval_envs, pol_dir, base_row, t0) -> list[dict]:
         # the first checkpoint at or after b env steps (SB3 finishes whole rollouts)
         point = next(p for p in meta["learning_curve"] if p["env_steps"] >= b)
         path = os.path.join(ckpt, f"ppo_{point['env_steps']:08d}.zip")
+        metrics, episodes = _evaluate(spec, f"ppo:{path}", eval_envs)
         rows.append({**base_row, "budget": b, "steps": point["env_steps"], "status": "ok",
-                     "policy": f"ppo:{path}", "metrics": _evaluate(spec, f"ppo:{path}",
-                                                                   eval_envs),
+                     "policy": f"ppo:{path}", "metrics": metrics,
                      "train_s": round(train_s, 3), "ppo_train_wall_s": point["wall_s"],
                      "wall_s": round(time.perf_counter() - t0, 3)})
+        if episodes is not None:
+            rows[-1]["episodes"] = episodes
     return rows
 
 
@@ -475,6 +506,29 @@ def write_row(out_dir: str, name: str, row: dict) -> None:
     os.makedirs(os.path.join(out_dir, "rows"), exist_ok=True)
     atomic_write_text(os.path.join(out_dir, "rows", name),
                       json.dumps(row, indent=1, sort_keys=True, allow_nan=False) + "\n")
+
+
+def _episodes_ok(episodes, metrics) -> bool:
+    """A row's per-episode outcomes (:func:`_evaluate`): for each evaluated env, equally long
+    lists of bank numbers, escapes (0/1, or None for an env without escapes) and distances."""
+    if not isinstance(episodes, dict) or set(episodes) - set(metrics):
+        return False
+    for e in episodes.values():
+        if not isinstance(e, dict) or set(e) != {"bank", "escaped", "distance_m"}:
+            return False
+        bank, esc, dist = e["bank"], e["escaped"], e["distance_m"]
+        if not (isinstance(bank, list) and bank and isinstance(dist, list)
+                and len(dist) == len(bank) and (esc is None or (isinstance(esc, list)
+                                                                 and len(esc) == len(bank)))):
+            return False
+        if not all(_is_int(b) and 0 <= b < MAX_BANKS for b in bank):
+            return False
+        if esc is not None and not all(_is_int(x) and x in (0, 1) for x in esc):
+            return False
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                   for x in dist):
+            return False
+    return True
 
 
 def row_problem(row) -> str | None:
@@ -495,6 +549,8 @@ def row_problem(row) -> str | None:
             return "status ok without a mapping of finite metrics"
         if "steps" in row and not _is_int(row["steps"]):
             return "steps is not an integer"
+        if "episodes" in row and not _episodes_ok(row["episodes"], m):
+            return "episodes is not per-env lists of banks, escapes (0/1) and finite distances"
     elif row.get("status") != "error":
         return f"status {row.get('status')!r} is neither 'ok' nor 'error'"
     return None

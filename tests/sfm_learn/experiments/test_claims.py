@@ -11,13 +11,20 @@ from hypothesis import strategies as st
 from sfm_learn.experiments import claims
 
 
-def _row(learner, budget, seed, escape=None, distance=None, status="ok"):
+def _row(learner, budget, seed, escape=None, distance=None, status="ok", escaped=None):
     m = {}
     if escape is not None:
         m["MKVJam-v1"] = {"escape_rate": escape}
     if distance is not None:
         m["MKV-v1"] = {"distance_m": distance}
-    return {"learner": learner, "budget": budget, "seed": seed, "status": status, "metrics": m}
+    row = {"learner": learner, "budget": budget, "seed": seed, "status": status, "metrics": m}
+    if escaped is not None:  # per-episode outcomes on banks of equal size
+        m["MKVJam-v1"] = {"escape_rate": float(np.mean(escaped))}
+        row["episodes"] = {"MKVJam-v1": {"bank": [i * 2 // len(escaped) for i in
+                                                  range(len(escaped))],
+                                         "escaped": [int(e) for e in escaped],
+                                         "distance_m": [1.0] * len(escaped)}}
+    return row
 
 
 def test_failure_counts_either_test_where_measured():
@@ -69,6 +76,41 @@ def test_the_verdict_names_a_learner_exactly_when_the_interval_excludes_zero(dif
     lo, hi = r["ci"]
     assert lo <= r["mean"] + 1e-12 and r["mean"] <= hi + 1e-12
     assert r["verdict"] == ("sfm" if lo > 0 else "bc" if hi < 0 else None)
+
+
+def test_with_episodes_the_interval_covers_them_and_is_wider_than_sets_only():
+    """Per-episode rows: the level's interval resamples episodes too (hard and easy episodes
+    shared by every set), so it is wider than the interval over the same sets' rates alone."""
+    rng = np.random.default_rng(0)
+    easy = rng.random(40) < 0.8  # shared episode difficulty: most easy, some hard
+    rows, rates = [], []
+    for s in range(20):
+        esc = np.where(easy, rng.random(40) < 0.98, rng.random(40) < 0.3)
+        rows.append(_row("sfm", 1200, s, escaped=esc))
+        rates.append(_row("sfm", 1200, s, float(esc.mean())))
+    with_eps = claims.point_summary(claims.by_point(rows)[("sfm", 1200)])
+    sets_only = claims.point_summary(claims.by_point(rates)[("sfm", 1200)])
+    assert with_eps["covers"].startswith("training sets and evaluation episodes (40 in 2 banks")
+    assert sets_only["covers"] == "training sets (the evaluation episodes held fixed)"
+    assert with_eps["escape_mean"] == pytest.approx(sets_only["escape_mean"])
+    w = with_eps["escape_ci"][1] - with_eps["escape_ci"][0]
+    assert w > 1.5 * (sets_only["escape_ci"][1] - sets_only["escape_ci"][0])
+    assert "over training sets and evaluation episodes" in claims.claim_sentences(rows)[0]
+
+
+def test_a_table_is_one_holm_family():
+    """Three comparisons near the edge: each alone would rank at 95 %, Holm ranks fewer."""
+    rng = np.random.default_rng(11)
+    base = rng.uniform(0.8, 0.9, 20)
+    rows = [_row("sfm", 1200, s, base[s], 14) for s in range(20)]
+    for name, shift in (("bc", 0.012), ("dagger", 0.011), ("sfm-ols", 0.010)):
+        noise = rng.normal(0, 0.02, 20)
+        rows += [_row(name, 1200, s, base[s] - shift + noise[s], 14) for s in range(20)]
+    t = claims.budget_table(claims.by_point(rows), 1200)
+    for r in t.values():
+        assert r["confidence"] >= 0.95 and r["ci"][0] <= r["mean"] <= r["ci"][1]
+        assert (r["verdict"] is not None) == (r["p_adjusted"] < 0.05 and r["n"] >= 10)
+    assert "Holm-adjusted p" in claims.tables(rows)
 
 
 @pytest.mark.parametrize("page", ["README.md", "docs/baselines.md"])

@@ -136,6 +136,10 @@ def test_t_interval_and_aggregate():
      "min_updates must be an integer in [0, 10000000]"),
     ({"learners": {"sfm": {"min_updates": 5}}, "budgets": {"sfm": [10]}}, "unknown option"),
     ({"eval": {"episodes": 0}}, "eval.episodes"),
+    ({"eval": {"episodes": 2, "seed": 1, "banks": 0}}, "eval.banks"),
+    ({"eval": {"episodes": 2, "seed": 1, "banks": 21}}, "eval.banks"),
+    ({"eval": {"episodes": 2, "seed": 1, "banks": "three"}}, "eval.banks"),
+    ({"eval": {"episodes": 2, "seed": 1, "bank": 2}}, "optionally 'banks'"),
     ({"env": "Nope-v9"}, "Nope-v9"),
 ])
 def test_bad_specs_are_one_line_errors(tmp_path, capsys, change, message):
@@ -253,3 +257,39 @@ def test_the_smallest_budgets_pass_the_check_and_the_sfm_one_runs(tmp_path, caps
     assert main(["sweep", write_spec(tmp_path, small), "--out", str(d), "--quiet"]) == 0
     (row,) = sweep.read_rows(str(d))
     assert row["status"] == "ok" and row["steps"] == 35
+
+
+def test_banks_keep_every_episode_and_claims_bootstrap_over_them(tmp_path):
+    """A small real sweep on two evaluation banks: every row keeps each episode's outcome and
+    bank (disjoint seed ranges), its metrics pool both banks, and the claims' intervals then
+    cover training sets and episodes."""
+    from sfm_learn.experiments import claims
+
+    spec = sweep.check_spec(dict(SPEC, seeds=[0, 1, 2], learners={"sfm": {}},
+                                 budgets={"sfm": [300]},
+                                 eval={"episodes": 3, "seed": 4_200_000, "banks": 2}))
+    assert sweep.bank_seeds(spec["eval"]) == [4_200_000, 4_200_000 + sweep.BANK_STRIDE]
+    d = tmp_path / "banks"
+    assert sweep.run_sweep(spec, str(d))["ok"] == 3
+    rows = sweep.read_rows(str(d))
+    for r in rows:
+        ep = r["episodes"]["MKVJam-v1"]
+        assert ep["bank"] == [0, 0, 0, 1, 1, 1] and len(ep["escaped"]) == 6
+        assert r["metrics"]["MKVJam-v1"]["escape_rate"] == sum(ep["escaped"]) / 6
+        assert sweep.row_problem(r) is None
+    p = claims.point_summary(claims.by_point(rows)[("sfm", 300)])
+    assert p["covers"] == "training sets and evaluation episodes (6 in 2 banks)"
+    assert p["escape_ci"][0] <= p["escape_mean"] <= p["escape_ci"][1]
+
+
+@pytest.mark.parametrize("episodes", [
+    "x", {"MKVJam-v1": {"bank": [0], "escaped": [2], "distance_m": [1.0]}},
+    {"MKVJam-v1": {"bank": [0, 0], "escaped": [1], "distance_m": [1.0, 2.0]}},
+    {"MKVJam-v1": {"bank": [0], "escaped": [1], "distance_m": [float("nan")]}},
+    {"MKVJam-v1": {"bank": [-1], "escaped": None, "distance_m": [1.0]}},
+    {"Other-v0": {"bank": [0], "escaped": [1], "distance_m": [1.0]}},
+])
+def test_rows_with_malformed_episodes_are_not_used(episodes):
+    row = {"learner": "sfm", "seed": 0, "budget": 300, "status": "ok",
+           "metrics": {"MKVJam-v1": {"escape_rate": 1.0}}, "episodes": episodes}
+    assert "episodes" in sweep.row_problem(row)
