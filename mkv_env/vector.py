@@ -205,6 +205,16 @@ class MKVVectorEnv(VectorEnv):
                           if self._c_reset and self._collect is not None
                           and mode == AutoresetMode.NEXT_STEP else None)
 
+    def __reduce_ex__(self, protocol):
+        """Pickling and ``copy.deepcopy`` of a compiled-kernel vector env are refused in one line:
+        its robots live in one compiled batch (C state, worker threads) that has no snapshot.
+        Its single envs (``.envs[i]``) snapshot exactly; a Python-kernel one pickles as usual."""
+        if self._batch is not None:
+            raise TypeError("a native vector env (MKVVectorEnv, kernel='c') cannot be pickled or "
+                            "copied: its robots live in one compiled batch; snapshot its single "
+                            "envs (.envs[i]: exact) or rebuild it with make_vec and the same seeds")
+        return super().__reduce_ex__(protocol)
+
     # ------------------------------------------------------------------ per-env info dicts
     @property
     def env_infos(self) -> list[dict | None]:

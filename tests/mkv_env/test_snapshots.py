@@ -1,0 +1,93 @@
+"""Exact snapshots: ``pickle`` and ``copy.deepcopy`` of the wander ids, at any step, in both
+kernels, continue bit for bit as the original does; a native vector env refuses both in one line
+that says why and what to do instead.
+
+Known and open: a snapshot of a *jam* id (MKVJam-v0/-v1) can diverge from the original at the
+1e-10 level from its first step, in both kernels (e.g. MKVJam-v1, seed 11, right after reset;
+about 1 in 6 random snapshots), although every state pymunk and mkv_env expose is equal (body,
+space parameters, shapes, cached arbiters: none, wheel state). Chipmunk's spatial index is rebuilt
+on unpickling, not copied; the strict xfail below pins the case until that is solved."""
+
+from __future__ import annotations
+
+import copy
+import pickle
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import mkv_env  # noqa: F401  (registers the ids)
+from mkv_env import kernel as kernel_mod
+
+IDS = ("MKV-v0", "MKV-v1")
+KERNELS = ("c", "python") if kernel_mod.AVAILABLE else ("python",)
+SNAPSHOTS = {"pickle": lambda env: pickle.loads(pickle.dumps(env)), "deepcopy": copy.deepcopy}
+
+
+def _step_trace(env, actions) -> list:
+    out = []
+    for a in actions:
+        obs, r, term, trunc, info = env.step(a)
+        out.append((obs.tobytes(), r, term, trunc, repr(sorted(info.items()))))
+        if term or trunc:
+            obs, info = env.reset()
+            out.append((obs.tobytes(), repr(sorted(info.items()))))
+    return out
+
+
+@settings(max_examples=24, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(env_id=st.sampled_from(IDS), kernel=st.sampled_from(KERNELS),
+       how=st.sampled_from(sorted(SNAPSHOTS)), before=st.integers(0, 80),
+       seed=st.integers(0, 2**31 - 1), action_seed=st.integers(0, 2**31 - 1))
+def test_a_snapshot_continues_bit_for_bit(env_id, kernel, how, before, seed, action_seed):
+    env = gym.make(env_id, kernel=kernel)
+    env.reset(seed=seed)
+    rng = np.random.default_rng(action_seed)
+    _step_trace(env, rng.integers(0, 3, size=(before, 2)))
+    clone = SNAPSHOTS[how](env)
+    after = rng.integers(0, 3, size=(60, 2))
+    assert _step_trace(clone, after) == _step_trace(env, after)
+    env.close()
+    clone.close()
+
+
+@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("how", sorted(SNAPSHOTS))
+def test_a_snapshot_right_after_reset_continues(env_id, how):
+    for kernel in KERNELS:
+        env = gym.make(env_id, kernel=kernel)
+        env.reset(seed=11)
+        clone = SNAPSHOTS[how](env)
+        actions = np.random.default_rng(2).integers(0, 3, size=(40, 2))
+        assert _step_trace(clone, actions) == _step_trace(env, actions)
+
+
+@pytest.mark.xfail(strict=True, reason="open: a jam id's snapshot can diverge at 1e-10 (module "
+                   "docstring); strict, so a fix shows up as XPASS and this marker goes")
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_a_jam_snapshot_right_after_reset_continues(kernel):
+    env = gym.make("MKVJam-v1", kernel=kernel)
+    env.reset(seed=11)
+    clone = pickle.loads(pickle.dumps(env))
+    actions = np.random.default_rng(2).integers(0, 3, size=(40, 2))
+    assert _step_trace(clone, actions) == _step_trace(env, actions)
+
+
+@pytest.mark.skipif(not kernel_mod.AVAILABLE, reason="compiled kernel not built")
+@pytest.mark.parametrize("how", sorted(SNAPSHOTS))
+def test_a_native_vector_env_refuses_snapshots_in_one_line(how):
+    vec = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    vec.reset(seed=0)
+    with pytest.raises(TypeError) as e:
+        SNAPSHOTS[how](vec.unwrapped)
+    msg = str(e.value)
+    assert "\n" not in msg and "cannot be pickled or copied" in msg and ".envs[i]" in msg, msg
+    vec.step(np.ones((2, 2), dtype=np.int64))  # the refusal left it usable
+    # what the message offers: its single envs snapshot exactly
+    single = vec.unwrapped.envs[0]
+    clone = pickle.loads(pickle.dumps(single))
+    assert clone.step(np.array([2, 1]))[0].shape == (10,)
+    vec.close()
