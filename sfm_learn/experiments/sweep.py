@@ -5,7 +5,7 @@ A spec (JSON, or YAML with PyYAML installed) names what to run::
     name: sample-efficiency
     teacher_env: MKV-v1            # where the teacher's demonstrations are recorded
     env: [MKVJam-v1, MKV-v1]       # evaluation env(s)
-    eval: {episodes: 50, seed: 5000000}
+    eval: {episodes: 50, seed: 5000000}   # optional banks: 3 (below)
     seeds: [0, 1, 2, 3, 4]
     learners:
       sfm: {}                      # kind = the name before the first "-" unless given
@@ -28,6 +28,12 @@ must leave its learner the rows its fit can identify (:func:`min_budget`: 35 for
 for ``sfm`` with ``preset: paper``, 33 for ``bc``, 32 * rounds + 1 for ``dagger``, on the MK-V
 envs' 10 sensors); :func:`check_budgets` (``mkv sweep`` runs it before anything starts) refuses
 a smaller one in one line.
+
+Banks. ``eval: {..., banks: N}`` (1-20) evaluates every policy on N disjoint seed banks of
+``episodes`` episodes each (bank k from ``seed + 100_000 * k``), and the rows then keep every
+episode's outcome (``"episodes": {env: {"bank", "escaped", "distance_m"}}``), so the claims'
+intervals cover training sets *and* evaluation episodes (:mod:`sfm_learn.experiments.crossed`).
+Without ``banks``: one bank, and the rows keep only the metrics.
 
 Rows. Each job writes ``DIR/rows/<learner>__s<seed>__b<budget>.json`` atomically when it has
 finished (PPO: all its budgets at the end), so a killed sweep loses no finished job and a rerun
