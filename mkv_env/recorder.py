@@ -111,6 +111,11 @@ class EpisodeRecorder:
         self._j = j + 1
         self._lengths[-1] += 1
 
+    @property
+    def n_steps(self) -> int:
+        """Steps recorded so far."""
+        return int(sum(self._lengths))
+
     def end(self, final_obs) -> None:
         self._final.append(np.asarray(final_obs, dtype=np.float32))
 
@@ -208,7 +213,8 @@ def recording_metadata(env, env_id: str, env_kwargs: dict | None, policy: str,
 
 def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict | None = None,
            on_episode: Callable[[int, int], None] | None = None,
-           max_steps: int | None = None, first_seed: int | None = None) -> ds.Dataset:
+           max_steps: int | None = None, first_seed: int | None = None,
+           min_steps: int | None = None, max_extra_episodes: int = 10_000) -> ds.Dataset:
     """Record ``episodes`` episodes of ``policy`` (spec string or object) in ``env_id``.
 
     Episode ``i`` resets the env with seed ``seed + i``. Returns the dataset (in memory; write it
@@ -216,9 +222,17 @@ def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict |
     ``first_seed`` (default ``seed``): a run that records part of a larger seed range (a worker's
     share of an evaluation) passes the range's first seed, so its episodes do not depend on how
     the range was split.
+
+    ``min_steps``: when the episodes ended early (a jam env's escape) and gave fewer steps, record
+    further episodes (seeds ``seed + episodes``, ``+ 1``, ...; each capped at what is still
+    missing and at ``max_steps``) until there are exactly ``min_steps``, at most
+    ``max_extra_episodes`` more; a recording that reaches it anyway is unchanged.
     """
     if not (isinstance(episodes, (int, np.integer)) and episodes >= 1):
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if min_steps is not None and not (isinstance(min_steps, (int, np.integer))
+                                      and not isinstance(min_steps, bool) and min_steps >= 1):
+        raise ValueError(f"min_steps must be a positive integer or None, got {min_steps!r}")
     if not (isinstance(seed, (int, np.integer)) and 0 <= seed < 2**63 - episodes):
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     env = make_env(env_id, env_kwargs)
@@ -232,6 +246,14 @@ def record(env_id: str, policy, episodes: int, seed: int = 0, env_kwargs: dict |
         recorder = EpisodeRecorder(env.unwrapped.sensor_names)
         seeds = [int(seed) + i for i in range(int(episodes))]
         run_episodes(env, policy, seeds, recorder, on_episode, max_steps)
+        extra = 0
+        while min_steps is not None and extra < max_extra_episodes:
+            missing = int(min_steps) - recorder.n_steps
+            if missing <= 0:
+                break
+            cap = missing if max_steps is None else min(missing, int(max_steps))
+            run_episodes(env, policy, [int(seed) + int(episodes) + extra], recorder, None, cap)
+            extra += 1
         return recorder.to_dataset(recording_metadata(env, env_id, env_kwargs, spec, seed))
     finally:
         env.close()

@@ -289,7 +289,8 @@ def check_envs(spec: dict) -> None:
 
 def teacher_rows(budget: int) -> int:
     """Rows :func:`teacher_data` records for ``budget`` teacher steps: ``ceil(budget / 600)``
-    episodes of ``budget // episodes`` steps (fewer only if an episode ends early)."""
+    episodes of ``budget // episodes`` steps, topped up with further episodes where an episode
+    ended early (:func:`mkv_env.recorder.record`'s ``min_steps``)."""
     episodes = _teacher_episodes(budget)
     return episodes * (budget // episodes)
 
@@ -374,8 +375,12 @@ def teacher_data(spec: dict, seed: int, budget: int, out_dir: str):
         except ValueError:
             pass  # damaged (a crash outside our atomic writes): record again
     episodes = _teacher_episodes(budget)
+    # min_steps: a teacher env whose episodes end early (a jam env's escape) is recorded on
+    # further seeds of this training seed's range until the budget's rows are there, as
+    # check_budgets promised (a wander env's episodes never end early: its data are unchanged)
     data = record(spec["teacher_env"], "teacher", episodes,
-                  TRAIN_SEED_BASE + 10_000 * seed, max_steps=budget // episodes)
+                  TRAIN_SEED_BASE + 10_000 * seed, max_steps=budget // episodes,
+                  min_steps=teacher_rows(budget), max_extra_episodes=10_000 - episodes)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     ds.save(data, path)
     return data

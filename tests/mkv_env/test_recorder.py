@@ -100,3 +100,30 @@ def test_the_runner_hands_the_policy_its_state_back():
     assert data.n_steps > 3 and np.all(data["actions"][:, 0] == 2)
     starts = np.flatnonzero(data["step"] == 0)
     assert [policy.seen[i] for i in starts] == [0, 0, 0]
+
+
+def test_min_steps_tops_up_episodes_that_ended_early():
+    """A jam env's teacher escapes in a few dozen steps: min_steps records further episodes
+    (the next seeds, each capped at what is missing) until exactly that many steps are there."""
+    short = record("MKVJam-v1", "teacher", 1, seed=70_000, max_steps=300)
+    assert short.n_steps < 300  # the teacher escaped early
+    full = record("MKVJam-v1", "teacher", 1, seed=70_000, max_steps=300, min_steps=300)
+    assert full.n_steps == 300 and full.n_episodes > 1
+    seeds = full.arrays["episode_seeds"].tolist()
+    assert seeds == list(range(70_000, 70_000 + full.n_episodes))
+    n0 = short.n_steps  # the first episode is the same recording
+    assert np.array_equal(full.arrays["observations"][:n0], short.arrays["observations"])
+
+
+def test_min_steps_leaves_a_recording_that_reaches_it_unchanged():
+    a = record("MKV-v1", "teacher", 2, seed=71_000, max_steps=50)
+    b = record("MKV-v1", "teacher", 2, seed=71_000, max_steps=50, min_steps=100)
+    assert a.n_steps == b.n_steps == 100
+    for k, v in a.arrays.items():
+        assert np.array_equal(v, b.arrays[k]), k
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "10"])
+def test_min_steps_must_be_a_positive_integer(bad):
+    with pytest.raises(ValueError, match="min_steps must be a positive integer"):
+        record("MKV-v1", "teacher", 1, seed=0, max_steps=5, min_steps=bad)

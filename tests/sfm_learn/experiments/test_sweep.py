@@ -293,3 +293,14 @@ def test_rows_with_malformed_episodes_are_not_used(episodes):
     row = {"learner": "sfm", "seed": 0, "budget": 300, "status": "ok",
            "metrics": {"MKVJam-v1": {"escape_rate": 1.0}}, "episodes": episodes}
     assert "episodes" in sweep.row_problem(row)
+
+
+def test_a_jam_teacher_budget_gives_its_rows_and_the_job_runs(tmp_path):
+    """A jam env as the teacher env: its episodes end at the escape, a few dozen steps in; the
+    budget's rows are still recorded (further seeds), so a budget check_budgets passes trains."""
+    spec = sweep.check_spec(dict(SPEC, teacher_env="MKVJam-v1", seeds=[0],
+                                 learners={"sfm": {}}, budgets={"sfm": [300]}))
+    d = tmp_path / "jam"
+    assert sweep.run_sweep(spec, str(d))["ok"] == 1
+    data = sweep.teacher_data(spec, 0, 300, str(d))
+    assert data.n_steps == 300 and data.n_episodes > 1
