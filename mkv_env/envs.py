@@ -154,43 +154,10 @@ class MKVEnv(gym.Env):
         if kernel is None:
             # a subclass that scores or ends steps its own way runs its own Python
             kernel = "python" if custom else _kernel.default_kernel()
-        _check(kernel in ("c", "python"),
-               f"kernel must be 'c', 'python' or None, got {kernel!r}")
-        _check(kernel == "python" or _kernel.AVAILABLE, _kernel.unavailable_reason())
-        _check(kernel == "python" or not custom,
-               f"kernel='c' runs the rewards of the MK-V ids only; {type(self).__name__} "
-               f"overrides {', '.join(custom)}: use kernel='python' (the default for it)")
-        _check(observation in OBSERVATIONS,
-               f"observation must be one of {OBSERVATIONS}, got {observation!r}")
-        _check(render_mode is None or render_mode in self.metadata["render_modes"],
-               f"render_mode must be one of {self.metadata['render_modes']} or None, "
-               f"got {render_mode!r}")
-        _check(_num(arena_size_m) and 2.0 <= arena_size_m <= 20.0,
-               f"arena_size_m must be in [2, 20] metres, got {arena_size_m!r}")
-        _check(_int(n_clutter) and 0 <= n_clutter <= 200,
-               f"n_clutter must be an integer in [0, 200], got {n_clutter!r}")
-        _check(_int(n_patches) and 0 <= n_patches <= 20,
-               f"n_patches must be an integer in [0, 20], got {n_patches!r}")
-        _check(_num(patch_friction) and 0.0 < patch_friction <= 2.0,
-               f"patch_friction must be in (0, 2], got {patch_friction!r}")
-        _check(_num(control_period_s) and 0.01 <= control_period_s <= 1.0,
-               f"control_period_s must be in [0.01, 1] seconds, got {control_period_s!r}")
-        _check(_int(substeps) and 1 <= substeps <= 100,
-               f"substeps must be an integer in [1, 100], got {substeps!r}")
-        _check(control_period_s / substeps <= 0.05,
-               f"physics substep control_period_s/substeps = {control_period_s / substeps:.3f} s "
-               "is too long (max 0.05 s); raise substeps")
-        for name, v in (("stuck_speed_mps", stuck_speed_mps),
-                        ("escape_distance_m", escape_distance_m)):
-            _check(_num(v) and v > 0, f"{name} must be a positive number, got {v!r}")
-        _check(_num(escape_forward_m) and escape_forward_m >= 0,
-               f"escape_forward_m must be a number >= 0, got {escape_forward_m!r}")
-        _check(_int(jam_steps) and 1 <= jam_steps <= 2**31 - 1,
-               f"jam_steps must be an integer in 1..2147483647, got {jam_steps!r}")
-        for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
-                        ("collision_penalty", collision_penalty)):
-            _check(_weight(v), f"{name} must be a finite number with |{name}| <= "
-                   f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
+        self._check_arguments(custom, kernel, observation, render_mode, arena_size_m, n_clutter,
+                              n_patches, patch_friction, control_period_s, substeps,
+                              stuck_speed_mps, jam_steps, escape_distance_m, escape_forward_m,
+                              progress_reward, stuck_penalty, collision_penalty)
         try:
             self.robot_params = RobotParams.from_overrides(robot_params)
         except TypeError as e:
@@ -233,6 +200,49 @@ class MKVEnv(gym.Env):
         self._slot = 0
         self._py_owns = True  # Python's objects hold the newest state (else the kernel's slot)
         self._dirty: list = []  # envs of a shared batch whose state Python took back
+
+    def _check_arguments(self, custom, kernel, observation, render_mode, arena_size_m, n_clutter,
+                         n_patches, patch_friction, control_period_s, substeps, stuck_speed_mps,
+                         jam_steps, escape_distance_m, escape_forward_m, progress_reward,
+                         stuck_penalty, collision_penalty) -> None:
+        """Every constructor argument in range, else a one-line ValueError naming it."""
+        _check(kernel in ("c", "python"),
+               f"kernel must be 'c', 'python' or None, got {kernel!r}")
+        _check(kernel == "python" or _kernel.AVAILABLE, _kernel.unavailable_reason())
+        _check(kernel == "python" or not custom,
+               f"kernel='c' runs the rewards of the MK-V ids only; {type(self).__name__} "
+               f"overrides {', '.join(custom)}: use kernel='python' (the default for it)")
+        _check(observation in OBSERVATIONS,
+               f"observation must be one of {OBSERVATIONS}, got {observation!r}")
+        _check(render_mode is None or render_mode in self.metadata["render_modes"],
+               f"render_mode must be one of {self.metadata['render_modes']} or None, "
+               f"got {render_mode!r}")
+        _check(_num(arena_size_m) and 2.0 <= arena_size_m <= 20.0,
+               f"arena_size_m must be in [2, 20] metres, got {arena_size_m!r}")
+        _check(_int(n_clutter) and 0 <= n_clutter <= 200,
+               f"n_clutter must be an integer in [0, 200], got {n_clutter!r}")
+        _check(_int(n_patches) and 0 <= n_patches <= 20,
+               f"n_patches must be an integer in [0, 20], got {n_patches!r}")
+        _check(_num(patch_friction) and 0.0 < patch_friction <= 2.0,
+               f"patch_friction must be in (0, 2], got {patch_friction!r}")
+        _check(_num(control_period_s) and 0.01 <= control_period_s <= 1.0,
+               f"control_period_s must be in [0.01, 1] seconds, got {control_period_s!r}")
+        _check(_int(substeps) and 1 <= substeps <= 100,
+               f"substeps must be an integer in [1, 100], got {substeps!r}")
+        _check(control_period_s / substeps <= 0.05,
+               f"physics substep control_period_s/substeps = {control_period_s / substeps:.3f} s "
+               "is too long (max 0.05 s); raise substeps")
+        for name, v in (("stuck_speed_mps", stuck_speed_mps),
+                        ("escape_distance_m", escape_distance_m)):
+            _check(_num(v) and v > 0, f"{name} must be a positive number, got {v!r}")
+        _check(_num(escape_forward_m) and escape_forward_m >= 0,
+               f"escape_forward_m must be a number >= 0, got {escape_forward_m!r}")
+        _check(_int(jam_steps) and 1 <= jam_steps <= 2**31 - 1,
+               f"jam_steps must be an integer in 1..2147483647, got {jam_steps!r}")
+        for name, v in (("progress_reward", progress_reward), ("stuck_penalty", stuck_penalty),
+                        ("collision_penalty", collision_penalty)):
+            _check(_weight(v), f"{name} must be a finite number with |{name}| <= "
+                   f"{REWARD_WEIGHT_MAX:g}, got {v!r}")
 
     # ------------------------------------------------------------------ state owners
     @property
