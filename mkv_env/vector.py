@@ -327,7 +327,7 @@ class MKVVectorEnv(VectorEnv):
         mode = self.autoreset_mode
         # (count_nonzero: ndarray.any costs several times more on a few robots)
         resetting = mode == AutoresetMode.NEXT_STEP and np.count_nonzero(self._autoreset) > 0
-        b, envs, out = self._batch, self.envs, self._out
+        b, envs = self._batch, self.envs
         c_idx, c_mask = (), None
         if resetting:
             active = np.logical_not(self._autoreset, out=self._active)
@@ -364,7 +364,6 @@ class MKVVectorEnv(VectorEnv):
                 b.step_finish()
             reset_idx = ()
         want = self.vector_infos
-        kind = self._kind
         if self._collect is not None:  # the bookkeeping below in one compiled call
             obs, rewards, terminated, truncated, cols, vinfo = self._collect(
                 self._elapsed, self._max_steps, active,
@@ -376,32 +375,9 @@ class MKVVectorEnv(VectorEnv):
                 if want:
                     vinfo["scenario"], vinfo["_scenario"] = scen, np.ones(n, dtype=bool)
         else:
-            # this step's numbers, copied (the kernel reuses its buffers): one copy per block
             vinfo = None
-            blocks = out.blocks
-            obs, pose = blocks["obs"].copy(), blocks["pose"].copy()
-            rewards, distance = blocks["f"].copy()
-            terminated, stuck, bumped, collision, in_jam, escaped = blocks["b"].copy()
-            jams, escapes, collisions, cells = blocks["i"].copy()
+            obs, rewards, terminated, truncated, cols = self._collect_in_python(resetting, active)
             elapsed = self._elapsed
-            if resetting:
-                elapsed += active
-            else:
-                elapsed += 1
-            if self.max_episode_steps is None:
-                truncated = np.zeros(n, dtype=bool)
-            else:
-                truncated = np.greater_equal(elapsed, self.max_episode_steps)
-                if resetting:
-                    truncated &= active
-            cols = {"stuck": stuck, "bumped": bumped, "collision": collision,
-                    "distance_m": distance, "jams": jams, "escapes": escapes,
-                    "collisions": collisions, "in_jam": in_jam, "pose": pose}
-            if kind == _kernel.KIND_WANDER_V1:
-                cols["cells_visited"] = cells
-            elif kind != _kernel.KIND_WANDER:
-                cols["escaped"] = escaped
-                cols["scenario"] = self._scenarios.copy()
         if self.render_mode is not None:
             self._trails(active)
         info: dict[str, Any] = {}
@@ -417,32 +393,7 @@ class MKVVectorEnv(VectorEnv):
             self._put(cols, i, d)
         final_lazy = None
         if mode == AutoresetMode.SAME_STEP:
-            done = np.flatnonzero(terminated | truncated)
-            if len(done):
-                final_obs = np.full(n, None, dtype=object)
-                final_cols = {k: v.copy() for k, v in cols.items()}
-                for i in done:
-                    final_obs[i] = obs[i].copy()
-                c_idx, c_mask, py_idx = (self._c_resets(done.tolist()) if self._c_reset
-                                         else ((), None, done))
-                if c_idx:  # one more kernel call: these envs reset in C, on the threads
-                    need = b.step(acts, self._idle, c_mask)
-                    assert need is None  # (no robot is stepped)
-                    obs[c_idx] = out["obs"][c_idx]
-                    for name, _, k in self._col_spec:
-                        cols[name][c_idx] = out[_kernel.OUTPUTS[k][0]][c_idx]
-                    self._reset_in_c(c_idx)
-                    elapsed[c_idx] = 0
-                for i in py_idx:
-                    obs[i], d = envs[i].reset()
-                    elapsed[i] = 0
-                    self._put(cols, i, d)
-                mask = np.zeros(n, dtype=bool)
-                mask[done] = True
-                final_lazy = (final_cols, done.tolist())
-                info = {"final_obs": final_obs, "_final_obs": mask,
-                        "final_info": self._vector_info(final_cols, mask) if want else {},
-                        "_final_info": mask.copy()}
+            info, final_lazy = self._same_step_resets(acts, obs, cols, terminated | truncated)
             self._autoreset[:] = False
         elif self._collect is None:  # (collect has set the flags in place)
             self._autoreset = terminated | truncated
@@ -455,6 +406,69 @@ class MKVVectorEnv(VectorEnv):
         if final_lazy is None:
             self._final_env_infos = [None] * n
         return obs, rewards, terminated, truncated, info
+
+    def _collect_in_python(self, resetting: bool, active):
+        """The step's numbers, copied from the kernel's buffers (it reuses them; one copy per
+        block), the elapsed steps counted: (obs, rewards, terminated, truncated, info columns).
+        What ``Batch.collect`` does in C where the extension has numpy's API."""
+        n, kind, blocks = self.num_envs, self._kind, self._out.blocks
+        obs, pose = blocks["obs"].copy(), blocks["pose"].copy()
+        rewards, distance = blocks["f"].copy()
+        terminated, stuck, bumped, collision, in_jam, escaped = blocks["b"].copy()
+        jams, escapes, collisions, cells = blocks["i"].copy()
+        elapsed = self._elapsed
+        if resetting:
+            elapsed += active
+        else:
+            elapsed += 1
+        if self.max_episode_steps is None:
+            truncated = np.zeros(n, dtype=bool)
+        else:
+            truncated = np.greater_equal(elapsed, self.max_episode_steps)
+            if resetting:
+                truncated &= active
+        cols = {"stuck": stuck, "bumped": bumped, "collision": collision,
+                "distance_m": distance, "jams": jams, "escapes": escapes,
+                "collisions": collisions, "in_jam": in_jam, "pose": pose}
+        if kind == _kernel.KIND_WANDER_V1:
+            cols["cells_visited"] = cells
+        elif kind != _kernel.KIND_WANDER:
+            cols["escaped"] = escaped
+            cols["scenario"] = self._scenarios.copy()
+        return obs, rewards, terminated, truncated, cols
+
+    def _same_step_resets(self, acts, obs, cols, ended):
+        """SameStep mode: the envs whose episode ended this step reset at once (in C where the
+        kernel can, else by Python), their final observations and infos kept. Returns (the
+        step's final-info entries, the lazy final per-env infos or None)."""
+        n, b, out, envs, elapsed = self.num_envs, self._batch, self._out, self.envs, self._elapsed
+        done = np.flatnonzero(ended)
+        if not len(done):
+            return {}, None
+        final_obs = np.full(n, None, dtype=object)
+        final_cols = {k: v.copy() for k, v in cols.items()}
+        for i in done:
+            final_obs[i] = obs[i].copy()
+        c_idx, c_mask, py_idx = (self._c_resets(done.tolist()) if self._c_reset
+                                 else ((), None, done))
+        if c_idx:  # one more kernel call: these envs reset in C, on the threads
+            need = b.step(acts, self._idle, c_mask)
+            assert need is None  # (no robot is stepped)
+            obs[c_idx] = out["obs"][c_idx]
+            for name, _, k in self._col_spec:
+                cols[name][c_idx] = out[_kernel.OUTPUTS[k][0]][c_idx]
+            self._reset_in_c(c_idx)
+            elapsed[c_idx] = 0
+        for i in py_idx:
+            obs[i], d = envs[i].reset()
+            elapsed[i] = 0
+            self._put(cols, i, d)
+        mask = np.zeros(n, dtype=bool)
+        mask[done] = True
+        info = {"final_obs": final_obs, "_final_obs": mask,
+                "final_info": self._vector_info(final_cols, mask) if self.vector_infos else {},
+                "_final_info": mask.copy()}
+        return info, (final_cols, done.tolist())
 
     def _step_fast(self, actions):
         """The whole step in one kernel call (``Batch.vstep``): stepping, the autoresets in C,
