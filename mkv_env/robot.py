@@ -118,6 +118,49 @@ def shape_geometry(p: RobotParams) -> tuple:
     return chassis, bumpers, BUMPER_RADIUS_M
 
 
+def _steer_substep(delta, rate, s_drive, fric, s_j, s_den, dt, lim):
+    """One substep of the steering motor (:meth:`Robot.advance`): implicit in its rate, dry
+    friction, the stops clamp it. Returns the new (angle, rate)."""
+    torque = s_drive
+    if rate > 1e-6 or (rate >= -1e-6 and torque > fric):
+        torque -= fric
+    elif rate < -1e-6 or torque < -fric:
+        torque += fric
+    else:
+        torque = 0.0
+    rate = (s_j * rate + dt * torque) / s_den
+    delta += rate * dt
+    if delta > lim:
+        delta, rate = lim, 0.0
+    elif delta < -lim:
+        delta, rate = -lim, 0.0
+    return delta, rate
+
+
+def _slide(v1, v2, v3, k11, k22, k33, k13, k23, cap_d, cap_s, hypot):
+    """The wheels sliding (:meth:`Robot.advance`): projected Gauss-Seidel on the drive wheel's
+    friction circle and the steering wheel's friction interval, 8 sweeps. Returns (l1, l2, l3)."""
+    l1 = l2 = l3 = 0.0
+    a1, a2, a3 = v1, v2, v3
+    for _it in range(8):
+        n1 = l1 - a1 / k11
+        n2 = l2 - a2 / k22
+        norm = hypot(n1, n2)
+        if norm > cap_d:
+            n1, n2 = n1 * cap_d / norm, n2 * cap_d / norm
+        d1, d2 = n1 - l1, n2 - l2
+        l1, l2 = n1, n2
+        a1 += k11 * d1
+        a2 += k22 * d2
+        a3 += k13 * d1 + k23 * d2
+        n3 = min(max(l3 - a3 / k33, -cap_s), cap_s)
+        d3 = n3 - l3
+        l3 = n3
+        a1 += k13 * d3
+        a2 += k23 * d3
+    return l1, l2, l3
+
+
 class Robot:
     """The MK-V chassis in a pymunk space, with its wheel and motor model.
 
@@ -209,23 +252,9 @@ class Robot:
         self._mu_scale = scale
 
     # ------------------------------------------------------------------ hot path
-    def advance(self, drive_cmd: int, steer_cmd: int, dt: float, n: int, space) -> None:
-        """Run ``n`` physics substeps of ``dt`` seconds with constant motor commands.
-
-        ``drive_cmd``/``steer_cmd`` are -1, 0 or +1 (steer +1 = left). Each substep: steering
-        motor, drive motor (implicit), wheel-floor impulses, then ``space.step(dt)`` for
-        positions and contacts. With ``self.kernel == "c"`` the compiled copy of this loop runs
-        (``mkv_env/_native/wheels.c``, the same operations in the same order, so the same bits);
-        otherwise the Python loop below, with state in locals and pymunk touched through its
-        cffi layer (``pymunk._chipmunk.lib``, ``"cffi"``) or its public properties (``"api"``).
-        """
-        if self.kernel == "c" and _fastsim is not None and not _pending(space):
-            _, body_ptr, space_ptr = self.pointers(space)
-            _fastsim.advance(self.kernel_constants, body_ptr, space_ptr, drive_cmd, steer_cmd, dt,
-                             n, self._mu_scale, self.state)
-            return
+    def _substep_constants(self, drive_cmd: int, steer_cmd: int, dt: float) -> tuple:
+        """The constants of :meth:`advance`'s Python loop for one control period's commands."""
         p = self.params
-        st = self.state
         xd, xs = p.drive_x_m, p.steer_x_m
         rw = p.drive_wheel_radius_m
         inv_rs = 1.0 / p.steer_wheel_radius_m
@@ -252,6 +281,28 @@ class Robot:
         k22 = im + rw * rw * iJ
         d_k_over_r = self._d_k / self._d_r
         vd_over_r = vd / self._d_r
+        return (xd, xs, rw, inv_rs, lim, im, iI, k11, cap_d, cap_s, s_drive, s_j, s_den, fric,
+                s_k_over_r, vs_over_r, d_j, jp, d_push, iJ, k22, d_k_over_r, vd_over_r)
+
+    def advance(self, drive_cmd: int, steer_cmd: int, dt: float, n: int, space) -> None:
+        """Run ``n`` physics substeps of ``dt`` seconds with constant motor commands.
+
+        ``drive_cmd``/``steer_cmd`` are -1, 0 or +1 (steer +1 = left). Each substep: steering
+        motor, drive motor (implicit), wheel-floor impulses, then ``space.step(dt)`` for
+        positions and contacts. With ``self.kernel == "c"`` the compiled copy of this loop runs
+        (``mkv_env/_native/wheels.c``, the same operations in the same order, so the same bits);
+        otherwise the Python loop below, with state in locals and pymunk touched through its
+        cffi layer (``pymunk._chipmunk.lib``, ``"cffi"``) or its public properties (``"api"``).
+        """
+        if self.kernel == "c" and _fastsim is not None and not _pending(space):
+            _, body_ptr, space_ptr = self.pointers(space)
+            _fastsim.advance(self.kernel_constants, body_ptr, space_ptr, drive_cmd, steer_cmd, dt,
+                             n, self._mu_scale, self.state)
+            return
+        st = self.state
+        (xd, xs, rw, inv_rs, lim, im, iI, k11, cap_d, cap_s, s_drive, s_j, s_den, fric, s_k_over_r,
+         vs_over_r, d_j, jp, d_push, iJ, k22, d_k_over_r, vd_over_r) = self._substep_constants(
+            drive_cmd, steer_cmd, dt)
 
         ww, delta, rate = st.drive_omega, st.steer, st.steer_rate
         drive_angle, roller_angle = st.drive_angle, st.roller_angle
@@ -289,20 +340,7 @@ class Robot:
             ww_seen = ww
 
             if not steer_idle:
-                # steering motor, implicit in its rate; dry friction; stops clamp it
-                torque = s_drive
-                if rate > 1e-6 or (rate >= -1e-6 and torque > fric):
-                    torque -= fric
-                elif rate < -1e-6 or torque < -fric:
-                    torque += fric
-                else:
-                    torque = 0.0
-                rate = (s_j * rate + dt * torque) / s_den
-                delta += rate * dt
-                if delta > lim:
-                    delta, rate = lim, 0.0
-                elif delta < -lim:
-                    delta, rate = -lim, 0.0
+                delta, rate = _steer_substep(delta, rate, s_drive, fric, s_j, s_den, dt, lim)
                 steer_idle = steer_cmd == 0 and rate == 0.0
                 cd, sd = cos(delta), sin(delta)
                 k33 = im + cd * cd * xs * xs * iI
@@ -322,25 +360,7 @@ class Robot:
             l3 = (k11 * (k23 * v2 - k22 * v3) + v1 * k13 * k22) / det
             used = l1 * l1 + l2 * l2
             if used > cap_d * cap_d or abs(l3) > cap_s:
-                # sliding: projected Gauss-Seidel on the friction circle / interval
-                l1 = l2 = l3 = 0.0
-                a1, a2, a3 = v1, v2, v3
-                for _it in range(8):
-                    n1 = l1 - a1 / k11
-                    n2 = l2 - a2 / k22
-                    norm = hypot(n1, n2)
-                    if norm > cap_d:
-                        n1, n2 = n1 * cap_d / norm, n2 * cap_d / norm
-                    d1, d2 = n1 - l1, n2 - l2
-                    l1, l2 = n1, n2
-                    a1 += k11 * d1
-                    a2 += k22 * d2
-                    a3 += k13 * d1 + k23 * d2
-                    n3 = min(max(l3 - a3 / k33, -cap_s), cap_s)
-                    d3 = n3 - l3
-                    l3 = n3
-                    a1 += k13 * d3
-                    a2 += k23 * d3
+                l1, l2, l3 = _slide(v1, v2, v3, k11, k22, k33, k13, k23, cap_d, cap_s, hypot)
                 used = l1 * l1 + l2 * l2
             budget = cap_d - math.sqrt(used)
             # The wheel impulses go to Chipmunk as force and torque: it integrates positions

@@ -1,5 +1,6 @@
 """The compiled kernel's C stays in small pieces: each file of mkv_env/_native under 1,000 lines,
-each function of it and of mkv_env/_fastsim.c under 150 (scripts/c_function_lengths.py)."""
+each function of it and of mkv_env/_fastsim.c under 150 (scripts/c_function_lengths.py); every
+Python function of mkv_env under 100."""
 
 import importlib.util
 from pathlib import Path
@@ -39,3 +40,18 @@ def test_the_counter_ignores_braces_in_strings_comments_and_directives(tmp_path)
                    "static int g(int a,\n             int b)\n{\n    if (a) {\n        return b;\n"
                    "    }\n    return a;\n}\n")
     assert _lengths_module().functions(src) == [("f", 1, 8), ("g", 10, 8)]
+
+
+def test_every_python_function_of_mkv_env_is_under_100_lines():
+    """The Python side kept as readable as the C side: no function of mkv_env over 100 lines
+    (signature to last line, docstring included)."""
+    import ast
+
+    long = []
+    for path in sorted((ROOT / "mkv_env").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines >= 100:
+                    long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
+    assert not long, long
