@@ -155,6 +155,7 @@ class MKVVectorEnv(VectorEnv):
         self._obs = np.zeros((n, len(self.sensor_names)), dtype=np.float32)
         self._elapsed = np.zeros(n, dtype=np.int64)
         self._autoreset = np.zeros(n, dtype=bool)
+        self._ever_reset = np.zeros(n, dtype=bool)  # (a partial reset_mask must not skip one)
         self._everyone = list(range(n))
         self._started = False
         self._slot_cache: tuple | None = None
@@ -296,7 +297,8 @@ class MKVVectorEnv(VectorEnv):
             self._autoreset[i] = False
             if self._batch is not None and self._has_scenario:
                 self._scenarios[i] = self.envs[i]._scenario_code
-        self._started = True
+        self._ever_reset |= mask
+        self._started = bool(self._ever_reset.all())  # (partial masks: once all have been reset)
         self.env_infos = infos
         return self._obs.copy(), self._gather(infos) if self.vector_infos else {}
 
@@ -310,7 +312,11 @@ class MKVVectorEnv(VectorEnv):
             if out is not None:
                 return out
         if not self._started:
-            raise gym.error.ResetNeeded("call reset() before step()")
+            never = np.flatnonzero(~self._ever_reset)
+            raise gym.error.ResetNeeded(
+                "call reset() before step()" if len(never) == self.num_envs else
+                f"env(s) {never[:5].tolist()} were never reset (a partial reset_mask): reset "
+                "them before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.count_nonzero(self._autoreset):
             raise gym.error.ResetNeeded(
                 f"envs {np.flatnonzero(self._autoreset).tolist()} have ended: with "

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import mkv_env  # noqa: F401  (registers the ids)
+from mkv_env import kernel as kernel_mod
 from mkv_env.vector import MAX_ENVS
 
 
@@ -186,4 +187,21 @@ def test_a_subclass_overriding_step_is_refused_not_silently_ignored():
 
     v = MKVVectorEnv(2, Tuned)
     v.reset(seed=0)
+    v.close()
+
+
+@pytest.mark.parametrize("kernel", ["python", "c"] if kernel_mod.AVAILABLE else ["python"])
+def test_a_step_with_an_env_never_reset_is_one_clear_line(kernel):
+    """A first reset whose reset_mask leaves an env out used to leave it without a world (the
+    python kernel's AttributeError, the C kernel's "slot has no world" at the next step): the
+    step now says which envs were never reset, in one line; once they are, it steps."""
+    v = gym.make_vec("MKV-v1", num_envs=3, vectorization_mode="vector_entry_point",
+                     kernel=kernel)
+    v.reset(seed=0, options={"reset_mask": np.array([True, False, True])})
+    with pytest.raises(gym.error.ResetNeeded, match=r"env\(s\) \[1\] were never reset") as e:
+        v.step(np.ones((3, 2), dtype=np.int64))
+    assert "\n" not in str(e.value)
+    obs, _ = v.reset(seed=5, options={"reset_mask": np.array([False, True, False])})
+    assert obs.shape == (3, 10)
+    v.step(np.ones((3, 2), dtype=np.int64))
     v.close()
