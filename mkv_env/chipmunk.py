@@ -220,9 +220,7 @@ COMPATIBLE = not PROBLEMS
 # ---------------------------------------------------------------- the C objects behind pymunk's
 def address(obj) -> int:
     """The address of the Chipmunk object behind a pymunk Space, Body or Shape."""
-    c = getattr(obj, "_space", None) if isinstance(obj, pymunk.Space) else (
-        obj._body if isinstance(obj, pymunk.Body) else obj._shape)
-    return int(ffi.cast("uintptr_t", c))
+    return int(ffi.cast("uintptr_t", c_object(obj)))
 
 
 def c_object(obj):

@@ -114,7 +114,7 @@ COLLECT = AVAILABLE and hasattr(_fastsim.Batch, "collect")
 #: only when Python asks for them (:func:`adopt_world`). Needs the noise drawn in C.
 C_RESET = NOISE_IN_C and _chipmunk.RESET and hasattr(_fastsim.Batch, "adopt")
 
-#: The env classes' reward/termination rules, as the kernel numbers them.
+
 def unavailable_reason() -> str:
     """Why ``kernel='c'`` cannot run here, in one line."""
     if chipmunk.PROBLEMS:
@@ -124,6 +124,7 @@ def unavailable_reason() -> str:
             "(no C compiler at install time); use kernel='python'")
 
 
+#: The env classes' reward/termination rules, as the kernel numbers them.
 KIND_WANDER, KIND_JAM, KIND_WANDER_V1, KIND_JAM_V1 = range(4)
 
 #: The kernel's output buffers (layout O) by the kernel's name: (the name Python uses, dtype,

@@ -110,10 +110,11 @@ def point_summary(sets: dict, seed: int = 0) -> dict:
             for s in seeds]
     out = {"n": len(seeds), "failures": int(sum(fail))}
     if len(esc):
-        lv = crossed.level(outcomes(sets), seed=seed, resamples=RESAMPLES)
+        oc = outcomes(sets)
+        lv = crossed.level(oc, seed=seed, resamples=RESAMPLES)
         out.update(escape_mean=float(esc.mean()), escape_ci=lv["ci"],
                    escape_median=float(np.median(esc)), escape_p10=float(np.percentile(esc, 10)),
-                   covers=design(outcomes(sets)))
+                   covers=design(oc))
     if len(dist):
         out.update(distance_mean=float(dist.mean()), distance_ci=bootstrap_mean_ci(dist, rng))
     return out
@@ -177,8 +178,8 @@ def tables(rows) -> str:
         dist = f"{p['distance_mean']:.2f}" if "distance_mean" in p else "-"
         lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
                      f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
-    lines += ["", "Intervals of a level cover " + "; ".join(sorted({
-        f"{design(outcomes(v))}" for v in points.values() if outcomes(v) is not None})) + ".",
+    covered = {design(oc) for oc in map(outcomes, points.values()) if oc is not None}
+    lines += ["", "Intervals of a level cover " + "; ".join(sorted(covered)) + ".",
         "", "| pair | budget | paired mean difference in escape [bootstrap, Holm step level] "
         "| Holm-adjusted p | verdict | detectable difference (80 % power) |",
         "|---|---:|---|---:|---|---:|"]

@@ -380,7 +380,8 @@ def teacher_data(spec: dict, seed: int, budget: int, out_dir: str):
     # check_budgets promised (a wander env's episodes never end early: its data are unchanged)
     data = record(spec["teacher_env"], "teacher", episodes,
                   TRAIN_SEED_BASE + 10_000 * seed, max_steps=budget // episodes,
-                  min_steps=teacher_rows(budget), max_extra_episodes=10_000 - episodes)
+                  min_steps=teacher_rows(budget),
+                  max_extra_episodes=max(0, 10_000 - episodes))
     os.makedirs(os.path.dirname(path), exist_ok=True)
     ds.save(data, path)
     return data
