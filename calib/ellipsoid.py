@@ -220,6 +220,15 @@ def _costs(Y, params) -> list[float]:
     return ee
 
 
+def _doubling_batches(items):
+    """Lists of 1, 2, 4, ... consecutive items of the iterator ``items`` (lazily; the last
+    may be shorter, none is empty)."""
+    size = 1
+    while batch := list(itertools.islice(items, size)):
+        yield batch
+        size *= 2
+
+
 def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
     """Levenberg-Marquardt iterations.
 
@@ -245,15 +254,15 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
         step_ok = False
         rel = 0.0
         delta = None
-        # the trial steps (lambda x 10 after every failure) in order; on streamed data the
-        # first is scored in one pass and, if it fails, all the others in one more pass: the
-        # same step is taken as when they are scored one by one
+        # the trial steps (lambda x 10 after every failure) in order; on streamed data they
+        # are scored in batches of 1, 2, 4, ... trials, one pass each (a failed first trial
+        # then costs one pass over 2 trials, not one over all the others): the same step is
+        # taken as when they are scored one by one
         trials = _trial_steps(JTJ, JTe, lam, c, W, idx, r)
         if isinstance(Yn, ChunkSource):
-            first = list(itertools.islice(trials, 1))
-            batches = [first, list(trials)] if first else []
             scored = itertools.chain.from_iterable(
-                zip(b, _costs(Yn, [(t[2], t[3]) for t in b]), strict=True) for b in batches if b)
+                zip(b, _costs(Yn, [(t[2], t[3]) for t in b]), strict=True)
+                for b in _doubling_batches(trials))
         else:
             scored = ((t, _cost(Yn, t[2], t[3])) for t in trials)
         for (lam_t, delta_t, c_new, W_new), new_data in scored:
