@@ -18,7 +18,14 @@ import warnings
 
 import numpy as np
 
-from sfm_common.cli import OneLineParser, UsageError, int_in_range, one_line, positive_float
+from sfm_common.cli import (
+    OneLineParser,
+    UsageError,
+    int_in_range,
+    interrupts_not_lost,
+    one_line,
+    positive_float,
+)
 from sfm_common.files import check_distinct, check_writable_target
 
 from .result import CalibrationError, CalibrationWarning
@@ -166,7 +173,7 @@ def main(argv=None) -> int:
     """Entry point of the ``calib`` console script; returns the exit status."""
     try:
         args = _parser().parse_args(argv)
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True) as caught, interrupts_not_lost():
             warnings.simplefilter("always", CalibrationWarning)
             if args.command == "fit":
                 msg = _fit(args)

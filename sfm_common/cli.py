@@ -7,17 +7,59 @@ Every ``type=`` function here turns a bad value into one line such as
 
 from __future__ import annotations
 
+import _thread
 import argparse
+import contextlib
 import math
+import sys
+import threading
 
 __all__ = [
     "UsageError", "OneLineParser", "one_line", "positive_int", "non_negative_int", "seed",
     "positive_float", "non_negative_float", "fraction", "SEED_LIMIT", "int_in_range",
+    "interrupts_not_lost",
 ]
 
 #: Seeds are accepted in [0, SEED_LIMIT): numpy's SeedSequence takes any, but episode seeds
 #: ``seed + i`` must stay within a signed 64-bit integer.
 SEED_LIMIT = 2**62
+
+
+@contextlib.contextmanager
+def interrupts_not_lost(delay: float = 0.01):
+    """A Ctrl-C whose ``KeyboardInterrupt`` is raised inside a finaliser (a cffi ``ffi.gc``
+    callback such as pymunk's space free, a ``__del__``) is "ignored" there: Python prints a
+    traceback and goes on, and the command would run to its end and exit 0. While this block
+    runs, such an interrupt is delivered again to the main thread ``delay`` seconds later (a
+    timer thread calls ``_thread.interrupt_main``: raised from the hook itself it would be
+    ignored again), and its traceback is not printed; one still pending when the block ends is
+    raised there. Other unraisable exceptions go to the previous hook."""
+    previous = sys.unraisablehook
+    timer = []
+
+    def hook(unraisable):
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            if not timer:
+                t = threading.Timer(delay, lambda: (timer.clear(), _thread.interrupt_main()))
+                t.daemon = True
+                timer.append(t)
+                t.start()
+            return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    except BaseException:
+        for t in timer:
+            t.cancel()
+        raise
+    else:
+        if timer:
+            timer[0].cancel()
+            raise KeyboardInterrupt
+    finally:
+        sys.unraisablehook = previous
 
 
 class UsageError(Exception):

@@ -24,7 +24,7 @@ import warnings
 from dataclasses import dataclass
 
 import sfm_learn  # noqa: F401  (registers the policy specs)
-from sfm_common.cli import OneLineParser, UsageError, one_line
+from sfm_common.cli import OneLineParser, UsageError, interrupts_not_lost, one_line
 from sfm_learn.cli.common import CliError
 
 EXIT_USAGE = 2
@@ -104,7 +104,7 @@ def main(argv=None, *, nested: bool = False) -> int:
     try:
         args = build_parser().parse_args(argv)
         prog = args._prog
-        with _held_warnings():
+        with _held_warnings(), interrupts_not_lost():
             return int(args._run(args) or 0)
     except KeyboardInterrupt:
         if nested:
