@@ -35,17 +35,13 @@ if AVAILABLE:
         "cpShapeSetHashID"))
     #: Resets in C (``Batch.set_reset``) build worlds with these, and set the contact handlers'
     #: fields at these offsets of Chipmunk's ``cpCollisionHandler``.
-    RESET = hasattr(_fastsim, "bind_reset")
-    if RESET:
-        _fastsim.bind_reset(*_addresses(
-            "cpSpaceNew", "cpSpaceFree", "cpSpaceSetIterations", "cpSpaceSetDamping", "cpBodyNew",
-            "cpBodyNewStatic", "cpBodyFree", "cpSpaceAddBody", "cpSpaceRemoveBody",
-            "cpBodySetPosition", "cpBodySetAngle", "cpShapeSetFilter",
-            "cpSpaceReindexShapesForBody", "cpSpaceAddCollisionHandler"))
-        HANDLER_OFFSETS = tuple(_ffi.offsetof("cpCollisionHandler", f)
-                                for f in ("beginFunc", "separateFunc", "userData"))
-else:  # pragma: no cover
-    RESET = False
+    _fastsim.bind_reset(*_addresses(
+        "cpSpaceNew", "cpSpaceFree", "cpSpaceSetIterations", "cpSpaceSetDamping", "cpBodyNew",
+        "cpBodyNewStatic", "cpBodyFree", "cpSpaceAddBody", "cpSpaceRemoveBody",
+        "cpBodySetPosition", "cpBodySetAngle", "cpShapeSetFilter",
+        "cpSpaceReindexShapesForBody", "cpSpaceAddCollisionHandler"))
+    HANDLER_OFFSETS = tuple(_ffi.offsetof("cpCollisionHandler", f)
+                            for f in ("beginFunc", "separateFunc", "userData"))
 
 
 def install_contacts(world) -> None:

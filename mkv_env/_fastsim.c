@@ -49,18 +49,15 @@
 #include <sched.h>
 #include <stdatomic.h>
 
-/* Sensor noise drawn in C: numpy's own standard normal (libnpyrandom, linked by setup.py when
- * numpy is there at build time) on the env's bit generator, so a slot refills its noise block on
- * whichever thread steps it, with the draws the reference's SensorSuite.draw_block makes.
- * Without it (MKV_NPYRANDOM undefined) Python draws every block (Batch.set_noise). */
-#ifdef MKV_NPYRANDOM
+/* Sensor noise drawn in C: numpy's own standard normal (libnpyrandom, linked by setup.py; without
+ * it the extension is not built and the envs run the Python reference) on the env's bit
+ * generator, so a slot refills its noise block on whichever thread steps it, with the draws the
+ * reference's SensorSuite.draw_block makes. Python draws a block (Batch.set_noise) only for a
+ * slot with no generator of its own (one shared by two robots). */
 #include "numpy/random/distributions.h"
-#endif
 /* numpy's array API (built with numpy's headers): Batch.collect makes a step's result arrays. */
-#ifdef MKV_NUMPY
 #define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
 #include "numpy/arrayobject.h"
-#endif
 
 #include "_native/abi.h"
 #include "_native/kernel.h"

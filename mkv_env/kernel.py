@@ -16,19 +16,20 @@ same bits: ``tests/mkv_env/test_step_kernel.py`` drives both with random actions
 seeds and compares every observation, reward, flag and info value.
 
 Random numbers stay numpy's: the sensor noise comes from the episode's generator (the env's
-``np_random`` at reset) in blocks of 256 rows, as :meth:`SensorSuite.draw_block` draws them. When
-the extension is linked with numpy's random library (:data:`NOISE_IN_C`, checked at import), a slot
-draws its next block itself with numpy's ``random_standard_normal`` on that generator's bit
-generator, on whichever thread steps it; otherwise a slot that has used its block asks for a new
-one (``step`` returns the slots that need one, before stepping anything) and Python draws it.
-Either way the draws happen in the reference's order.
+``np_random`` at reset) in blocks of 256 rows, as :meth:`SensorSuite.draw_block` draws them. The
+extension is linked with numpy's random library (checked at import: :func:`_noise_in_c`; a
+mismatch turns the kernel off): a slot draws its next block itself with numpy's
+``random_standard_normal`` on that generator's bit generator, on whichever thread steps it. A slot
+with no generator of its own (one shared by two robots, a legacy ``RandomState``) asks for a new
+block when it has used its own (``step`` returns the slots that need one, before stepping
+anything) and Python draws it. Either way the draws happen in the reference's order.
 
 State moves between Python and C at well-defined points only: a reset ``push``es the Python
 objects' state into the slot; reading ``env.tracker``, ``env.sensors`` or ``robot.state`` after C
 steps ``pull``s it back (and hands ownership to Python until the next step pushes it again).
 
 A native vector env of MKV-v0 or MKV-v1 resets its envs inside the kernel call too
-(:data:`C_RESET`, :func:`setup_resets`): the slot draws the layout and start pose from the
+(:func:`setup_resets`): the slot draws the layout and start pose from the
 episode's generator and builds the Chipmunk space, obstacles, contact handlers and robot with the
 calls pymunk makes, in pymunk's order (so the same hash ids, spatial index and bits), on the worker
 thread that resets it. The slot owns that world until Python reads ``env.world`` (or the tracker,
@@ -79,40 +80,29 @@ def _pick_hypot() -> bool:
     return False
 
 
-if AVAILABLE:
-    AVAILABLE = _pick_hypot()
+#: Why the kernel is off although the extension is built ("" when it is on or not built).
+_OFF = ""
+if AVAILABLE and not _pick_hypot():
+    AVAILABLE, _OFF = False, "its copy of math.hypot does not match this interpreter's"
 
 
 def _noise_in_c() -> bool:
     """True when the kernel draws sensor noise itself and its draws are numpy's: the extension
     was linked with numpy's random library and ``random_standard_normal`` there gives what
     ``Generator.standard_normal`` gives here, for every bit generator numpy ships (probed)."""
-    if not hasattr(_fastsim, "normals"):
-        return False
     for bg in (np.random.PCG64, np.random.PCG64DXSM, np.random.MT19937, np.random.Philox,
                np.random.SFC64):
         c = _fastsim.normals(bg(20261125), 3000)
-        if c is None or c != np.random.Generator(bg(20261125)).standard_normal(3000).tolist():
+        if c != np.random.Generator(bg(20261125)).standard_normal(3000).tolist():
             return False
     return True
 
 
+if AVAILABLE and not _noise_in_c():
+    AVAILABLE, _OFF = False, "its numpy random library draws differently from this numpy's"
+
 if AVAILABLE:
     N_VALUES, N_PARAMS, NOISE_ROWS = _fastsim.N_VALUES, _fastsim.N_PARAMS, _fastsim.NOISE_ROWS
-
-#: True when each slot draws its own sensor-noise blocks in C, from the episode's generator, on
-#: whichever thread steps it (same draws as :meth:`SensorSuite.draw_block`); else Python draws
-#: every block (``Batch.set_noise``) when the kernel asks for one.
-NOISE_IN_C = AVAILABLE and _noise_in_c()
-
-#: True when the extension makes a vector env's per-step result arrays itself (``Batch.collect``,
-#: built with numpy's array API); else :class:`mkv_env.vector.MKVVectorEnv` does it in Python.
-COLLECT = AVAILABLE and hasattr(_fastsim.Batch, "collect")
-
-#: True when a native vector env can reset its MKV-v0 / MKV-v1 envs inside the kernel call, on
-#: the worker threads (``Batch.set_reset``): their worlds are built in C and handed to pymunk
-#: only when Python asks for them (:func:`adopt_world`). Needs the noise drawn in C.
-C_RESET = NOISE_IN_C and _chipmunk.RESET and hasattr(_fastsim.Batch, "adopt")
 
 
 def unavailable_reason() -> str:
@@ -120,6 +110,8 @@ def unavailable_reason() -> str:
     if chipmunk.PROBLEMS:
         return (f"kernel='c' is off: {chipmunk.PROBLEMS[0]} (mkv_env.chipmunk checks pymunk at "
                 "import); use kernel='python' (same results)")
+    if _OFF:
+        return f"kernel='c' is off: {_OFF} (rebuild mkv_env); use kernel='python' (same results)"
     return ("kernel='c' needs the compiled extension mkv_env._fastsim, which is not built "
             "(no C compiler at install time); use kernel='python'")
 
@@ -342,13 +334,12 @@ def push(env, batch, slot: int) -> None:
         start=len(values)))
     if s._block is not None:
         batch.set_noise(slot, s._block)
-    if NOISE_IN_C:  # the slot draws its next blocks from the episode's generator itself (a
-        # Generator's standard normal only: anything else, e.g. a legacy RandomState, is drawn
-        # by Python as the reference draws it)
-        gen = s._rng.bit_generator if isinstance(s._rng, np.random.Generator) else None
-        batch.set_noise_source(slot, gen,
-                               np.asarray(s._std, dtype=np.float64),
-                               np.asarray(s._bias, dtype=np.float64))
+    # the slot draws its next blocks from the episode's generator itself (a Generator's standard
+    # normal only: anything else, e.g. a legacy RandomState, is drawn by Python as the reference
+    # draws it)
+    gen = s._rng.bit_generator if isinstance(s._rng, np.random.Generator) else None
+    batch.set_noise_source(slot, gen, np.asarray(s._std, dtype=np.float64),
+                           np.asarray(s._bias, dtype=np.float64))
     batch.load(slot, values, s._row, list(getattr(env, "_cells", ())))
 
 
@@ -404,11 +395,11 @@ def reset_constants(env) -> array.array:
 
 def setup_resets(env, batch) -> bool:
     """Give ``batch`` the constants to reset envs configured like ``env`` in C; False (nothing
-    done) when it cannot: no :data:`C_RESET`, or rendering (the trails are kept in Python).
+    done) when it cannot: rendering (the trails are kept in Python).
     Only for the classes of MKV-v0 and MKV-v1 (the caller checks: MKVJam's start search and
     subclasses stay Python)."""
     global _LAYOUT_CONSTANTS
-    if not C_RESET or env.render_mode is not None:
+    if env.render_mode is not None:
         return False
     if _LAYOUT_CONSTANTS is None:
         _LAYOUT_CONSTANTS = _layout_constants()

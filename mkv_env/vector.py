@@ -183,8 +183,8 @@ class MKVVectorEnv(VectorEnv):
                 env._batch, env._out, env._slot, env._dirty = self._batch, self._out, i, self._dirty
             self._obs = self._out["obs"]
             self._kind = env_cls._KERNEL_KIND
-            # the per-step bookkeeping compiled (Batch.collect), when built with numpy's API
-            self._collect = getattr(self._batch, "collect", None) if _kernel.COLLECT else None
+            # the per-step bookkeeping, compiled (Batch.collect)
+            self._collect = self._batch.collect
             names = list(_INFO_COLUMNS)
             if self._kind == _kernel.KIND_WANDER_V1:
                 names.append("cells_visited")
@@ -202,9 +202,8 @@ class MKVVectorEnv(VectorEnv):
             self._c_reset = (env_cls in (MKVEnv, MKVEnvV1)
                              and _kernel.setup_resets(first, self._batch))
             # the whole NEXT_STEP step in one call (Batch.vstep) where nothing needs Python
-            self._fast = (getattr(self._batch, "vstep", None)
-                          if self._c_reset and self._collect is not None
-                          and mode == AutoresetMode.NEXT_STEP else None)
+            self._fast = (self._batch.vstep
+                          if self._c_reset and mode == AutoresetMode.NEXT_STEP else None)
 
     def __reduce_ex__(self, protocol):
         """Pickling and ``copy.deepcopy`` of a compiled-kernel vector env are refused in one line:
@@ -356,8 +355,8 @@ class MKVVectorEnv(VectorEnv):
             need = run(acts, active, *extra)
         except ValueError as e:  # the kernel checks the values before it steps anything
             raise self._bad_actions(actions, e) from None
-        while need is not None:  # robots that used up their noise block and cannot draw it
-            for i in need:       # in C (kernel.NOISE_IN_C): the next, as the reference draws it
+        while need is not None:  # robots that used up their noise block and have no generator
+            for i in need:       # of their own: Python draws the next, as the reference does
                 b.set_noise(i, envs[i]._sensors.draw_block())
             need = run(acts, active, *extra)
         self._reset_in_c(c_idx)
@@ -370,20 +369,15 @@ class MKVVectorEnv(VectorEnv):
                 b.step_finish()
             reset_idx = ()
         want = self.vector_infos
-        if self._collect is not None:  # the bookkeeping below in one compiled call
-            obs, rewards, terminated, truncated, cols, vinfo = self._collect(
-                self._elapsed, self._max_steps, active,
-                None if mode == AutoresetMode.SAME_STEP else self._autoreset, self._col_spec,
-                want)
-            elapsed = self._elapsed
-            if self._has_scenario:
-                cols["scenario"] = scen = self._scenarios.copy()
-                if want:
-                    vinfo["scenario"], vinfo["_scenario"] = scen, np.ones(n, dtype=bool)
-        else:
-            vinfo = None
-            obs, rewards, terminated, truncated, cols = self._collect_in_python(resetting, active)
-            elapsed = self._elapsed
+        # the step's arrays, elapsed steps, truncation, autoreset flags and info, compiled
+        obs, rewards, terminated, truncated, cols, vinfo = self._collect(
+            self._elapsed, self._max_steps, active,
+            None if mode == AutoresetMode.SAME_STEP else self._autoreset, self._col_spec, want)
+        elapsed = self._elapsed
+        if self._has_scenario:
+            cols["scenario"] = scen = self._scenarios.copy()
+            if want:
+                vinfo["scenario"], vinfo["_scenario"] = scen, np.ones(n, dtype=bool)
         if self.render_mode is not None:
             self._trails(active)
         info: dict[str, Any] = {}
@@ -400,48 +394,14 @@ class MKVVectorEnv(VectorEnv):
         final_lazy = None
         if mode == AutoresetMode.SAME_STEP:
             info, final_lazy = self._same_step_resets(acts, obs, cols, terminated | truncated)
-            self._autoreset[:] = False
-        elif self._collect is None:  # (collect has set the flags in place)
-            self._autoreset = terminated | truncated
+            self._autoreset[:] = False  # (otherwise collect has set the flags in place)
         if want:
-            if vinfo is None:
-                vinfo = self._vector_info(cols, None)
             info = {**vinfo, **info} if info else vinfo
         self._lazy_infos = (cols, self._everyone)  # per-env dicts only if someone reads them
         self._lazy_final = final_lazy
         if final_lazy is None:
             self._final_env_infos = [None] * n
         return obs, rewards, terminated, truncated, info
-
-    def _collect_in_python(self, resetting: bool, active):
-        """The step's numbers, copied from the kernel's buffers (it reuses them; one copy per
-        block), the elapsed steps counted: (obs, rewards, terminated, truncated, info columns).
-        What ``Batch.collect`` does in C where the extension has numpy's API."""
-        n, kind, blocks = self.num_envs, self._kind, self._out.blocks
-        obs, pose = blocks["obs"].copy(), blocks["pose"].copy()
-        rewards, distance = blocks["f"].copy()
-        terminated, stuck, bumped, collision, in_jam, escaped = blocks["b"].copy()
-        jams, escapes, collisions, cells = blocks["i"].copy()
-        elapsed = self._elapsed
-        if resetting:
-            elapsed += active
-        else:
-            elapsed += 1
-        if self.max_episode_steps is None:
-            truncated = np.zeros(n, dtype=bool)
-        else:
-            truncated = np.greater_equal(elapsed, self.max_episode_steps)
-            if resetting:
-                truncated &= active
-        cols = {"stuck": stuck, "bumped": bumped, "collision": collision,
-                "distance_m": distance, "jams": jams, "escapes": escapes,
-                "collisions": collisions, "in_jam": in_jam, "pose": pose}
-        if kind == _kernel.KIND_WANDER_V1:
-            cols["cells_visited"] = cells
-        elif kind != _kernel.KIND_WANDER:
-            cols["escaped"] = escaped
-            cols["scenario"] = self._scenarios.copy()
-        return obs, rewards, terminated, truncated, cols
 
     def _same_step_resets(self, acts, obs, cols, ended):
         """SameStep mode: the envs whose episode ended this step reset at once (in C where the

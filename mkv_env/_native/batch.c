@@ -306,7 +306,6 @@ static PyObject *batch_set_noise(BatchObject *b, PyObject *const *args, Py_ssize
     Py_RETURN_NONE;
 }
 
-#ifdef MKV_NPYRANDOM
 /* The bitgen_t of a numpy BitGenerator (through its ``capsule``), or NULL with an error set. */
 static bitgen_t *bitgen_of(PyObject *bit_generator)
 {
@@ -317,13 +316,11 @@ static bitgen_t *bitgen_of(PyObject *bit_generator)
     Py_DECREF(cap);
     return g;
 }
-#endif
 
 /* set_noise_source(i, bit_generator or None, std (10 float64), bias (10 float64)) -> bool: slot i
  * draws its own noise blocks from this numpy BitGenerator (the episode's SensorSuite._rng's)
- * from now on; True when bound. False (Python draws, through set_noise) when the extension was
- * built without numpy's random library, for None, and for a generator another slot of the batch
- * draws from too (both then draw through Python, in slot order, as the reference does). */
+ * from now on; True when bound. False (Python draws, through set_noise) for None, and for a
+ * generator another slot of the batch draws from too (both then draw through Python, in slot order, as the reference does). */
 static PyObject *batch_set_noise_source(BatchObject *b, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 4) {
@@ -340,7 +337,6 @@ static PyObject *batch_set_noise_source(BatchObject *b, PyObject *const *args, P
         return NULL;
     s->gen = NULL;
     Py_CLEAR(s->gen_keep);
-#ifdef MKV_NPYRANDOM
     if (args[1] == Py_None)
         Py_RETURN_FALSE;
     void *g = bitgen_of(args[1]);
@@ -365,21 +361,16 @@ static PyObject *batch_set_noise_source(BatchObject *b, PyObject *const *args, P
     s->gen_keep = args[1];
     s->gen = g;
     Py_RETURN_TRUE;
-#else
-    Py_RETURN_FALSE;
-#endif
 }
 
 /* normals(bit_generator, k) -> list of k floats from numpy's random_standard_normal in C (the
- * import-time check that the linked library draws what Generator.standard_normal draws), or
- * None when built without it. */
+ * import-time check that the linked library draws what Generator.standard_normal draws). */
 static PyObject *fs_normals(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 2) {
         PyErr_SetString(PyExc_TypeError, "normals() takes 2 arguments");
         return NULL;
     }
-#ifdef MKV_NPYRANDOM
     Py_ssize_t k = PyLong_AsSsize_t(args[1]);
     if (k == -1 && PyErr_Occurred())
         return NULL;
@@ -398,9 +389,6 @@ static PyObject *fs_normals(PyObject *self, PyObject *const *args, Py_ssize_t na
         PyList_SET_ITEM(out, m, f);
     }
     return out;
-#else
-    Py_RETURN_NONE;
-#endif
 }
 
 /* state(i) -> (values tuple, row, noise bytes, cells list) */

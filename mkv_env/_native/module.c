@@ -3,7 +3,7 @@
  * Owns: the Batch type object (methods, getters), hypot() and pymod() (the kernel's copies
  * of math.hypot and float %; hypot() also sets the variant, chosen at import by
  * mkv_env.kernel), the module's method table and PyInit__fastsim.
- * Relies on: every other file (it names their functions); numpy's import_array when MKV_NUMPY. */
+ * Relies on: every other file (it names their functions); numpy's import_array. */
 
 static PyObject *batch_get_n(BatchObject *b, void *closure) { return PyLong_FromSsize_t(b->n); }
 static PyObject *batch_get_threads(BatchObject *b, void *closure)
@@ -85,14 +85,12 @@ static PyMethodDef batch_methods[] = {
     {"set_noise", (PyCFunction)(void (*)(void))batch_set_noise, METH_FASTCALL,
      "set_noise(i, block): a new 256 x 10 block of sensor noise for slot i."},
     {"state", (PyCFunction)batch_state, METH_O, "state(i) -> (values, row, noise, cells)."},
-#ifdef MKV_NUMPY
     {"vstep", (PyCFunction)(void (*)(void))batch_vstep, METH_FASTCALL,
      "vstep(actions, elapsed, autoreset, max_steps, spec, want_info) -> a vector env's whole "
      "step (resets in C included), or None when it needs the general path."},
     {"collect", (PyCFunction)(void (*)(void))batch_collect, METH_FASTCALL,
      "collect(elapsed, max_steps, active, autoreset, spec, want_info) -> (obs, rewards, "
      "terminated, truncated, cols, info): a vector env's bookkeeping after step()."},
-#endif
     {"set_noise_source", (PyCFunction)(void (*)(void))batch_set_noise_source, METH_FASTCALL,
      "set_noise_source(i, bit_generator, std, bias) -> True when slot i draws its own noise."},
     {"read", (PyCFunction)batch_read, METH_O,
@@ -198,10 +196,8 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fastsim",
 
 PyMODINIT_FUNC PyInit__fastsim(void)
 {
-#ifdef MKV_NUMPY
     if (_import_array() < 0)
         return NULL;
-#endif
     for (int i = 0; i < S_LEN; i++) {
         state_names[i] = PyUnicode_InternFromString(STATE_NAMES[i]);
         if (state_names[i] == NULL)

@@ -4,7 +4,7 @@
  * the sensor noise blocks (refill_noise, needs_noise), read_sensors (SensorSuite.read) and
  * step_slot (physics + sensors + MotionTracker.update + the env's reward and termination).
  * Relies on: kernel.h (Slot, BatchObject, OUT), abi.h, wheels.c (advance_one, floor_scale),
- * pyfloat.c (py_hypot, py_mod), numpy's random_standard_normal when MKV_NPYRANDOM. */
+ * pyfloat.c (py_hypot, py_mod), numpy's random_standard_normal (libnpyrandom). */
 
 /* ---------------------------------------------------------------- the cell set of MKV-v1 */
 static inline uint64_t cell_hash(uint64_t k)
@@ -76,7 +76,6 @@ static inline int is_clear(const Slot *s, double x, double y, double radius)
  * array in that order), as two roundings like numpy's ``block *= std; block += bias``. */
 static void refill_noise(Slot *s)
 {
-#ifdef MKV_NPYRANDOM
     bitgen_t *g = s->gen;
     for (int r = 0; r < NOISE_ROWS; r++)
         for (int c = 0; c < NCH; c++) {
@@ -85,9 +84,6 @@ static void refill_noise(Slot *s)
             s->noise[NCH * r + c] = t + s->nbias[c];
         }
     s->row = 0;
-#else
-    (void)s;
-#endif
 }
 
 /* 1 when the slot has used its noise block and cannot draw the next itself (Python must). */

@@ -2,10 +2,9 @@
  *
  * Owns: the result arrays (out_new, Collected, collect_alloc/fill/result), vec_buffer,
  * vec_args, and the methods collect and vstep.
- * Relies on: numpy's array API (MKV_NUMPY), kernel.h, jobs.c (append_index, conclude_job),
+ * Relies on: numpy's array API, kernel.h, jobs.c (append_index, conclude_job),
  * threads.c (start_workers, launch_job, finish_job), sensing.c (needs_noise). */
 
-#ifdef MKV_NUMPY
 /* A fresh numpy array shaped like output buffer k ((n,) or (n, width)); filled later. */
 static PyObject *out_new(BatchObject *b, int k)
 {
@@ -340,4 +339,3 @@ release:
     PyBuffer_Release(&rv);
     return result;
 }
-#endif

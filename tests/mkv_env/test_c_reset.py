@@ -20,7 +20,7 @@ from mkv_env import kernel as kernel_mod
 from mkv_env.envs import MKVEnv, MKVEnvV1
 from mkv_env.vector import MKVVectorEnv
 
-needs_c_reset = pytest.mark.skipif(not kernel_mod.C_RESET, reason="resets in C not built")
+needs_c_reset = pytest.mark.skipif(not kernel_mod.AVAILABLE, reason="compiled kernel not built")
 
 
 def _vec(env_cls, n, kernel="c", **kw):

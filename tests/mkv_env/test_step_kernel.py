@@ -287,34 +287,25 @@ def test_noise_drawn_in_c_is_numpys_standard_normal(seed, kind, k):
     bg = getattr(np.random, kind)
     g1, g2 = bg(seed), np.random.Generator(bg(seed))
     got = _fastsim.normals(g1, k)
-    if got is None:  # built without numpy's library: Python draws every block
-        assert not kernel_mod.NOISE_IN_C
-        return
-    assert kernel_mod.NOISE_IN_C
     assert [_bits(x) for x in got] == [_bits(x) for x in g2.standard_normal(k).tolist()]
     assert _plain(g1.state) == _plain(g2.bit_generator.state)
 
 
 @needs_c
 @pytest.mark.parametrize("env_id", ["MKV-v0", "MKVJam-v1"])
-def test_noise_drawn_by_python_or_by_the_kernel_gives_the_same_run(env_id, monkeypatch):
-    """Both ways to refill a slot's noise block (the kernel on its threads, or Python through
-    set_noise when the library is missing) give the reference's bits."""
+def test_noise_drawn_by_the_kernel_gives_the_references_run(env_id):
+    """The kernel refills its slots' noise blocks on its threads with the reference's bits
+    (Python's refill, for a generator two robots share, is in the shared-generator test)."""
     ref = _vector_run(env_id, "python", "NextStep", 1, n=4, steps=700, max_steps=300)
-    assert _vector_run(env_id, "c", "NextStep", 2, n=4, steps=700, max_steps=300) == ref
-    monkeypatch.setattr(kernel_mod, "NOISE_IN_C", False)
     assert _vector_run(env_id, "c", "NextStep", 2, n=4, steps=700, max_steps=300) == ref
 
 
 @needs_c
 @pytest.mark.parametrize("mode", ["NextStep", "SameStep", "Disabled"])
-def test_vector_bookkeeping_in_python_or_compiled_gives_the_same_run(mode, monkeypatch):
+def test_compiled_vector_bookkeeping_gives_the_references_run(mode):
     """Batch.collect (the per-step result arrays, elapsed, truncation, autoreset flags and
-    Gymnasium's info, compiled) and its Python fallback give the reference's bits."""
+    Gymnasium's info, compiled) gives the reference's bits."""
     ref = _vector_run("MKVJam-v1", "python", mode, 1)
-    assert kernel_mod.COLLECT == hasattr(kernel_mod._fastsim.Batch, "collect")
-    assert _vector_run("MKVJam-v1", "c", mode, 2) == ref
-    monkeypatch.setattr(kernel_mod, "COLLECT", False)
     assert _vector_run("MKVJam-v1", "c", mode, 2) == ref
     assert _vector_run("MKV-v1", "c", mode, 1) == _vector_run("MKV-v1", "python", mode, 1)
 
@@ -332,14 +323,13 @@ def test_a_steps_results_are_its_own_arrays():
     assert first[0].tobytes() == kept[0].tobytes() and first[1].tobytes() == kept[1].tobytes()
     assert all(np.array_equal(first[4][k], v) for k, v in kept[2].items())
     first[4]["_stuck"][0] = False  # masks are the caller's to change
-    if kernel_mod.COLLECT:
-        b = venv.unwrapped._batch
-        with pytest.raises(ValueError, match="elapsed must be int64"):
-            b.collect(np.zeros(3, dtype=np.int32), -1, None, None, (), False)
-        with pytest.raises(ValueError, match="active must be bool"):
-            b.collect(np.zeros(3, dtype=np.int64), -1, np.zeros(2, bool), None, (), False)
-        with pytest.raises(ValueError, match="output index"):
-            b.collect(np.zeros(3, dtype=np.int64), -1, None, None, (("a", "_a", 99),), True)
+    b = venv.unwrapped._batch
+    with pytest.raises(ValueError, match="elapsed must be int64"):
+        b.collect(np.zeros(3, dtype=np.int32), -1, None, None, (), False)
+    with pytest.raises(ValueError, match="active must be bool"):
+        b.collect(np.zeros(3, dtype=np.int64), -1, np.zeros(2, bool), None, (), False)
+    with pytest.raises(ValueError, match="output index"):
+        b.collect(np.zeros(3, dtype=np.int64), -1, None, None, (("a", "_a", 99),), True)
     venv.close()
 
 
@@ -364,17 +354,16 @@ def test_a_generator_shared_by_two_robots_is_drawn_in_robot_order():
         return rows, shared.bit_generator.state
 
     assert run("c") == run("python")
-    if kernel_mod.NOISE_IN_C:
-        b = kernel_mod._fastsim.Batch  # the binding says so: the second slot refuses the first's
-        venv = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
-        venv.reset(seed=0)
-        batch, g = venv.unwrapped._batch, np.random.default_rng(3).bit_generator
-        z = np.zeros(10)
-        assert isinstance(batch, b)
-        assert batch.set_noise_source(0, g, z, z) is True
-        assert batch.set_noise_source(1, g, z, z) is False
-        assert batch.set_noise_source(0, None, z, z) is False
-        venv.close()
+    b = kernel_mod._fastsim.Batch  # the binding says so: the second slot refuses the first's
+    venv = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    batch, g = venv.unwrapped._batch, np.random.default_rng(3).bit_generator
+    z = np.zeros(10)
+    assert isinstance(batch, b)
+    assert batch.set_noise_source(0, g, z, z) is True
+    assert batch.set_noise_source(1, g, z, z) is False
+    assert batch.set_noise_source(0, None, z, z) is False
+    venv.close()
 
 
 def test_vector_env_rejects_bad_thread_counts():
@@ -493,3 +482,27 @@ def test_a_subclass_with_its_own_reward_runs_its_own_python():
     with pytest.raises(ValueError, match="overrides _reward"):
         Bonus(kernel="c")
     assert Quieter().kernel == kernel_mod.default_kernel()
+
+
+@needs_c
+def test_a_kernel_whose_noise_draws_differ_is_off_and_says_why():
+    """Two paths only: where the linked numpy random library draws differently from this
+    numpy's, the whole kernel is off (no Python-drawn-noise variant of it), the envs run the
+    reference, and asking for kernel='c' says why in one line."""
+    import subprocess
+    import sys
+
+    prog = (
+        "import mkv_env._fastsim as f; f.normals = lambda g, k: [0.0] * k\n"
+        "import gymnasium as gym, mkv_env, mkv_env.kernel as K\n"
+        "assert not K.AVAILABLE\n"
+        "env = gym.make('MKV-v1'); env.reset(seed=0); env.step(env.action_space.sample())\n"
+        "try:\n"
+        "    gym.make('MKV-v1', kernel='c')\n"
+        "except Exception as e:\n"
+        "    print(str(e))\n")
+    out = subprocess.run([sys.executable, "-c", prog], capture_output=True, text=True,
+                         timeout=120, env=dict(os.environ, SDL_VIDEODRIVER="dummy"))
+    assert out.returncode == 0, out.stderr
+    msg = out.stdout.strip()
+    assert "draws differently" in msg and "kernel='python'" in msg and "\n" not in msg
