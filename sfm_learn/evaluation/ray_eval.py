@@ -11,7 +11,10 @@ with no trials to schedule adaptively, and core tasks keep the code path the loc
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
 from collections.abc import Callable
 
 INSTALL_HINT = "the ray backend needs the scale extra: pip install 'mkv-sfm[scale]'"
@@ -47,7 +50,8 @@ def init_ray(address: str | None, workers: int):
     kwargs = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
     try:
         if address:
-            ray.init(address=address, **kwargs)
+            with _c_stderr_held():  # Ray's C++ client logs each failed try to fd 2
+                ray.init(address=address, **kwargs)
         else:
             ray.init(address="local", num_cpus=int(workers), **kwargs)
     except Exception as e:  # noqa: BLE001  (ConnectionError, RuntimeError, ...: one line)
@@ -57,6 +61,31 @@ def init_ray(address: str | None, workers: int):
                 "put its token in ~/.ray/auth_token or RAY_AUTH_TOKEN" if address else "")
         raise ValueError(f"cannot start or reach {where}: {text}{hint}") from None
     return ray
+
+
+@contextlib.contextmanager
+def _c_stderr_held():
+    """The process's C-level standard error (file descriptor 2) into a temporary file while the
+    block runs: written back to it when the block succeeds, dropped when it raises (then the
+    command's one-line error is the only line it prints; Ray's C++ client writes a warning line
+    per failed try to reach a cluster, about 20 before it gives up)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            if ok:
+                held.seek(0)
+                data = held.read()
+                if data:
+                    os.write(2, data)
 
 
 def check_workers_fit(ray, workers: int) -> None:
