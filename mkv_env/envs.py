@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from typing import Any
 
 import gymnasium as gym
@@ -292,7 +293,16 @@ class MKVEnv(gym.Env):
         self._py_owns = False
 
     def __getstate__(self):
+        """The env's state for ``pickle`` and ``copy.deepcopy``. Taking it rebuilds this env's own
+        world from the same pickled state first: Chipmunk's spatial index and contact caches are
+        rebuilt on unpickling, not copied, so a copy would otherwise find (and solve) contacts in
+        another order than the original and part from it at a contact. The original and every
+        copy then continue bit for bit (a run that takes a snapshot differs from one that does
+        not in the order of contacts after it, never in anything a snapshot is for)."""
         self._to_python()
+        if self._world is not None:
+            self._world = pickle.loads(pickle.dumps(self._world, pickle.HIGHEST_PROTOCOL))
+            self._world.robot._sync = self._to_python
         state = self.__dict__.copy()
         state["_batch"] = state["_out"] = None  # C memory: a copy gets a batch of its own
         state["_dirty"] = []
