@@ -259,9 +259,21 @@ class MKVEnv(gym.Env):
         self._c_world = False
 
     def _adopt(self) -> None:
-        """Take over the world the kernel slot built at a reset in C."""
+        """Take over the world the kernel slot built at a reset in C, with the episode's
+        bookkeeping as a fresh reset leaves it."""
         self._c_world = False
-        _kernel.adopt_world(self, self._batch, self._slot)
+        got = _kernel.adopt_world(self, self._batch, self._slot)
+        if got is None:
+            return
+        world, start = got
+        self._world = world
+        self._tracker.reset(start, False, 0)
+        self._sensors.restart(self.np_random)
+        if hasattr(self, "_cells"):
+            self._cells = set()
+        self.trail = [start[:2]]
+        self._last_action = NOOP_ACTION
+        world.robot._sync = self._to_python
 
     @property
     def tracker(self) -> MotionTracker:

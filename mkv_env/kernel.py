@@ -407,21 +407,21 @@ def setup_resets(env, batch) -> bool:
     return True
 
 
-def adopt_world(env, batch, slot: int) -> bool:
-    """Hand the world slot ``slot`` built at its last reset in C to Python: ``env.world`` becomes
-    a :class:`~mkv_env.world.World` of pymunk objects wrapping the very same Chipmunk space,
-    bodies and shapes (so stepping on, in C or Python, gives the same bits), and the env's
-    episode bookkeeping is that of a fresh reset; the slot keeps the newest state (``pull``
-    brings it to Python on demand). False when the slot holds no world of its own."""
+def adopt_world(env, batch, slot: int):
+    """Hand the world slot ``slot`` built at its last reset in C to Python: a
+    :class:`~mkv_env.world.World` of pymunk objects wrapping the very same Chipmunk space,
+    bodies and shapes (so stepping on, in C or Python, gives the same bits), configured as
+    ``env`` (read only), and the start pose; the env takes them (``MKVEnv._adopt``), and the
+    slot keeps the newest state (``pull`` brings it to Python on demand). None when the slot
+    holds no world of its own."""
     import pymunk
 
-    from mkv_env.actions import NOOP_ACTION
     from mkv_env.world import Layout, World
 
     counts = array.array("q", bytes(40))
     got = batch.adopt(slot, counts)
     if got is None:
-        return False
+        return None
     space_p, static_p, body_p, shape_ps, static_cap, walls, boxes, cylinders, patches, start = got
     space = chipmunk.wrap_space(space_p)
     chipmunk.wrap_body(static_p, space, static=True)  # (kept as space.static_body)
@@ -430,30 +430,9 @@ def adopt_world(env, batch, slot: int) -> bool:
     lay.walls += [(0, 0, W, 0), (W, 0, W, H), (W, H, 0, H), (0, H, 0, 0)]
     lay.walls += walls
     lay.boxes, lay.cylinders, lay.patches = boxes, cylinders, patches
-    world = World.__new__(World)
-    world.layout, world.robot_params, world.space = lay, env.robot_params, space
-    world.fast_contacts, world._static, world.contacts = True, static_cap, counts
-    _chipmunk.install_contacts(world)
-    robot = _robot.Robot.__new__(_robot.Robot)
-    robot.params = env.robot_params
-    robot.body = chipmunk.wrap_body(body_p, space)
-    robot.shapes = tuple(chipmunk.wrap_shape(cls, ptr, robot.body, space) for cls, ptr in zip(
+    world = World.adopted(lay, env.robot_params, space, static_cap, counts)
+    body = chipmunk.wrap_body(body_p, space)
+    shapes = tuple(chipmunk.wrap_shape(cls, ptr, body, space) for cls, ptr in zip(
         (pymunk.Poly, pymunk.Segment, pymunk.Segment, pymunk.Segment), shape_ps, strict=True))
-    robot._state = _robot.WheelState()
-    robot._sync = None
-    robot._mu_scale = 1.0
-    robot.kernel = env._robot_kernel
-    robot._ptrs = None
-    robot._precompute()
-    world.robot = robot
-    env._world = world
-    env._tracker.reset(start, False, 0)
-    env._sensors._rng = env.np_random
-    env._sensors._row = NOISE_ROWS
-    env._sensors._last_ticks = (0, 0)
-    if hasattr(env, "_cells"):
-        env._cells = set()
-    env.trail = [start[:2]]
-    env._last_action = NOOP_ACTION
-    robot._sync = env._to_python
-    return True
+    world.robot = _robot.Robot.adopted(env.robot_params, body, shapes, env._robot_kernel)
+    return world, start

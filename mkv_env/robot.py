@@ -198,6 +198,22 @@ class Robot:
         self._ptrs: tuple | None = None  # (space, cpBody address, cpSpace address)
         self._precompute()
 
+    @classmethod
+    def adopted(cls, params: RobotParams, body: pymunk.Body, shapes: tuple,
+                kernel: str) -> Robot:
+        """A robot around a body and shapes built elsewhere (a reset in the compiled kernel:
+        :func:`mkv_env.kernel.adopt_world`), already in their space: what ``__init__`` sets
+        besides building them."""
+        robot = cls.__new__(cls)
+        robot.params, robot.body, robot.shapes = params, body, shapes
+        robot._state = WheelState()
+        robot._sync = None
+        robot._mu_scale = 1.0
+        robot.kernel = kernel
+        robot._ptrs = None
+        robot._precompute()
+        return robot
+
     @property
     def state(self) -> WheelState:
         """The wheels' and motors' internal state (brought up to date from the env's compiled

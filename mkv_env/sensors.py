@@ -60,6 +60,13 @@ class SensorSuite:
         self._row = _NOISE_BLOCK
         self._last_ticks = self._ticks(world)
 
+    def restart(self, rng: np.random.Generator) -> None:
+        """Start a new episode whose encoders read zero now (a world built by the compiled
+        kernel's reset: its wheel angles start at zero): :meth:`reset` without a world."""
+        self._rng = rng
+        self._row = _NOISE_BLOCK
+        self._last_ticks = (0, 0)
+
     def draw_block(self) -> np.ndarray:
         """The next block of noise rows (bias + std * standard normal), drawn from the episode's
         generator; kept as the current block. (The compiled step kernel asks for blocks through

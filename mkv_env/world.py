@@ -288,6 +288,18 @@ class World:
         if robot_kernel is not None:
             self.robot.kernel = robot_kernel
 
+    @classmethod
+    def adopted(cls, layout: Layout, robot_params: RobotParams, space: pymunk.Space, static,
+                counts: array.array) -> World:
+        """A fast-contacts world around a space built elsewhere (a reset in the compiled
+        kernel: :func:`mkv_env.kernel.adopt_world`): its obstacles' capsule ``static``, its
+        contact counts ``counts`` (handlers installed here); the caller sets ``robot``."""
+        world = cls.__new__(cls)
+        world.layout, world.robot_params, world.space = layout, robot_params, space
+        world.fast_contacts, world._static, world.contacts = True, static, counts
+        _chipmunk.install_contacts(world)
+        return world
+
     def __getstate__(self):
         if self._static is not None:  # raw obstacle shapes: pymunk takes them over to pickle
             _chipmunk.adopt_static(self)
