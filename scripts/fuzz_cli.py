@@ -96,8 +96,9 @@ def interrupt_case(rng, d):
     calib = f"{INTERRUPT_SIGINT}; from calib.cli import main; sys.exit(main())"
     out = os.path.join(d, "int_out")
     shutil.rmtree(out, ignore_errors=True)
-    with contextlib.suppress(FileNotFoundError):
-        os.unlink(out)
+    for leftover in (out, out + ".npz", out + ".zip", out + ".json"):  # an earlier case's output
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(leftover)
     prog, argv = rng.choice([
         (mkv, ["eval", "--env", "MKVJam-v1", "--policy", "teacher", "--episodes", "5000",
                "--workers", "2", "--json", out]),
