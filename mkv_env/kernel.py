@@ -351,8 +351,8 @@ def pull(env, batch, slot: int) -> None:
     wheel, v = layouts.unpack("S", values), layouts.unpack("V", values)
     for k, a in _WHEEL.items():
         setattr(st, a, wheel[k])
-    robot._mu_scale = v["MU"]
-    s._last_ticks = (int(v["TICK_D"]), int(v["TICK_R"]))
+    robot.set_floor_friction_scale(v["MU"])
+    s.load(row, noise, (int(v["TICK_D"]), int(v["TICK_R"])))
     for k, a in _TRACK.items():
         setattr(t, a, int(v[k]) if a in _TRACK_INT else v[k])
     t.in_jam = bool(t.in_jam)
@@ -360,10 +360,6 @@ def pull(env, batch, slot: int) -> None:
         env._phi = v["PHI"]
     if hasattr(env, "_cells"):
         env._cells = set(cells)
-    if row != s._row or s._block is None or s._block.tobytes() != noise:
-        s._block = np.frombuffer(noise, dtype=np.float64).reshape(NOISE_ROWS, -1).copy()
-        s._noise = s._block.tolist()
-    s._row = row
 
 
 # ---------------------------------------------------------------------- resets in C

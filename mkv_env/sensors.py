@@ -67,6 +67,16 @@ class SensorSuite:
         self._row = _NOISE_BLOCK
         self._last_ticks = (0, 0)
 
+    def load(self, row: int, block: bytes, last_ticks: tuple[int, int]) -> None:
+        """Take the noise position, block (float64 bytes, rows x channels) and encoder ticks
+        another owner of this suite's state has reached (the compiled step kernel's slot:
+        :func:`mkv_env.kernel.pull`); the block is rebuilt only when it changed."""
+        if row != self._row or self._block is None or self._block.tobytes() != block:
+            self._block = np.frombuffer(block, dtype=np.float64).reshape(_NOISE_BLOCK, -1).copy()
+            self._noise = self._block.tolist()
+        self._row = row
+        self._last_ticks = last_ticks
+
     def draw_block(self) -> np.ndarray:
         """The next block of noise rows (bias + std * standard normal), drawn from the episode's
         generator; kept as the current block. (The compiled step kernel asks for blocks through

@@ -506,3 +506,11 @@ def test_a_kernel_whose_noise_draws_differ_is_off_and_says_why():
     assert out.returncode == 0, out.stderr
     msg = out.stdout.strip()
     assert "draws differently" in msg and "kernel='python'" in msg and "\n" not in msg
+
+
+@needs_c
+def test_the_kernels_noise_block_is_the_sensor_suites():
+    """A slot's noise block has the rows of SensorSuite's (SensorSuite.load reshapes by them)."""
+    from mkv_env import sensors
+
+    assert kernel_mod.NOISE_ROWS == sensors._NOISE_BLOCK
