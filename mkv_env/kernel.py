@@ -300,13 +300,12 @@ def generate_layout(rng: np.random.Generator, width_m: float = 4.0, height_m: fl
 _WHEEL = {"WW": "drive_omega", "DELTA": "steer", "RATE": "steer_rate",
           "DRIVE_ANGLE": "drive_angle", "ROLLER_ANGLE": "roller_angle", "BUDGET": "drive_budget",
           "I_DRIVE": "drive_current", "I_STEER": "steer_current"}
-#: ... and the tracker's (the rest of V: MU, TICK_D, TICK_R and PHI are the robot's, the
-#: sensors' and the env's)
+#: ... and the tracker's (:meth:`MotionTracker.state`; the rest of V: MU, TICK_D, TICK_R and PHI
+#: are the robot's, the sensors' and the env's)
 _TRACK = {"X": "x", "Y": "y", "HEAD": "heading", "DIST": "distance_m", "LAST": "last_step_m",
           "STUCK_RUN": "stuck_run", "JAMS": "jams", "ESCAPES": "escapes", "IN_JAM": "in_jam",
           "JAM_X": "jam_x", "JAM_Y": "jam_y", "COLLS": "collisions", "FWD": "forward_run_m",
           "EVENTS": "_events"}
-_TRACK_INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events"))
 
 
 def sync_params(env, batch) -> None:
@@ -327,10 +326,11 @@ def push(env, batch, slot: int) -> None:
     st, t, s = robot._state, env._tracker, env._sensors
     _, body, space = robot.pointers(world.space)
     batch.bind(slot, body, space, world.contacts, world.layout.patches)
+    tracked = t.state()
     values = layouts.pack("S", {k: getattr(st, a) for k, a in _WHEEL.items()})
     values.extend(layouts.pack("V", {
         "MU": robot._mu_scale, "TICK_D": s._last_ticks[0], "TICK_R": s._last_ticks[1],
-        **{k: getattr(t, a) for k, a in _TRACK.items()}, "PHI": getattr(env, "_phi", 0.0)},
+        **{k: tracked[a] for k, a in _TRACK.items()}, "PHI": getattr(env, "_phi", 0.0)},
         start=len(values)))
     if s._block is not None:
         batch.set_noise(slot, s._block)
@@ -353,9 +353,7 @@ def pull(env, batch, slot: int) -> None:
         setattr(st, a, wheel[k])
     robot.set_floor_friction_scale(v["MU"])
     s.load(row, noise, (int(v["TICK_D"]), int(v["TICK_R"])))
-    for k, a in _TRACK.items():
-        setattr(t, a, int(v[k]) if a in _TRACK_INT else v[k])
-    t.in_jam = bool(t.in_jam)
+    t.load({a: v[k] for k, a in _TRACK.items()})
     if hasattr(env, "_phi"):
         env._phi = v["PHI"]
     if hasattr(env, "_cells"):

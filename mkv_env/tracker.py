@@ -45,6 +45,23 @@ class MotionTracker:
         self.forward_run_m = 0.0
         self._events = contact_events
 
+    #: The episode state :meth:`state` gives and :meth:`load` takes (the rest is configuration).
+    STATE = ("x", "y", "heading", "distance_m", "last_step_m", "stuck_run", "jams", "escapes",
+             "in_jam", "jam_x", "jam_y", "collisions", "forward_run_m", "_events")
+    _INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events"))
+
+    def state(self) -> dict:
+        """The episode state by name (:data:`STATE`)."""
+        return {name: getattr(self, name) for name in self.STATE}
+
+    def load(self, state: dict) -> None:
+        """Take an episode state another owner has reached (the compiled step kernel's slot:
+        :func:`mkv_env.kernel.pull`), as plain numbers: the counts as ints, ``in_jam`` a bool."""
+        for name in self.STATE:
+            value = state[name]
+            setattr(self, name, int(value) if name in self._INT else value)
+        self.in_jam = bool(self.in_jam)
+
     def update(self, pose, drive_cmd: int, contact_events: int, is_clear=None):
         """Advance one step. Returns (progress_m, stuck, new_collision, escaped_now).
 

@@ -514,3 +514,10 @@ def test_the_kernels_noise_block_is_the_sensor_suites():
     from mkv_env import sensors
 
     assert kernel_mod.NOISE_ROWS == sensors._NOISE_BLOCK
+
+
+def test_the_kernel_carries_the_whole_tracker_state():
+    """Every field of MotionTracker.state() has a place in the slot's state, and no other."""
+    from mkv_env.tracker import MotionTracker
+
+    assert sorted(kernel_mod._TRACK.values()) == sorted(MotionTracker.STATE)
