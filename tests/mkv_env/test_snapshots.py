@@ -67,15 +67,6 @@ def test_a_snapshot_right_after_reset_continues(env_id, how):
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
-def test_a_jam_snapshot_right_after_reset_continues(kernel):
-    env = gym.make("MKVJam-v1", kernel=kernel)
-    env.reset(seed=11)
-    clone = pickle.loads(pickle.dumps(env))
-    actions = np.random.default_rng(2).integers(0, 3, size=(40, 2))
-    assert _step_trace(clone, actions) == _step_trace(env, actions)
-
-
-@pytest.mark.parametrize("kernel", KERNELS)
 def test_a_snapshot_before_a_contact_continues(kernel):
     """The case that parted at its first contact after the copy (module docstring)."""
     env = gym.make("MKV-v0", kernel=kernel)
