@@ -195,8 +195,7 @@ class MKVEnv(gym.Env):
         self._last_action = NOOP_ACTION
         self.kernel = kernel
         # the reference runs the robot's Python substep loop; the C kernel the compiled one
-        self._robot_kernel = ("c" if kernel == "c" else
-                              "cffi" if _robot.DEFAULT_KERNEL == "c" else _robot.DEFAULT_KERNEL)
+        self._robot_kernel = kernel
         self._batch = self._out = None
         self._slot = 0
         self._py_owns = True  # Python's objects hold the newest state (else the kernel's slot)
@@ -248,15 +247,18 @@ class MKVEnv(gym.Env):
     # ------------------------------------------------------------------ state owners
     @property
     def world(self) -> World | None:
-        """The episode's arena and robot (pymunk objects); None before the first reset."""
-        if self._c_world:
-            self._adopt()
+        """The episode's arena and robot (pymunk objects), current (taken back from the compiled
+        kernel when it holds them); None before the first reset."""
+        self._to_python()
         return self._world
 
     @world.setter
     def world(self, value: World | None) -> None:
         self._world = value
         self._c_world = False
+        if self._batch is not None and not self._py_owns:  # the slot's state is obsolete
+            self._py_owns = True
+            self._dirty.append(self)
 
     def _adopt(self) -> None:
         """Take over the world the kernel slot built at a reset in C, with the episode's
@@ -273,7 +275,6 @@ class MKVEnv(gym.Env):
             self._cells = set()
         self.trail = [start[:2]]
         self._last_action = NOOP_ACTION
-        world.robot._sync = self._to_python
 
     @property
     def tracker(self) -> MotionTracker:
@@ -293,16 +294,28 @@ class MKVEnv(gym.Env):
         if self._c_world:
             self._adopt()
         if self._batch is not None and not self._py_owns:
+            self._py_owns = True  # (first: pull reads the objects through their properties)
             _kernel.pull(self, self._batch, self._slot)
-            self._py_owns = True
             self._dirty.append(self)
 
     def _push(self) -> None:
         """Hand the Python objects' state to the kernel's slot (after a reset, or after Python
         code took it back)."""
         _kernel.push(self, self._batch, self._slot)
-        self.world.robot._sync = self._to_python
         self._py_owns = False
+
+    def _reward_state(self) -> tuple[float, list]:
+        """(potential, visited cells) of this env's reward for the kernel's slot: the base env
+        keeps neither (subclasses that shape or count do)."""
+        return getattr(self, "_phi", 0.0), list(getattr(self, "_cells", ()))
+
+    def _load_reward_state(self, phi: float, cells) -> None:
+        """Take the reward state the kernel's slot reached (the reverse of
+        :meth:`_reward_state`)."""
+        if hasattr(self, "_phi"):
+            self._phi = phi
+        if hasattr(self, "_cells"):
+            self._cells = set(cells)
 
     def __getstate__(self):
         """The env's state for ``pickle`` and ``copy.deepcopy``. Taking it rebuilds this env's own
@@ -314,7 +327,6 @@ class MKVEnv(gym.Env):
         self._to_python()
         if self._world is not None:
             self._world = pickle.loads(pickle.dumps(self._world, pickle.HIGHEST_PROTOCOL))
-            self._world.robot._sync = self._to_python
         state = self.__dict__.copy()
         state["_batch"] = state["_out"] = None  # C memory: a copy gets a batch of its own
         state["_dirty"] = []
@@ -327,7 +339,7 @@ class MKVEnv(gym.Env):
             state["_world"] = state.pop("world")
         state.setdefault("_c_world", False)
         self.__dict__.update(state)
-        if self.kernel == "c" and self.world is not None:
+        if self.kernel == "c" and self._world is not None:
             self._batch, self._out = _kernel.new_batch(self, 1)
 
     # ------------------------------------------------------------------ observation modes
@@ -399,7 +411,7 @@ class MKVEnv(gym.Env):
         return obs, info
 
     def _step_raw(self, action):
-        if self.world is None:
+        if self._world is None and not self._c_world:
             raise RuntimeError("call reset() before step()")
         drive, steer = self._decode(action)
         b = self._batch
@@ -723,7 +735,7 @@ class MKVEnvV1(MKVEnv):
         t = self._tracker
         new_cell = 0
         if progress > 0:
-            cell = (math.floor(t.x / COVERAGE_CELL_M), math.floor(t.y / COVERAGE_CELL_M))
+            cell = (_cell(t.x, self._slot), _cell(t.y, self._slot))
             if cell not in self._cells:
                 self._cells.add(cell)
                 new_cell = 1
@@ -806,6 +818,16 @@ class MKVJamEnvV1(MKVJamEnv):
                 - self.collision_penalty * collision + shaped)
 
 
+def _cell(coordinate: float, robot: int) -> int:
+    """The MKV-v1 coverage cell of a coordinate; a ValueError for a robot so far outside the
+    arena that its cell leaves the kernel's 32-bit range (the compiled kernel's own check)."""
+    f = coordinate / COVERAGE_CELL_M
+    c = math.floor(f) if math.isfinite(f) else f
+    if not abs(float(c)) < 2147483647.0:
+        raise ValueError(f"robot {robot} left the arena (coverage cell out of range)")
+    return c
+
+
 def _drive_until_jammed(world: World, env: MKVEnv, rng,
                         max_steps: int = JAM_DRIVE_MAX_STEPS) -> bool:
     """Drive forward (steering held at a random command) until stuck for jam_steps steps."""
@@ -814,10 +836,11 @@ def _drive_until_jammed(world: World, env: MKVEnv, rng,
     if env.kernel == "c":  # the same loop compiled (mkv_env/_native/)
         robot = world.robot
         _, body, space = robot.pointers(world.space)
-        jammed, robot._mu_scale = _robot._fastsim.drive_until_jammed(
-            robot.kernel_constants, body, space, robot._state, robot._mu_scale,
+        jammed, mu_scale = _robot._fastsim.drive_until_jammed(
+            robot.kernel_constants, body, space, robot.state, robot.floor_friction_scale,
             world.layout.patches, steer, env.control_period_s / env.substeps, env.substeps,
             limit, env._tracker.jam_steps, max_steps, world.contacts)
+        robot.set_floor_friction_scale(mu_scale)
         return jammed
     run = 0
     x0, y0 = world.robot.body.position

@@ -25,8 +25,10 @@ block when it has used its own (``step`` returns the slots that need one, before
 anything) and Python draws it. Either way the draws happen in the reference's order.
 
 State moves between Python and C at well-defined points only: a reset ``push``es the Python
-objects' state into the slot; reading ``env.tracker``, ``env.sensors`` or ``robot.state`` after C
-steps ``pull``s it back (and hands ownership to Python until the next step pushes it again).
+objects' state (each owner's ``to_state()``) into the slot, and the robot hands its wheel state
+over; reading ``env.world``, ``env.tracker`` or ``env.sensors`` after C steps ``pull``s it back
+(each owner's ``load_state()``) and hands ownership to Python until the next step pushes it
+again.
 
 A native vector env of MKV-v0 or MKV-v1 resets its envs inside the kernel call too
 (:func:`setup_resets`): the slot draws the layout and start pose from the
@@ -319,45 +321,44 @@ def sync_params(env, batch) -> None:
 
 def push(env, batch, slot: int) -> None:
     """Copy ``env``'s Python state (world, wheels, sensors, tracker, reward state) into a slot,
-    and its parameters (reward weights, thresholds) into the batch when they changed since."""
+    and its parameters (reward weights, thresholds) into the batch when they changed since. The
+    robot then hands its wheel state over (:meth:`~mkv_env.robot.Robot.hand_over`) until
+    :func:`pull` gives it back."""
     sync_params(env, batch)
     world = env.world
     robot = world.robot
-    st, t, s = robot._state, env._tracker, env._sensors
+    wheels, sensed, tracked = robot.to_state(), env.sensors.to_state(), env.tracker.to_state()
+    phi, cells = env._reward_state()
     _, body, space = robot.pointers(world.space)
     batch.bind(slot, body, space, world.contacts, world.layout.patches)
-    tracked = t.state()
-    values = layouts.pack("S", {k: getattr(st, a) for k, a in _WHEEL.items()})
+    values = layouts.pack("S", {k: wheels[a] for k, a in _WHEEL.items()})
     values.extend(layouts.pack("V", {
-        "MU": robot._mu_scale, "TICK_D": s._last_ticks[0], "TICK_R": s._last_ticks[1],
-        **{k: tracked[a] for k, a in _TRACK.items()}, "PHI": getattr(env, "_phi", 0.0)},
-        start=len(values)))
-    if s._block is not None:
-        batch.set_noise(slot, s._block)
+        "MU": wheels["mu_scale"], "TICK_D": sensed["last_ticks"][0],
+        "TICK_R": sensed["last_ticks"][1], **{k: tracked[a] for k, a in _TRACK.items()},
+        "PHI": phi}, start=len(values)))
+    if sensed["block"] is not None:
+        batch.set_noise(slot, sensed["block"])
     # the slot draws its next blocks from the episode's generator itself (a Generator's standard
     # normal only: anything else, e.g. a legacy RandomState, is drawn by Python as the reference
     # draws it)
-    gen = s._rng.bit_generator if isinstance(s._rng, np.random.Generator) else None
-    batch.set_noise_source(slot, gen, np.asarray(s._std, dtype=np.float64),
-                           np.asarray(s._bias, dtype=np.float64))
-    batch.load(slot, values, s._row, list(getattr(env, "_cells", ())))
+    rng = sensed["rng"]
+    gen = rng.bit_generator if isinstance(rng, np.random.Generator) else None
+    batch.set_noise_source(slot, gen, np.asarray(sensed["std"], dtype=np.float64),
+                           np.asarray(sensed["bias"], dtype=np.float64))
+    batch.load(slot, values, sensed["row"], list(cells))
+    robot.hand_over()
 
 
 def pull(env, batch, slot: int) -> None:
-    """Copy a slot's state back into ``env``'s Python objects (the reverse of :func:`push`)."""
+    """Copy a slot's state back into ``env``'s Python objects (the reverse of :func:`push`),
+    each through its owner's ``load_state``."""
     values, row, noise, cells = batch.state(slot)
-    robot = env.world.robot
-    st, t, s = robot._state, env._tracker, env._sensors
     wheel, v = layouts.unpack("S", values), layouts.unpack("V", values)
-    for k, a in _WHEEL.items():
-        setattr(st, a, wheel[k])
-    robot.set_floor_friction_scale(v["MU"])
-    s.load(row, noise, (int(v["TICK_D"]), int(v["TICK_R"])))
-    t.load({a: v[k] for k, a in _TRACK.items()})
-    if hasattr(env, "_phi"):
-        env._phi = v["PHI"]
-    if hasattr(env, "_cells"):
-        env._cells = set(cells)
+    env.world.robot.load_state({**{a: wheel[k] for k, a in _WHEEL.items()}, "mu_scale": v["MU"]})
+    env.sensors.load_state({"row": row, "block": noise,
+                            "last_ticks": (int(v["TICK_D"]), int(v["TICK_R"]))})
+    env.tracker.load_state({a: v[k] for k, a in _TRACK.items()})
+    env._load_reward_state(v["PHI"], cells)
 
 
 # ---------------------------------------------------------------------- resets in C

@@ -50,10 +50,10 @@ if _fastsim is not None and _cp is not None:
 else:
     _fastsim = None
 
-#: Which implementation of :meth:`Robot.advance` runs by default: ``"c"`` (the compiled loop),
-#: ``"cffi"`` (the Python loop calling Chipmunk through cffi) or ``"api"`` (the Python loop on
-#: pymunk's public properties). All three give the same bits (tests/mkv_env/test_kernel.py).
-DEFAULT_KERNEL = "c" if _fastsim is not None else ("cffi" if _cp is not None else "api")
+#: Which implementation of :meth:`Robot.advance` runs by default: ``"c"`` (the compiled loop) or
+#: ``"python"`` (the reference loop, on pymunk's public API only). Both give the same bits
+#: (tests/mkv_env/test_kernel.py).
+DEFAULT_KERNEL = "c" if _fastsim is not None else "python"
 
 # Collision types of the robot's shapes (obstacles use OBSTACLE).
 CHASSIS, BUMP_FL, BUMP_FR, BUMP_REAR, OBSTACLE = 1, 2, 3, 4, 10
@@ -189,12 +189,11 @@ class Robot:
                 s.collision_type, s.friction, s.elasticity = ctype, p.chassis_friction, 0.0
                 s.filter = ROBOT_FILTER
         space.add(self.body, *self.shapes)
-        self._state = WheelState()
-        #: Called before :attr:`state` is read when another owner (the compiled step kernel of
-        #: an env, mkv_env/kernel.py) may hold newer wheel state; None otherwise.
-        self._sync = None
+        #: the wheels' state; None while the compiled step kernel of an env holds it
+        #: (:meth:`hand_over` / :meth:`load_state`)
+        self._state: WheelState | None = WheelState()
         self._mu_scale = 1.0
-        self.kernel = DEFAULT_KERNEL  # "c", "cffi" or "api" (same results; see DEFAULT_KERNEL)
+        self.kernel = DEFAULT_KERNEL  # "c" or "python" (same results; see DEFAULT_KERNEL)
         self._ptrs: tuple | None = None  # (space, cpBody address, cpSpace address)
         self._precompute()
 
@@ -207,7 +206,6 @@ class Robot:
         robot = cls.__new__(cls)
         robot.params, robot.body, robot.shapes = params, body, shapes
         robot._state = WheelState()
-        robot._sync = None
         robot._mu_scale = 1.0
         robot.kernel = kernel
         robot._ptrs = None
@@ -216,15 +214,43 @@ class Robot:
 
     @property
     def state(self) -> WheelState:
-        """The wheels' and motors' internal state (brought up to date from the env's compiled
-        step kernel first, when it is the one stepping this robot)."""
-        if self._sync is not None:
-            self._sync()
+        """The wheels' and motors' internal state. While an env's compiled step kernel holds it
+        (:meth:`hand_over`) reading it is an error: ``env.unwrapped.world`` brings it back."""
+        if self._state is None:
+            raise RuntimeError(
+                "this robot's wheel state is held by the compiled kernel stepping it: read it "
+                "as env.unwrapped.world.robot.state (taking the env's world brings it back)")
         return self._state
 
     @state.setter
     def state(self, value: WheelState) -> None:
         self._state = value
+
+    #: The names :meth:`to_state` gives and :meth:`load_state` takes: the wheel state's fields,
+    #: then the floor friction scale under the drive wheel.
+    STATE = (*WheelState.__dataclass_fields__, "mu_scale")
+
+    def to_state(self) -> dict:
+        """The robot's own state besides its pymunk body, by name (:data:`STATE`)."""
+        st = self.state
+        out = {name: getattr(st, name) for name in WheelState.__dataclass_fields__}
+        out["mu_scale"] = self._mu_scale
+        return out
+
+    def load_state(self, state: dict) -> None:
+        """Take a state another owner has reached (an env's compiled step kernel), by name
+        (:data:`STATE`); ends a :meth:`hand_over`."""
+        st = self._state if self._state is not None else WheelState()
+        for name in WheelState.__dataclass_fields__:
+            setattr(st, name, state[name])
+        self._state = st
+        self._mu_scale = state["mu_scale"]
+
+    def hand_over(self) -> None:
+        """The wheel state now lives elsewhere (an env's compiled step kernel took it with
+        :meth:`to_state`): :attr:`state` refuses to be read until :meth:`load_state`, so no
+        reader sees a stale copy."""
+        self._state = None
 
     def _precompute(self) -> None:
         p = self.params
@@ -256,12 +282,20 @@ class Robot:
     def __getstate__(self):
         state = self.__dict__.copy()
         state["_ptrs"] = None
-        state["_sync"] = None  # the owner re-attaches itself
         return state
+
+    def __setstate__(self, state):
+        state.pop("_sync", None)  # (pickled when the env's kernel was called back through it)
+        self.__dict__.update(state)
 
     def can_use_c(self, space) -> bool:
         """True when :meth:`advance` on ``space`` runs the compiled loop."""
         return self.kernel == "c" and _fastsim is not None and not _pending(space)
+
+    @property
+    def floor_friction_scale(self) -> float:
+        """The tyre friction's multiplier under the drive wheel (slippery floor patches)."""
+        return self._mu_scale
 
     def set_floor_friction_scale(self, scale: float) -> None:
         """Multiply the tyre friction (slippery floor patches under the robot)."""
@@ -307,8 +341,8 @@ class Robot:
         motor, drive motor (implicit), wheel-floor impulses, then ``space.step(dt)`` for
         positions and contacts. With ``self.kernel == "c"`` the compiled copy of this loop runs
         (``mkv_env/_native/wheels.c``, the same operations in the same order, so the same bits);
-        otherwise the Python loop below, with state in locals and pymunk touched through its
-        cffi layer (``pymunk._chipmunk.lib``, ``"cffi"``) or its public properties (``"api"``).
+        otherwise the Python loop below, the reference: state in locals, the body read and
+        pushed through pymunk's public properties only.
         """
         if self.kernel == "c" and _fastsim is not None and not _pending(space):
             _, body_ptr, space_ptr = self.pointers(space)
@@ -330,14 +364,13 @@ class Robot:
         k23 = -sd * im
         steer_idle = steer_cmd == 0 and rate == 0.0
         cos, sin, hypot = math.cos, math.sin, math.hypot
-        get_v, get_w, get_a, set_f, set_t, step, cpb = self._accessors(space)
-        m_dt, i_dt = self.params.mass_kg / dt, self.body.moment / dt
+        body, step = self.body, space.step
+        m_dt, i_dt = self.params.mass_kg / dt, body.moment / dt
 
         for _ in range(n):
-            v = get_v(cpb)
-            vx, vy = v.x, v.y
-            om = get_w(cpb)
-            th = get_a(cpb)
+            vx, vy = body.velocity
+            om = body.angular_velocity
+            th = body.angle
             c, s = cos(th), sin(th)
             u = c * vx + s * vy  # forward velocity of the chassis centre
             w = c * vy - s * vx  # leftward velocity
@@ -384,8 +417,8 @@ class Robot:
             # walls; forces enter its velocity phase, where contacts can still cancel them.
             du = im * (l2 - sd * l3)
             dw = im * (l1 + cd * l3)
-            set_f(cpb, ((c * du - s * dw) * m_dt, (s * du + c * dw) * m_dt))
-            set_t(cpb, (xd * l1 + cd * xs * l3) * iI * i_dt)
+            body.force = ((c * du - s * dw) * m_dt, (s * du + c * dw) * m_dt)
+            body.torque = (xd * l1 + cd * xs * l3) * iI * i_dt
             ww -= iJ * rw * l2
             step(dt)
 
@@ -394,29 +427,6 @@ class Robot:
         st.drive_budget = budget
         st.drive_current = vd_over_r - d_k_over_r * ww_seen
         st.steer_current = vs_over_r - s_k_over_r * rate
-
-    def _accessors(self, space):
-        """(get_velocity, get_angular_velocity, get_angle, set_force, set_torque,
-        space_step, body_handle), through cffi when possible, else the public pymunk API."""
-        if _cp is not None and not _pending(space) and self.kernel != "api":
-            cpspace = _c(space)
-            cp_step = _cp.cpSpaceStep
-
-            def step(dt):
-                cp_step(cpspace, dt)
-
-            return (_cp.cpBodyGetVelocity, _cp.cpBodyGetAngularVelocity, _cp.cpBodyGetAngle,
-                    _cp.cpBodySetForce, _cp.cpBodySetTorque, step, _c(self.body))
-        b = self.body
-
-        def set_f(_, f):
-            b.force = f
-
-        def set_t(_, t):
-            b.torque = t
-
-        return (lambda _: b.velocity, lambda _: b.angular_velocity, lambda _: b.angle,
-                set_f, set_t, space.step, None)
 
     # ------------------------------------------------------------------ queries
     def pose(self) -> tuple[float, float, float]:

@@ -67,15 +67,27 @@ class SensorSuite:
         self._row = _NOISE_BLOCK
         self._last_ticks = (0, 0)
 
-    def load(self, row: int, block: bytes, last_ticks: tuple[int, int]) -> None:
-        """Take the noise position, block (float64 bytes, rows x channels) and encoder ticks
-        another owner of this suite's state has reached (the compiled step kernel's slot:
-        :func:`mkv_env.kernel.pull`); the block is rebuilt only when it changed."""
-        if row != self._row or self._block is None or self._block.tobytes() != block:
-            self._block = np.frombuffer(block, dtype=np.float64).reshape(_NOISE_BLOCK, -1).copy()
+    def to_state(self) -> dict:
+        """The episode state another owner continues from (an env's compiled step kernel:
+        :func:`mkv_env.kernel.push`): the noise ``row`` reached in the current noise ``block``
+        (float64, rows x channels; None before the first draw), the encoders' ``last_ticks``,
+        and the noise source: the episode's generator ``rng`` and the channels' ``std`` and
+        ``bias``."""
+        return {"row": self._row, "block": self._block, "last_ticks": self._last_ticks,
+                "rng": self._rng, "std": self._std, "bias": self._bias}
+
+    def load_state(self, state: dict) -> None:
+        """Take the noise ``row``, ``block`` (float64 bytes or array, rows x channels) and
+        encoder ``last_ticks`` another owner of this suite's state has reached (the compiled step
+        kernel's slot: :func:`mkv_env.kernel.pull`); the block is rebuilt only when it changed.
+        The noise source stays this suite's."""
+        row, block = state["row"], state["block"]
+        raw = block.tobytes() if isinstance(block, np.ndarray) else block
+        if row != self._row or self._block is None or self._block.tobytes() != raw:
+            self._block = np.frombuffer(raw, dtype=np.float64).reshape(_NOISE_BLOCK, -1).copy()
             self._noise = self._block.tolist()
         self._row = row
-        self._last_ticks = last_ticks
+        self._last_ticks = tuple(state["last_ticks"])
 
     def draw_block(self) -> np.ndarray:
         """The next block of noise rows (bias + std * standard normal), drawn from the episode's

@@ -45,16 +45,17 @@ class MotionTracker:
         self.forward_run_m = 0.0
         self._events = contact_events
 
-    #: The episode state :meth:`state` gives and :meth:`load` takes (the rest is configuration).
+    #: The episode state :meth:`to_state` gives and :meth:`load_state` takes (the rest is
+    #: configuration).
     STATE = ("x", "y", "heading", "distance_m", "last_step_m", "stuck_run", "jams", "escapes",
              "in_jam", "jam_x", "jam_y", "collisions", "forward_run_m", "_events")
     _INT = frozenset(("stuck_run", "jams", "escapes", "collisions", "_events"))
 
-    def state(self) -> dict:
+    def to_state(self) -> dict:
         """The episode state by name (:data:`STATE`)."""
         return {name: getattr(self, name) for name in self.STATE}
 
-    def load(self, state: dict) -> None:
+    def load_state(self, state: dict) -> None:
         """Take an episode state another owner has reached (the compiled step kernel's slot:
         :func:`mkv_env.kernel.pull`), as plain numbers: the counts as ints, ``in_jam`` a bool."""
         for name in self.STATE:

@@ -49,9 +49,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from mkv_env import kernel as _kernel
-from mkv_env import robot as _robot
 from mkv_env.actions import ACTION_NVEC, OFF
-from mkv_env.chipmunk import pending as _chipmunk_pending
 from mkv_env.envs import TRAIL_DROP_POINTS as _TRAIL_DROP
 from mkv_env.envs import TRAIL_MAX_POINTS as _TRAIL_MAX
 from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
@@ -158,7 +156,6 @@ class MKVVectorEnv(VectorEnv):
         self._ever_reset = np.zeros(n, dtype=bool)  # (a partial reset_mask must not skip one)
         self._everyone = list(range(n))
         self._started = False
-        self._slot_cache: tuple | None = None
         self._env_infos: list[dict | None] = [None] * n
         self._final_env_infos: list[dict | None] = [None] * n
         self._lazy_infos: tuple | None = None  # (arrays, rows) to build env_infos from
@@ -166,12 +163,13 @@ class MKVVectorEnv(VectorEnv):
         self._true_rows: np.ndarray | None = None  # all-True info-mask template (copied per step)
         self.vector_infos = bool(vector_infos)  # False: skip Gymnasium's vector info (SB3VecEnv)
         self._period, self._substeps = first.control_period_s, first.substeps
-        self._dt = self._period / self._substeps
         self.num_threads = 1
         self._batch = None
         self._collect = None
         self._fast = None  # Batch.vstep where it serves (below)
         self._pending = True
+        for i, env in enumerate(self.envs):  # (env i is robot i, in the kernel's slot i)
+            env._slot = i
         if self.kernel != "c" and num_threads != 1:
             raise ValueError("num_threads > 1 needs the compiled step kernel (kernel='c'); the "
                              "Python reference steps its robots one by one")
@@ -676,42 +674,10 @@ class MKVVectorEnv(VectorEnv):
 
     def _move(self, idx: list[int], drives: list[int], steers: list[int]) -> None:
         """One control period of physics for the envs ``idx`` (all robots' commands given),
-        in one C call when possible."""
-        if not idx:
-            return
-        robots, worlds, bodies, spaces, states = self._slots()
-        if len(idx) < self.num_envs:
-            robots, worlds, states = ([col[i] for i in idx] for col in (robots, worlds, states))
-            if bodies is not None:
-                bodies, spaces = [bodies[i] for i in idx], [spaces[i] for i in idx]
-            drives, steers = [drives[i] for i in idx], [steers[i] for i in idx]
-        for w in worlds:
-            if w.layout.patches:
-                w.robot.set_floor_friction_scale(w.floor_friction_scale())
-        fast = _robot._fastsim
-        if fast is not None and bodies is not None and not any(
-                _chipmunk_pending(w.space) for w in worlds):
-            fast.advance_many(robots[0].kernel_constants, bodies, spaces, drives, steers,
-                              self._dt, self._substeps, [r._mu_scale for r in robots], states)
-        else:  # pure-Python build (or kernel switched off): the same loop, one robot at a time
-            for r, w, d, s in zip(robots, worlds, drives, steers, strict=True):
-                r.advance(d, s, self._dt, self._substeps, w.space)
-
-    def _slots(self) -> tuple:
-        """(robots, worlds, body addresses, space addresses, wheel states) of every env, cached
-        until an env gets a new world (a reset). Addresses are None when the compiled loop cannot
-        serve every robot."""
-        worlds = [env.world for env in self.envs]
-        cache = self._slot_cache
-        if cache is None or not all(map(operator.is_, worlds, cache[1])):
-            robots = [w.robot for w in worlds]
-            bodies = spaces = None
-            if _robot._fastsim is not None and all(r.kernel == "c" for r in robots):
-                ptrs = [r.pointers(w.space) for r, w in zip(robots, worlds, strict=False)]
-                bodies, spaces = [p[1] for p in ptrs], [p[2] for p in ptrs]
-            cache = self._slot_cache = (robots, worlds, bodies, spaces,
-                                        [r.state for r in robots])
-        return cache
+        each robot by its own world's step (the Python reference)."""
+        envs = self.envs
+        for i in idx:
+            envs[i].world.step(drives[i], steers[i], self._period, self._substeps)
 
     def _gather(self, infos: list[dict | None]) -> dict[str, Any]:
         """Per-env info dicts -> Gymnasium's vector info (arrays plus ``_key`` masks).

@@ -160,8 +160,6 @@ static PyMethodDef methods[] = {
      "bind(get_v, get_w, get_a, set_f, set_t, step, hypot): Chipmunk entry points."},
     {"advance", (PyCFunction)(void (*)(void))fs_advance, METH_FASTCALL,
      "advance(K, body, space, drive, steer, dt, n, mu_scale, state): n substeps of one robot."},
-    {"advance_many", (PyCFunction)(void (*)(void))fs_advance_many, METH_FASTCALL,
-     "advance_many(K, bodies, spaces, drives, steers, dt, n, mu_scales, states): many robots."},
     {"quantize", (PyCFunction)(void (*)(void))fs_quantize, METH_FASTCALL,
      "quantize(truth, inv_q, q, low, high, out): sensor ADC step and clipping into out."},
     {"bind_kernel", (PyCFunction)(void (*)(void))fs_bind_kernel, METH_FASTCALL,

@@ -1,6 +1,6 @@
 /* _native/robot_api.c: the one-robot entry points Python calls outside a Batch.
  *
- * Owns: advance() and advance_many() (Robot.advance), quantize() (SensorSuite.read's ADC step),
+ * Owns: advance() (Robot.advance), quantize() (SensorSuite.read's ADC step),
  * drive_until_jammed() (MKVJamEnv's start search, mkv_env.envs._drive_until_jammed).
  * Relies on: wheels.c (advance_one, floor_scale), convert.c (load_state, store_state,
  * get_constants, get_doubles), bind.c (check_bound), pyfloat.c (py_hypot). */
@@ -39,65 +39,6 @@ static PyObject *fs_advance(PyObject *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     Py_RETURN_NONE;
 }
-
-/* advance_many(K, bodies, spaces, drive_cmds, steer_cmds, dt, n, mu_scales, states) -> None
- * bodies/spaces: sequences of pointer ints; drive/steer: sequences of ints; mu_scales: floats;
- * states: sequence of WheelState objects. Robot i is advanced exactly as advance() would. */
-static PyObject *fs_advance_many(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    Py_buffer kv;
-    if (nargs != 9) {
-        PyErr_SetString(PyExc_TypeError, "advance_many() takes 9 arguments");
-        return NULL;
-    }
-    if (check_bound() < 0)
-        return NULL;
-    double dt = PyFloat_AsDouble(args[5]);
-    long n = PyLong_AsLong(args[6]);
-    if (PyErr_Occurred())
-        return NULL;
-    PyObject *seqs[5] = {args[1], args[2], args[3], args[4], args[7]};
-    PyObject *fast[6] = {NULL, NULL, NULL, NULL, NULL, NULL};
-    PyObject *result = NULL;
-    Py_ssize_t count = -1;
-    for (int j = 0; j < 6; j++) {
-        fast[j] = PySequence_Fast(j < 5 ? seqs[j] : args[8], "advance_many expects sequences");
-        if (fast[j] == NULL)
-            goto done;
-        Py_ssize_t len = PySequence_Fast_GET_SIZE(fast[j]);
-        if (count >= 0 && len != count) {
-            PyErr_SetString(PyExc_ValueError, "advance_many: sequences of different lengths");
-            goto done;
-        }
-        count = len;
-    }
-    if (get_constants(args[0], &kv) < 0)
-        goto done;
-    for (Py_ssize_t i = 0; i < count; i++) {
-        double st[S_LEN];
-        void *body = PyLong_AsVoidPtr(PySequence_Fast_GET_ITEM(fast[0], i));
-        void *space = PyLong_AsVoidPtr(PySequence_Fast_GET_ITEM(fast[1], i));
-        long drive = PyLong_AsLong(PySequence_Fast_GET_ITEM(fast[2], i));
-        long steer = PyLong_AsLong(PySequence_Fast_GET_ITEM(fast[3], i));
-        double mu_scale = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(fast[4], i));
-        PyObject *state = PySequence_Fast_GET_ITEM(fast[5], i);
-        if (PyErr_Occurred() || load_state(state, st) < 0 ||
-            advance_one((const double *)kv.buf, body, space, drive, steer, dt, n, mu_scale,
-                        st, 0) < 0 ||
-            store_state(state, st) < 0) {
-            PyBuffer_Release(&kv);
-            goto done;
-        }
-    }
-    PyBuffer_Release(&kv);
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    for (int j = 0; j < 6; j++)
-        Py_XDECREF(fast[j]);
-    return result;
-}
-
 
 /* quantize(truth, inv_q, q, low, high, out) -> None
  * out[i] = (float)min(max(rint(truth[i] * inv_q[i]) * q[i], low[i]), high[i]): the sensors'

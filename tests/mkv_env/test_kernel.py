@@ -1,8 +1,8 @@
 """The compiled substep loop (mkv_env._fastsim) gives the same bits as the Python loops.
 
-Three implementations of ``Robot.advance`` exist: ``"c"`` (default when built), ``"cffi"`` (the
-Python loop on pymunk's cffi layer) and ``"api"`` (the Python loop on pymunk's public
-properties). Any difference would silently change every trajectory, recording and result, so
+Two implementations of ``Robot.advance`` exist: ``"c"`` (default when built) and ``"python"``
+(the reference loop, on pymunk's public properties only). Any difference would silently change
+every trajectory, recording and result, so
 whole episodes are compared bit for bit, in the regimes that take different branches: cruising,
 steering against the stops, wall contacts and jams, wheels sliding on slippery floors.
 """
@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 import mkv_env.robot as robot_mod
 from mkv_env.teacher import ScriptedTeacher
 
-KERNELS = [k for k in ("c", "cffi", "api")
+KERNELS = [k for k in ("c", "python")
            if k != "c" or robot_mod._fastsim is not None]
 
 
@@ -64,11 +64,11 @@ def test_the_compiled_kernel_is_built_where_a_compiler_exists():
     ("MKV-v1", False, {"robot_params": {"tire_friction": 0.05}}),
 ])
 def test_kernels_give_identical_episodes(env_id, teacher, kwargs, monkeypatch):
-    ref = _episode("api", env_id, 7, 300, teacher, monkeypatch, **kwargs)
+    ref = _episode("python", env_id, 7, 300, teacher, monkeypatch, **kwargs)
     assert len(ref) > 20
     for k in KERNELS:
         got = _episode(k, env_id, 7, 300, teacher, monkeypatch, **kwargs)
-        assert got == ref, f"kernel {k!r} differs from 'api' at step {_first_diff(got, ref)}"
+        assert got == ref, f"kernel {k!r} differs from 'python' at step {_first_diff(got, ref)}"
 
 
 def _first_diff(a, b):
@@ -85,7 +85,7 @@ def test_kernels_agree_for_random_robots_and_arenas(seed, friction, supply, clut
         kw = {"n_clutter": clutter, "robot_params": {
             "tire_friction": friction,
             "drive_motor": {"supply_v": supply}}}
-        ref = _episode("cffi", "MKV-v0", seed, 60, False, mp, **kw)
+        ref = _episode("python", "MKV-v0", seed, 60, False, mp, **kw)
         for k in KERNELS:
             assert _episode(k, "MKV-v0", seed, 60, False, mp, **kw) == ref
     finally:

@@ -205,3 +205,26 @@ def test_a_step_with_an_env_never_reset_is_one_clear_line(kernel):
     assert obs.shape == (3, 10)
     v.step(np.ones((3, 2), dtype=np.int64))
     v.close()
+
+
+@pytest.mark.parametrize("kernel", ["python", "c"] if kernel_mod.AVAILABLE else ["python"])
+@pytest.mark.parametrize("vector", [False, True])
+def test_a_kernel_error_is_raised_as_itself_in_one_line(kernel, vector):
+    """A robot moved so far out of the arena that its MKV-v1 coverage cell leaves the 32-bit
+    range: both kernels raise the same one-line "left the arena" error naming the robot, never
+    "invalid actions" with the array printed."""
+    if vector:
+        env = gym.make_vec("MKV-v1", num_envs=3, vectorization_mode="vector_entry_point",
+                           kernel=kernel)
+        env.reset(seed=0)
+        env.unwrapped.envs[1].world.robot.body.position = (1e12, 1e12)
+        action, robot = np.ones((3, 2), dtype=np.int64), 1
+    else:
+        env = gym.make("MKV-v1", kernel=kernel)
+        env.reset(seed=0)
+        env.unwrapped.world.robot.body.position = (1e12, 1e12)
+        action, robot = np.ones(2, dtype=np.int64), 0
+    with pytest.raises(ValueError) as e:
+        env.step(action)
+    assert _one_line(e.value) == f"robot {robot} left the arena (coverage cell out of range)"
+    env.close()

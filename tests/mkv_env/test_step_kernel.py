@@ -516,8 +516,54 @@ def test_the_kernels_noise_block_is_the_sensor_suites():
     assert kernel_mod.NOISE_ROWS == sensors._NOISE_BLOCK
 
 
-def test_the_kernel_carries_the_whole_tracker_state():
-    """Every field of MotionTracker.state() has a place in the slot's state, and no other."""
+def test_the_kernel_carries_the_whole_tracker_and_robot_state():
+    """Every field of MotionTracker.to_state() and Robot.to_state() has a place in the slot's
+    state, and no other."""
+    from mkv_env.robot import Robot
     from mkv_env.tracker import MotionTracker
 
     assert sorted(kernel_mod._TRACK.values()) == sorted(MotionTracker.STATE)
+    assert sorted([*kernel_mod._WHEEL.values(), "mu_scale"]) == sorted(Robot.STATE)
+
+
+@needs_c
+def test_a_world_held_across_c_steps_never_shows_stale_wheels():
+    """While the kernel steps the robot, its wheel state lives in the slot: a world reference
+    taken before the steps refuses to show its wheels (one-line RuntimeError) instead of stale
+    ones; taking ``env.world`` again brings the current state back, the reference's."""
+    ref, got = _make("MKV-v1", "python").unwrapped, _make("MKV-v1", "c").unwrapped
+    for env in (ref, got):
+        env.reset(seed=3)
+    held = got.world
+    rng = np.random.default_rng(3)
+    for a in rng.integers(0, 3, size=(25, 2)):
+        ref.step(a)
+        got.step(a)
+    with pytest.raises(RuntimeError, match="held by the compiled kernel") as e:
+        _ = held.robot.state
+    assert "\n" not in str(e.value)
+    assert got.world is held  # the same objects, brought up to date
+    assert held.robot.state == ref.world.robot.state
+    assert held.robot.to_state() == ref.world.robot.to_state()
+    got.step(np.array([2, 1]))
+    ref.step(np.array([2, 1]))
+    assert got.world.robot.state == ref.world.robot.state
+
+
+def test_robot_sensors_and_tracker_states_round_trip():
+    """to_state() then load_state() on a fresh owner gives the same state (what push and pull
+    rely on), for the robot, the sensor suite and the tracker."""
+    a, b = _make("MKVJam-v1", "python").unwrapped, _make("MKVJam-v1", "python").unwrapped
+    a.reset(seed=5)
+    b.reset(seed=6)
+    for x in np.random.default_rng(5).integers(0, 3, size=(40, 2)):
+        a.step(x)
+    b.world.robot.load_state(a.world.robot.to_state())
+    assert b.world.robot.to_state() == a.world.robot.to_state()
+    b.tracker.load_state(a.tracker.to_state())
+    assert b.tracker.to_state() == a.tracker.to_state()
+    sa = a.sensors.to_state()
+    b.sensors.load_state(sa)
+    sb = b.sensors.to_state()
+    assert sb["row"] == sa["row"] and sb["last_ticks"] == sa["last_ticks"]
+    assert sb["block"].tobytes() == sa["block"].tobytes()
