@@ -199,7 +199,9 @@ class MKVEnv(gym.Env):
         self._batch = self._out = None
         self._slot = 0
         self._py_owns = True  # Python's objects hold the newest state (else the kernel's slot)
-        self._dirty: list = []  # envs of a shared batch whose state Python took back
+        #: envs of a vector env's shared batch whose state Python took back (the vector env's
+        #: list, which it empties each step); None for an env with a batch of its own
+        self._dirty: list | None = None
 
     def _check_arguments(self, custom, kernel, observation, render_mode, arena_size_m, n_clutter,
                          n_patches, patch_friction, control_period_s, substeps, stuck_speed_mps,
@@ -258,7 +260,8 @@ class MKVEnv(gym.Env):
         self._c_world = False
         if self._batch is not None and not self._py_owns:  # the slot's state is obsolete
             self._py_owns = True
-            self._dirty.append(self)
+            if self._dirty is not None:
+                self._dirty.append(self)
 
     def _adopt(self) -> None:
         """Take over the world the kernel slot built at a reset in C, with the episode's
@@ -296,7 +299,8 @@ class MKVEnv(gym.Env):
         if self._batch is not None and not self._py_owns:
             self._py_owns = True  # (first: pull reads the objects through their properties)
             _kernel.pull(self, self._batch, self._slot)
-            self._dirty.append(self)
+            if self._dirty is not None:
+                self._dirty.append(self)
 
     def _push(self) -> None:
         """Hand the Python objects' state to the kernel's slot (after a reset, or after Python
@@ -329,7 +333,7 @@ class MKVEnv(gym.Env):
             self._world = pickle.loads(pickle.dumps(self._world, pickle.HIGHEST_PROTOCOL))
         state = self.__dict__.copy()
         state["_batch"] = state["_out"] = None  # C memory: a copy gets a batch of its own
-        state["_dirty"] = []
+        state["_dirty"] = None
         state["_slot"] = 0
         state["_py_owns"] = True
         return state

@@ -567,3 +567,23 @@ def test_robot_sensors_and_tracker_states_round_trip():
     sb = b.sensors.to_state()
     assert sb["row"] == sa["row"] and sb["last_ticks"] == sa["last_ticks"]
     assert sb["block"].tobytes() == sa["block"].tobytes()
+
+
+@needs_c
+def test_reading_the_world_every_step_leaves_no_references_behind():
+    """A single env pulled back to Python every step and reset often (a renderer, a teacher
+    that reads the world) keeps no growing list of itself: its reference count is flat."""
+    import sys
+
+    env = _make("MKVJam-v1", "c").unwrapped
+    env.reset(seed=2)
+    rng = np.random.default_rng(2)
+    counts = []
+    for t in range(300):
+        _, _, term, trunc, _ = env.step(rng.integers(0, 3, size=2))
+        _ = env.world.robot.state
+        if term or trunc or t % 50 == 49:
+            env.reset()
+        if t in (20, 299):
+            counts.append(sys.getrefcount(env))
+    assert counts[1] <= counts[0]

@@ -38,6 +38,7 @@ def _commands(tmp):
                comments="", fmt="%.6f")
     (tmp / "spec.json").write_text(json.dumps(SWEEP))
     jam = ["--env", "MKVJam-v1"]
+    data = tmp / "teacher.npz"
     return {
         "mkv eval": (MKV, ["eval", *jam, "--policy", "teacher", "--episodes", "20000",
                            "--workers", "2", "--json", str(tmp / "out.json")], "out.json"),
@@ -47,6 +48,8 @@ def _commands(tmp):
                              "2000", "--out", str(tmp / "out.npz"), "--quiet"], "out.npz"),
         "mkv train-ppo": (MKV, ["train-ppo", *jam, "--timesteps", "1000000", "--out",
                                 str(tmp / "out.zip"), "--quiet"], "out.zip"),
+        "mkv train-bc": (MKV, ["train-bc", str(data), "--epochs", "100000", "--min-updates",
+                               "0", "--out", str(tmp / "out.zip"), "--quiet"], "out.zip"),
         "mkv train-dagger": (MKV, ["train-dagger", "--env", "MKV-v1", "--steps", "200000",
                                    "--out", str(tmp / "out.zip"), "--quiet"], "out.zip"),
         "mkv demo": (MKV, ["demo", "--out", str(tmp / "demo"), "--quiet"], "demo"),
@@ -71,11 +74,18 @@ def _cpu(proc):
 
 @pytest.mark.parametrize("to", ["group", "main"])
 @pytest.mark.parametrize("name", ["mkv eval", "mkv sweep", "mkv record", "mkv train-ppo",
-                                  "mkv train-dagger", "mkv demo", "calib fit", "calib trials"])
+                                  "mkv train-bc", "mkv train-dagger", "mkv demo", "calib fit",
+                                  "calib trials"])
 def test_ctrl_c_is_one_line_exit_130_nothing_written_no_process_left(name, to, tmp_path):
-    if name == "mkv train-ppo" or name == "mkv train-dagger" or name == "mkv demo":
+    if name in ("mkv train-ppo", "mkv train-bc", "mkv train-dagger", "mkv demo"):
         pytest.importorskip("stable_baselines3")
     prog, argv, output = _commands(tmp_path)[name]
+    if name == "mkv train-bc":  # a small teacher dataset to clone from
+        from mkv_env import dataset as ds
+        from mkv_env.recorder import record
+
+        ds.save(record("MKV-v0", "teacher", episodes=4, seed=0,
+                       env_kwargs={"max_episode_steps": 150}), tmp_path / "teacher.npz")
     before = set(os.listdir(tmp_path))
     proc = subprocess.Popen([sys.executable, "-c", prog, *argv], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True,
