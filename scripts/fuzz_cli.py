@@ -92,8 +92,9 @@ def interrupt_case(rng, d):
 
     import psutil
 
-    mkv = f"{INTERRUPT_SIGINT}; from sfm_learn.cli import main; sys.exit(main())"
-    calib = f"{INTERRUPT_SIGINT}; from calib.cli import main; sys.exit(main())"
+    # the console scripts' own launchers: a Ctrl-C during the packages' imports counts too
+    mkv = f"{INTERRUPT_SIGINT}; from mkv_sfm_launch import mkv; sys.exit(mkv())"
+    calib = f"{INTERRUPT_SIGINT}; from mkv_sfm_launch import calib; sys.exit(calib())"
     out = os.path.join(d, "int_out")
     shutil.rmtree(out, ignore_errors=True)
     for leftover in (out, out + ".npz", out + ".zip", out + ".json"):  # an earlier case's output

@@ -67,8 +67,13 @@ def test_every_console_script_has_its_parser_listed():
     tomllib = pytest.importorskip("tomllib")
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     assert set(scripts) == set(PARSERS), "add the new console script's parser to PARSERS"
+    # each script runs its command through mkv_sfm_launch, which imports the parser's module
+    import mkv_sfm_launch
+
     for script, target in scripts.items():
-        assert target.partition(":")[0] == PARSERS[script].partition(":")[0], script
+        assert target == f"mkv_sfm_launch:{script}", script
+        launched = getattr(mkv_sfm_launch, script).__doc__
+        assert PARSERS[script].partition(":")[0] + ".main" in launched, script
 
 
 @pytest.mark.parametrize("script", sorted(PARSERS))

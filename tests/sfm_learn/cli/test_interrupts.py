@@ -20,8 +20,9 @@ psutil = pytest.importorskip("psutil")
 # The child handles SIGINT as in a terminal even when this test run was started as a background
 # job, where POSIX shells ignore SIGINT and children inherit that.
 TERMINAL_SIGINT = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
-MKV = f"{TERMINAL_SIGINT}; from sfm_learn.cli import main; sys.exit(main())"
-CALIB = f"{TERMINAL_SIGINT}; from calib.cli import main; sys.exit(main())"
+# the console scripts' own launchers (pyproject's [project.scripts])
+MKV = f"{TERMINAL_SIGINT}; from mkv_sfm_launch import mkv; sys.exit(mkv())"
+CALIB = f"{TERMINAL_SIGINT}; from mkv_sfm_launch import calib; sys.exit(calib())"
 CPU_BEFORE_SIGNAL_S = 2.0
 
 SWEEP = {"name": "interrupt", "teacher_env": "MKV-v1", "env": ["MKVJam-v1"],
@@ -114,3 +115,31 @@ def test_ctrl_c_is_one_line_exit_130_nothing_written_no_process_left(name, to, t
     assert set(os.listdir(tmp_path)) - before - {"sweep"} == set()
     _, alive = psutil.wait_procs(children, timeout=15)
     assert not alive, [c.cmdline() for c in alive]
+
+
+@pytest.mark.parametrize("to", ["group", "main"])
+@pytest.mark.parametrize("prog,name", [(MKV, "mkv"), (CALIB, "calib")])
+def test_ctrl_c_while_the_command_package_imports_is_one_line(prog, name, to, tmp_path):
+    """The console scripts import their package before main runs (numpy, scipy, gymnasium: a
+    few tenths of a second); a Ctrl-C then was a KeyboardInterrupt traceback from inside scipy.
+    Here the launcher's import is made slow (a module that sleeps, imported first) and the
+    signal sent once the import has begun."""
+    slow = tmp_path / "slow"
+    slow.mkdir()
+    (slow / "mkv_sfm_slow_import.py").write_text("import time\ntime.sleep(30)\n")
+    hook = ("import importlib, sys; real = importlib.import_module\n"
+            "def slow(name, *a, **k):\n"
+            "    print('importing', flush=True)\n"
+            "    real('mkv_sfm_slow_import')\n"
+            "    return real(name, *a, **k)\n"
+            "importlib.import_module = slow\n")
+    code = prog.replace("; from mkv_sfm_launch", f"; exec({hook!r}); from mkv_sfm_launch")
+    proc = subprocess.Popen([sys.executable, "-c", code, "--help"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, PYTHONPATH=f"{slow}{os.pathsep}"
+                                     f"{os.environ.get('PYTHONPATH', '')}"))
+    assert proc.stdout.readline().strip() == "importing"
+    (os.killpg if to == "group" else os.kill)(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.splitlines() == [f"{name}: interrupted; no output written"], err

@@ -1,0 +1,36 @@
+"""The ``mkv`` and ``calib`` console scripts' launchers.
+
+A console script imports its ``main`` before calling it, and the command packages take a few
+tenths of a second to import (numpy, scipy, gymnasium): a Ctrl-C in that window used to end in
+a ``KeyboardInterrupt`` traceback from inside scipy's import. These launchers import the command
+package while a Ctrl-C is already answered the commands' way (one line, exit 130, nothing
+written: nothing has started). They live outside the packages because importing any module of
+``calib`` or ``sfm_learn`` runs that package's heavy ``__init__`` first; they import only the
+standard library themselves.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+EXIT_INTERRUPTED = 130
+
+
+def _launch(module: str, prog: str) -> int:
+    try:
+        main = importlib.import_module(module).main
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; no output written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return main()
+
+
+def mkv() -> int:
+    """The ``mkv`` command (:func:`sfm_learn.cli.main`)."""
+    return _launch("sfm_learn.cli", "mkv")
+
+
+def calib() -> int:
+    """The ``calib`` command (:func:`calib.cli.main`)."""
+    return _launch("calib.cli", "calib")
