@@ -266,26 +266,51 @@ def test_payload_simulator_refuses_bad_settings(kw):
         simulate_payload_rig(0, **kw)
 
 
-def test_the_variance_rounds_settle_and_the_quietest_channel_is_not_overestimated():
+def test_the_variance_rounds_settle_and_bring_the_quietest_channel_closer(monkeypatch):
     """The feasible-GLS rounds stop once the variances have settled (another round moves none by
-    more than REWEIGHT_TOL of its standard error), and the channel quietest relative to its span
-    (started from a weight that cannot favour it) is estimated near its true variance: a fixed 3
-    rounds left it 2-5x too high on many rigs, the predicted error too high with it."""
+    more than REWEIGHT_TOL of its standard error), and settling brings the variance of the
+    channel quietest relative to its span (started from a weight that cannot favour it) closer
+    to its truth than the fixed 3 rounds it replaced (on these 8 rigs: mean |log(estimate /
+    truth)| 0.28 against 0.42; medians 1.25x and 1.36x)."""
+    import calib.forward as forward
     from calib.forward import MAX_REWEIGHT_ROUNDS, REWEIGHT_TOL, _reweight_step
 
-    ratios = []
-    for seed in range(8):
+    def quiet_error(seed, fixed3):
         d = simulate_payload_rig(900 + seed, poses=120)
         tr, _ = d.split("poses")
         Z, M = d.Z[tr], d.stated_loads[d.pose[tr]]
         known = choose_known_poses(M / np.linalg.norm(M, axis=1, keepdims=True), 4)
         pr = Problem(Z, None, None, known, M[known], magnitude=d.magnitude)
-        f = fit_forward(pr)
-        assert f["rounds"] < MAX_REWEIGHT_ROUNDS
-        _, settled = _reweight_step(pr, f, f["v"])
-        assert settled, f"seed {seed}: the variances had not settled (tol {REWEIGHT_TOL})"
+        with monkeypatch.context() as m:
+            if fixed3:
+                m.setattr(forward, "MAX_REWEIGHT_ROUNDS", 3)
+                m.setattr(forward, "REWEIGHT_TOL", -1.0)  # never settled: exactly 3 rounds
+            f = fit_forward(pr)
+        if not fixed3:
+            assert f["rounds"] < MAX_REWEIGHT_ROUNDS
+            _, settled = _reweight_step(pr, f, f["v"])
+            assert settled, f"seed {seed}: the variances had not settled (tol {REWEIGHT_TOL})"
         truth = np.mean((Z - (d.true_loads[tr] @ d.S + d.offset)) ** 2, axis=0)
         spread = d.magnitude * np.linalg.norm(d.S, axis=0)
         quiet = int(np.argmin(truth / spread**2))
-        ratios.append(f["v"][quiet] / truth[quiet])
-    assert 0.6 <= np.median(ratios) <= 1.5, ratios
+        return abs(np.log(f["v"][quiet] / truth[quiet]))
+
+    settled = [quiet_error(seed, False) for seed in range(8)]
+    fixed = [quiet_error(seed, True) for seed in range(8)]
+    assert np.mean(settled) < np.mean(fixed), (settled, fixed)
+    assert np.exp(np.median(settled)) <= 1.5
+
+
+def test_unidentified_variances_keep_the_fixed_three_rounds():
+    """With p = r = 3 channels the per-channel variances are not identified (Ledermann's bound):
+    the rounds do not chase them: exactly UNIDENTIFIED_ROUNDS run, settled or not (settling
+    rounds would stop at 2 or run on, depending on the rig)."""
+    from calib.forward import UNIDENTIFIED_ROUNDS
+
+    for seed in range(4):
+        d = simulate_payload_rig(950 + seed, poses=60, p=3)
+        tr, _ = d.split("poses")
+        Z, M = d.Z[tr], d.stated_loads[d.pose[tr]]
+        known = choose_known_poses(M / np.linalg.norm(M, axis=1, keepdims=True), 4)
+        f = fit_forward(Problem(Z, None, None, known, M[known], magnitude=d.magnitude))
+        assert f["rounds"] == UNIDENTIFIED_ROUNDS, (seed, f["rounds"])
