@@ -2,11 +2,15 @@
 
     python scripts/claims_summary.py SWEEP_DIR [SWEEP_DIR ...] > docs/claims_20_sets.md
     python scripts/claims_summary.py --bundle OUT.json SWEEP_DIR [SWEEP_DIR ...]
+    python scripts/claims_summary.py SWEEP_DIR [...] --check CHECK_DIR [CHECK_DIR ...]
 
 Reads ``SWEEP_DIR/rows/*.json`` (``mkv sweep``) and prints the tables and the claim sentences of
 :mod:`sfm_learn.experiments.claims`. ``--bundle`` instead writes the rows (policy paths dropped)
 with the specs as the package's reference file (``sfm_learn/experiments/reference/claims.json``),
-from which ``mkv demo`` and the README's claims are generated.
+from which ``mkv demo`` and the README's claims are generated. ``--check`` instead compares the
+claims of SWEEP_DIR with a check sweep's rows (the same spec on new training seeds and a new
+evaluation bank): which published levels' intervals cover the check's values, which published
+rankings held (:func:`sfm_learn.experiments.claims.check`).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import os
 import sys
 
 from sfm_common.files import atomic_write_text
-from sfm_learn.experiments.claims import claim_sentences, tables
+from sfm_learn.experiments.claims import check, check_report, claim_sentences, tables
 
 
 def read_rows(folder: str) -> list[dict]:
@@ -38,21 +42,32 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sweeps", nargs="+", metavar="SWEEP_DIR")
     ap.add_argument("--bundle", metavar="OUT.json", help="write the reference bundle instead")
+    ap.add_argument("--check", nargs="+", metavar="CHECK_DIR",
+                    help="compare the claims with a check sweep's rows instead")
     args = ap.parse_args(argv)
+    if args.check and args.bundle:
+        ap.error("--check and --bundle do not go together")
     rows, specs = [], []
     for d in args.sweeps:
         rows += read_rows(d)
         with open(os.path.join(d, "spec.json"), encoding="utf-8") as fh:
             specs.append(json.load(fh))
+    if args.check:
+        print(check_report(check(rows, [r for d in args.check for r in read_rows(d)])))
+        return 0
     if args.bundle:
         from sfm_learn.evaluation import evaluate
+        from sfm_learn.evaluation.records import aggregate
+        from sfm_learn.experiments.sweep import bank_seeds
 
         ev = specs[0]["eval"]
         if any(s["eval"] != ev for s in specs):
             sys.exit("claims_summary.py: the sweeps were evaluated on different seeds")
-        teacher = {e: {k: v for k, v in evaluate(e, "teacher", ev["episodes"], ev["seed"],
-                                                  workers=2).metrics.items()}
-                   for e in sorted({e for s in specs for e in s["env"]})}
+        teacher = {}  # the teacher on every bank's episodes, as the rows' metrics
+        for e in sorted({e for s in specs for e in s["env"]}):
+            records = [r for first in bank_seeds(ev)
+                       for r in evaluate(e, "teacher", ev["episodes"], first, workers=2).records]
+            teacher[e] = aggregate(records)
         about = (f"Rows of {', '.join(s.get('name', '?') for s in specs)}, run with "
                  f"`mkv sweep ... --workers 2` on a 2-core machine on "
                  f"{datetime.date.today().isoformat()} (policy paths dropped). The README's and "

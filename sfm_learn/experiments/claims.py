@@ -60,23 +60,32 @@ def by_point(rows) -> dict:
             "escape": m.get(JAM, {}).get("escape_rate"),
             "distance": m.get(WANDER, {}).get("distance_m"),
             "episodes": (r.get("episodes") or {}).get(JAM),
+            "wander_episodes": (r.get("episodes") or {}).get(WANDER),
         }
     return dict(out)
 
 
-def outcomes(sets: dict) -> crossed.Outcomes | None:
-    """The escape outcomes of one point (``by_point`` value) for the bootstrap: per episode when
-    every set has them on the same episodes (``design`` "sets x episodes"), else each set's
-    escape rate as its one value (the episodes held fixed); None without escapes."""
-    seeds = sorted(s for s in sets if sets[s]["escape"] is not None)
+#: Per metric of a point: the ``by_point`` field of its per-set value, the field of its
+#: per-episode outcomes, and the outcome's key in them.
+METRIC_FIELDS = {"escape": ("escape", "episodes", "escaped"),
+                 "distance": ("distance", "wander_episodes", "distance_m")}
+
+
+def outcomes(sets: dict, metric: str = "escape") -> crossed.Outcomes | None:
+    """The outcomes of one point (``by_point`` value) in ``metric`` ("escape": 0/1 per MKVJam-v1
+    episode; "distance": metres per MKV-v1 episode) for the bootstrap: per episode when every
+    set has them on the same episodes (``design`` "sets x episodes"), else each set's mean as its
+    one value (the episodes held fixed); None without that metric."""
+    value, field, key = METRIC_FIELDS[metric]
+    seeds = sorted(s for s in sets if sets[s][value] is not None)
     if not seeds:
         return None
-    eps = [sets[s].get("episodes") for s in seeds]
-    if all(e and e.get("escaped") is not None for e in eps) and all(
+    eps = [sets[s].get(field) for s in seeds]
+    if all(e and e.get(key) is not None for e in eps) and all(
             e["bank"] == eps[0]["bank"] for e in eps):
-        return crossed.Outcomes(tuple(seeds), np.array([e["escaped"] for e in eps], float),
+        return crossed.Outcomes(tuple(seeds), np.array([e[key] for e in eps], float),
                                 np.array(eps[0]["bank"]))
-    return crossed.Outcomes(tuple(seeds), np.array([[sets[s]["escape"]] for s in seeds]),
+    return crossed.Outcomes(tuple(seeds), np.array([[sets[s][value]] for s in seeds]),
                             np.zeros(1, int))
 
 
@@ -90,18 +99,10 @@ def design(out: crossed.Outcomes | None) -> str:
             f"bank{'s' if banks > 1 else ''}{level})")
 
 
-def bootstrap_mean_ci(values, rng, resamples: int = RESAMPLES) -> tuple[float, float]:
-    """95% percentile-bootstrap interval of the mean of ``values`` (resampling training sets)."""
-    v = np.asarray(values, dtype=float)
-    idx = rng.integers(0, len(v), size=(resamples, len(v)))
-    lo, hi = np.percentile(v[idx].mean(axis=1), [2.5, 97.5])
-    return float(lo), float(hi)
-
-
 def point_summary(sets: dict, seed: int = 0) -> dict:
-    """Summary of one point (``by_point`` value): n, escape mean/CI/median/p10, distance mean,
-    failures (count of sets failing either test that was measured)."""
-    rng = np.random.default_rng(seed)
+    """Summary of one point (``by_point`` value): n, escape mean/CI/median/p10, distance
+    mean/CI, what each interval covers, failures (count of sets failing either test that was
+    measured)."""
     seeds = sorted(sets)
     esc = np.array([sets[s]["escape"] for s in seeds if sets[s]["escape"] is not None], float)
     dist = np.array([sets[s]["distance"] for s in seeds if sets[s]["distance"] is not None], float)
@@ -116,7 +117,10 @@ def point_summary(sets: dict, seed: int = 0) -> dict:
                    escape_median=float(np.median(esc)), escape_p10=float(np.percentile(esc, 10)),
                    covers=design(oc))
     if len(dist):
-        out.update(distance_mean=float(dist.mean()), distance_ci=bootstrap_mean_ci(dist, rng))
+        oc = outcomes(sets, "distance")
+        lv = crossed.level(oc, seed=seed, resamples=RESAMPLES)
+        out.update(distance_mean=float(dist.mean()), distance_ci=lv["ci"],
+                   distance_covers=design(oc))
     return out
 
 
@@ -168,14 +172,16 @@ def tables(rows) -> str:
     """Markdown: the per-point table, then the paired table."""
     points = by_point(rows)
     lines = ["| learner | budget | sets | escape mean [bootstrap 95%] | median | p10 | "
-             f"distance m mean | failure rate (escape < {ESCAPE_FAIL} or distance < "
-             f"{DISTANCE_FAIL:g} m) |", "|---|---|---:|---|---:|---:|---:|---|"]
+             "distance m mean [bootstrap 95%] | failure rate (escape < "
+             f"{ESCAPE_FAIL} or distance < {DISTANCE_FAIL:g} m) |",
+             "|---|---|---:|---|---:|---:|---|---|"]
     for (learner, budget) in sorted(points):
         p = point_summary(points[(learner, budget)])
         esc = (f"{p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, {p['escape_ci'][1]:.3f}] | "
                f"{p['escape_median']:.3f} | {p['escape_p10']:.3f}"
                if "escape_mean" in p else "- | - | -")
-        dist = f"{p['distance_mean']:.2f}" if "distance_mean" in p else "-"
+        dist = (f"{p['distance_mean']:.2f} [{p['distance_ci'][0]:.2f}, "
+                f"{p['distance_ci'][1]:.2f}]" if "distance_mean" in p else "-")
         lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
                      f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
     covered = {design(oc) for oc in map(outcomes, points.values()) if oc is not None}
@@ -232,9 +238,10 @@ def claim_sentences(rows) -> list[str]:
                    f"where Holm's adjustment over these {len(table)} comparisons excludes 0 "
                    f"(intervals at its step levels): {'; '.join(verdicts)}.{mde}")
     for learner in sorted({lr for lr, _ in points if lr.startswith("ppo")}):
-        parts = []
+        parts, covers = [], set()
         for b in sorted(b for lr, b in points if lr == learner):
             p = point_summary(points[(learner, b)])
+            covers.add(p.get("covers", p.get("distance_covers")))
             if "escape_mean" in p:
                 val = (f"escapes {p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, "
                        f"{p['escape_ci'][1]:.3f}] (median {p['escape_median']:.2f}, 10th "
@@ -244,8 +251,72 @@ def claim_sentences(rows) -> list[str]:
                        f"{p['distance_ci'][1]:.1f}]")
             parts.append(f"at {_budget(learner, b)} it {val}, failing on {p['failures']} of "
                          f"{p['n']} seeds")
-        out.append(f"{_name(learner)}: {'; '.join(parts)}.")
+        over = "; ".join(sorted(c for c in covers if c)).replace("training sets", "PPO seeds")
+        out.append(f"{_name(learner)} (mean [95% bootstrap over {over}]): {'; '.join(parts)}.")
     return out
+
+
+def check(published_rows, check_rows) -> dict:
+    """How the claims of ``published_rows`` fare on a check sweep (new training sets and a new
+    evaluation bank, the acceptance test of a claim): ``{"levels": [...], "pairs": [...]}``.
+
+    A level (learner, budget, metric) is *covered* when the published 95 % interval contains the
+    check's mean. A published comparison *held* when the check's own verdict (Holm over its
+    table) is the same, *reversed* when the check ranks the other learner above, and
+    *flipped* when the check's mean difference has the other sign (a reversal in the making)."""
+    pub, new = by_point(published_rows), by_point(check_rows)
+    levels = []
+    for key in sorted(set(pub) & set(new)):
+        p, c = point_summary(pub[key]), point_summary(new[key])
+        for metric in ("escape", "distance"):
+            if f"{metric}_mean" in p and f"{metric}_mean" in c:
+                lo, hi = p[f"{metric}_ci"]
+                value = c[f"{metric}_mean"]
+                levels.append({"learner": key[0], "budget": key[1], "metric": metric,
+                               "published": p[f"{metric}_mean"], "ci": (lo, hi),
+                               "check": value, "covered": bool(lo <= value <= hi)})
+    pairs = []
+    for b in sorted({b for _, b in pub} & {b for _, b in new}):
+        tp, tc = budget_table(pub, b), budget_table(new, b)
+        for key in tp.keys() & tc.keys():
+            r, c = tp[key], tc[key]
+            pairs.append({"pair": key, "budget": b, "published": r["mean"], "ci": r["ci"],
+                          "verdict": r["verdict"], "check": c["mean"], "check_ci": c["ci"],
+                          "check_verdict": c["verdict"], "held": c["verdict"] == r["verdict"],
+                          "reversed": bool(r["verdict"] and c["verdict"]
+                                           and c["verdict"] != r["verdict"]),
+                          "flipped": bool(r["verdict"] and np.sign(c["mean"])
+                                          != np.sign(r["mean"]))})
+    pairs.sort(key=lambda q: (q["budget"], PAIRS.index(q["pair"]) if q["pair"] in PAIRS else 99))
+    return {"levels": levels, "pairs": pairs}
+
+
+def check_report(result: dict) -> str:
+    """Markdown of :func:`check`: the levels, the comparisons, and a one-line tally."""
+    lv, pr = result["levels"], result["pairs"]
+    lines = ["| learner | budget | metric | published [95 %] | check | covered |",
+             "|---|---:|---|---|---:|---|"]
+    for q in lv:
+        lines.append(f"| {q['learner']} | {q['budget']:,} | {q['metric']} | {q['published']:.3f} "
+                     f"[{q['ci'][0]:.3f}, {q['ci'][1]:.3f}] | {q['check']:.3f} | "
+                     f"{'yes' if q['covered'] else '**no**'} |")
+    lines += ["", "| pair | budget | published | verdict | check | check's verdict | held |",
+              "|---|---:|---|---|---|---|---|"]
+    for q in pr:
+        a, b = q["pair"]
+        lines.append(f"| {a} - {b} | {q['budget']:,} | {q['published']:+.3f} [{q['ci'][0]:+.3f}, "
+                     f"{q['ci'][1]:+.3f}] | {q['verdict'] or 'no clear difference'} | "
+                     f"{q['check']:+.3f} [{q['check_ci'][0]:+.3f}, {q['check_ci'][1]:+.3f}] | "
+                     f"{q['check_verdict'] or 'no clear difference'} | "
+                     + ("**reversed**" if q["reversed"] else "yes" if q["held"] else
+                        "sign flipped" if q["flipped"] else "verdict differs") + " |")
+    ranked = [q for q in pr if q["verdict"]]
+    lines += ["", f"Levels covered: {sum(q['covered'] for q in lv)} of {len(lv)}. Published "
+              f"rankings: {len(ranked)}; reversed {sum(q['reversed'] for q in ranked)}, sign "
+              f"flipped {sum(q['flipped'] for q in ranked)}, held "
+              f"{sum(q['held'] for q in ranked)}. Comparisons without a published ranking that "
+              f"the check ranks: {sum(1 for q in pr if not q['verdict'] and q['check_verdict'])}."]
+    return "\n".join(lines) + "\n"
 
 
 REFERENCE = os.path.join(os.path.dirname(__file__), "reference", "claims.json")
@@ -261,11 +332,21 @@ def load_reference(path: str = REFERENCE) -> dict:
     return doc
 
 
+def _evaluation(ev: dict) -> str:
+    """A sweep spec's ``eval`` in words (its banks' first seeds)."""
+    from sfm_learn.experiments.sweep import bank_seeds
+
+    firsts = bank_seeds(ev)
+    if len(firsts) == 1:
+        return f"evaluation seeds {firsts[0]:,}.., {ev['episodes']} episodes per env"
+    return (f"{len(firsts)} evaluation banks of {ev['episodes']} episodes per env (seeds "
+            f"{' / '.join(f'{s:,}..' for s in firsts)})")
+
+
 def readme_block(doc: dict, width: int = 100) -> str:
     """The README's claims paragraphs, generated from ``doc`` (:func:`load_reference`)."""
     ev = {json.dumps(s["eval"], sort_keys=True) for s in doc["specs"]}
-    evals = "; ".join(f"evaluation seeds {e['seed']:,}.., {e['episodes']} episodes per env"
-                      for e in map(json.loads, sorted(ev)))
+    evals = "; ".join(_evaluation(e) for e in map(json.loads, sorted(ev)))
     points = by_point(doc["rows"])
     sets = sorted({len(v) for v in points.values()})
     t = doc.get("teacher", {})

@@ -98,6 +98,59 @@ def test_with_episodes_the_interval_covers_them_and_is_wider_than_sets_only():
     assert "over training sets and evaluation episodes" in claims.claim_sentences(rows)[0]
 
 
+def test_a_distance_interval_covers_episodes_too():
+    """A wander learner's distances per episode: its level's interval resamples the shared
+    episodes (some short for every set), wider than over the sets' means alone, and the PPO
+    sentence says what it covers."""
+    rng = np.random.default_rng(1)
+    length = np.where(rng.random(40) < 0.8, 15.0, 5.0)  # shared episode difficulty
+    rows, means = [], []
+    for s in range(10):
+        d = length + rng.normal(0, 0.3, 40)
+        row = _row("ppo-wander", 200000, s, distance=float(d.mean()))
+        row["episodes"] = {"MKV-v1": {"bank": [i // 20 for i in range(40)], "escaped": None,
+                                      "distance_m": d.tolist()}}
+        rows.append(row)
+        means.append(_row("ppo-wander", 200000, s, distance=float(d.mean())))
+    with_eps = claims.point_summary(claims.by_point(rows)[("ppo-wander", 200000)])
+    sets_only = claims.point_summary(claims.by_point(means)[("ppo-wander", 200000)])
+    assert with_eps["distance_mean"] == pytest.approx(sets_only["distance_mean"])
+    assert with_eps["distance_covers"].startswith("training sets and evaluation episodes (40 in")
+    lo, hi = with_eps["distance_ci"]
+    assert lo < with_eps["distance_mean"] < hi
+    assert hi - lo > 3 * (sets_only["distance_ci"][1] - sets_only["distance_ci"][0])
+    text = claims.claim_sentences(rows)[0]
+    assert text.startswith("PPO (wander reward) (mean [95% bootstrap over PPO seeds and "
+                           "evaluation episodes (40 in 2 banks)]): at 200k env steps it wanders")
+
+
+def test_a_check_sweep_is_compared_level_by_level_and_verdict_by_verdict():
+    """A check sweep from the same learners covers the published levels; a learner whose
+    check is far off is flagged, and a published ranking the check turns around is reversed."""
+    rng = np.random.default_rng(5)
+
+    def sweep(seeds, sfm_shift, bc_level):
+        rows = []
+        for s in seeds:
+            base = rng.uniform(0.85, 0.9)
+            rows.append(_row("sfm", 1200, s, base + sfm_shift, 14 + rng.normal(0, 0.1)))
+            rows.append(_row("bc", 1200, s, bc_level + rng.normal(0, 0.01), 14.0))
+        return rows
+
+    published = sweep(range(20), 0.05, 0.85)
+    same = claims.check(published, sweep(range(100, 120), 0.05, 0.85))
+    assert [q["learner"] for q in same["levels"]].count("sfm") == 2  # escape and distance
+    assert all(q["covered"] for q in same["levels"] if q["metric"] == "distance")
+    (pair,) = same["pairs"]
+    assert pair["verdict"] == "sfm" and pair["held"] and not pair["reversed"]
+    turned = claims.check(published, sweep(range(100, 120), -0.08, 0.95))
+    (pair,) = turned["pairs"]
+    assert pair["reversed"] and pair["flipped"] and pair["check_verdict"] == "bc"
+    assert not all(q["covered"] for q in turned["levels"] if q["metric"] == "escape")
+    text = claims.check_report(turned)
+    assert "**reversed**" in text and "**no**" in text and "reversed 1" in text
+
+
 def test_a_table_is_one_holm_family():
     """Three comparisons near the edge: each alone would rank at 95 %, Holm ranks fewer."""
     rng = np.random.default_rng(11)
