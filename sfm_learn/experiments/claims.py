@@ -99,10 +99,30 @@ def design(out: crossed.Outcomes | None) -> str:
             f"bank{'s' if banks > 1 else ''}{level})")
 
 
-def point_summary(sets: dict, seed: int = 0) -> dict:
-    """Summary of one point (``by_point`` value): n, escape mean/CI/median/p10, distance
-    mean/CI, what each interval covers, failures (count of sets failing either test that was
-    measured)."""
+def _rerun(oc: crossed.Outcomes) -> dict:
+    """The design of the rerun a replication interval is about: as many new training sets, and a
+    new bank of one bank's episodes (None: rows without episodes, the episodes held fixed)."""
+    if oc.values.shape[1] == 1:
+        return {"rerun": (oc.values.shape[0], None)}
+    sizes = np.unique(oc.banks, return_counts=True)[1]
+    return {"rerun": (oc.values.shape[0], int(sizes.min()))}
+
+
+def rerun_words(p: dict | None, family: int, unit: str = "training sets") -> str:
+    """What a point's replication interval (``point_summary``; None: any point's) is, in
+    words."""
+    n, e = p["rerun"] if p is not None else ("as many", 1)
+    bank = (f" on a new bank of {e} episodes per env" if isinstance(e, int) and e > 1
+            else " on a new bank of one bank's episodes" if e else " (the episodes held fixed)")
+    joint = f", 95 % jointly over the {family} levels stated" if family > 1 else ", 95 %"
+    return f"{n} new {unit}{bank}{joint}"
+
+
+def point_summary(sets: dict, seed: int = 0, family: int = 1) -> dict:
+    """Summary of one point (``by_point`` value): n, escape mean/CI/replication
+    interval/median/p10, distance mean/CI/replication interval, what each interval covers,
+    failures (count of sets failing either test that was measured). The replication intervals
+    are simultaneous over ``family`` levels (:func:`crossed.level`)."""
     seeds = sorted(sets)
     esc = np.array([sets[s]["escape"] for s in seeds if sets[s]["escape"] is not None], float)
     dist = np.array([sets[s]["distance"] for s in seeds if sets[s]["distance"] is not None], float)
@@ -112,14 +132,18 @@ def point_summary(sets: dict, seed: int = 0) -> dict:
     out = {"n": len(seeds), "failures": int(sum(fail))}
     if len(esc):
         oc = outcomes(sets)
-        lv = crossed.level(oc, seed=seed, resamples=RESAMPLES)
+        lv = crossed.level(oc, seed=seed, resamples=RESAMPLES, family=family)
+        out.update(_rerun(oc))
         out.update(escape_mean=float(esc.mean()), escape_ci=lv["ci"],
+                   escape_rep=lv["replication"],
                    escape_median=float(np.median(esc)), escape_p10=float(np.percentile(esc, 10)),
                    covers=design(oc))
     if len(dist):
         oc = outcomes(sets, "distance")
-        lv = crossed.level(oc, seed=seed, resamples=RESAMPLES)
+        lv = crossed.level(oc, seed=seed, resamples=RESAMPLES, family=family)
+        out.setdefault("rerun", _rerun(oc)["rerun"])
         out.update(distance_mean=float(dist.mean()), distance_ci=lv["ci"],
+                   distance_rep=lv["replication"],
                    distance_covers=design(oc))
     return out
 
@@ -171,19 +195,26 @@ def _budget(learner: str, budget: int) -> str:
 def tables(rows) -> str:
     """Markdown: the per-point table, then the paired table."""
     points = by_point(rows)
-    lines = ["| learner | budget | sets | escape mean [bootstrap 95%] | median | p10 | "
-             "distance m mean [bootstrap 95%] | failure rate (escape < "
+    fam = len(points)
+    lines = ["| learner | budget | sets | escape mean [95 % CI] | a rerun lands in | median | p10 "
+             "| distance m mean [95 % CI] | a rerun lands in | failure rate (escape < "
              f"{ESCAPE_FAIL} or distance < {DISTANCE_FAIL:g} m) |",
-             "|---|---|---:|---|---:|---:|---|---|"]
+             "|---|---|---:|---|---|---:|---:|---|---|---|"]
     for (learner, budget) in sorted(points):
-        p = point_summary(points[(learner, budget)])
+        p = point_summary(points[(learner, budget)], family=fam)
         esc = (f"{p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, {p['escape_ci'][1]:.3f}] | "
+               f"[{p['escape_rep'][0]:.3f}, {p['escape_rep'][1]:.3f}] | "
                f"{p['escape_median']:.3f} | {p['escape_p10']:.3f}"
-               if "escape_mean" in p else "- | - | -")
+               if "escape_mean" in p else "- | - | - | -")
         dist = (f"{p['distance_mean']:.2f} [{p['distance_ci'][0]:.2f}, "
-                f"{p['distance_ci'][1]:.2f}]" if "distance_mean" in p else "-")
+                f"{p['distance_ci'][1]:.2f}] | [{p['distance_rep'][0]:.2f}, "
+                f"{p['distance_rep'][1]:.2f}]" if "distance_mean" in p else "- | -")
         lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
                      f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
+    if points:
+        lines += ["", f"A rerun lands in: the mean of {rerun_words(None, fam)} (Bonferroni; "
+                  "one level per point is stated: escape, or distance for PPO with the wander "
+                  "reward); the 95 % CI is about the level itself."]
     covered = {design(oc) for oc in map(outcomes, points.values()) if oc is not None}
     lines += ["", "Intervals of a level cover " + "; ".join(sorted(covered)) + ".",
         "", "| pair | budget | paired mean difference in escape [bootstrap, Holm step level] "
@@ -196,6 +227,19 @@ def tables(rows) -> str:
             lines.append(f"| {a} - {c} | {b:,} | {r['mean']:+.3f} [{r['ci'][0]:+.3f}, "
                          f"{r['ci'][1]:+.3f}] ({100 * r['confidence']:.1f} %, n={r['n']}) | "
                          f"{r['p_adjusted']:.3f} | {verdict} | {r['mde']:.3f} |")
+    held = held_out_banks(rows)
+    if held:
+        by = defaultdict(list)
+        for q in held:
+            by[q["metric"]].append((q["covered"], q["in_replication"]))
+        lines += ["", "Each bank held out in turn (intervals from the other banks' episodes, the "
+                  "same policies; the held-out bank's mean): " + "; ".join(
+                      f"{m} levels in the 95 % CI {sum(c for c, _ in v)} of {len(v)}, in a "
+                      f"rerun's 95 % interval {sum(r for _, r in v)} of {len(v)}"
+                      for m, v in sorted(by.items())) + ". A confidence interval is about the "
+                  "mean and misses a new bank's value more often than 5 %; the rerun's "
+                  "interval adds that bank's own sampling (and new training sets', so it is "
+                  "conservative here)."]
     return "\n".join(lines) + "\n"
 
 
@@ -203,6 +247,7 @@ def claim_sentences(rows) -> list[str]:
     """One sentence per budget for the teacher-step learners (escape rates, failure rates, every
     paired verdict), and one per PPO learner: the text the README and the demo print."""
     points = by_point(rows)
+    fam = len(points)  # one level stated per point: the family of the replication intervals
     out = []
     budgets = sorted({b for (lr, b) in points if not lr.startswith("ppo")})
     for b in budgets:
@@ -210,9 +255,10 @@ def claim_sentences(rows) -> list[str]:
         for learner in ("sfm", "bc", "dagger", "sfm-ols", "sfm-paper"):
             if (learner, b) not in points:
                 continue
-            p = point_summary(points[(learner, b)])
+            p = point_summary(points[(learner, b)], family=fam)
             parts.append(f"{_name(learner)} {p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, "
-                         f"{p['escape_ci'][1]:.3f}], failing on {p['failures']} of {p['n']}")
+                         f"{p['escape_ci'][1]:.3f}] (a rerun: {p['escape_rep'][0]:.2f}-"
+                         f"{p['escape_rep'][1]:.2f}), failing on {p['failures']} of {p['n']}")
         if not parts:
             continue
         verdicts, table = [], budget_table(points, b)
@@ -230,29 +276,36 @@ def claim_sentences(rows) -> list[str]:
         first = next(lr for lr in ("sfm", "bc", "dagger", "sfm-ols", "sfm-paper")
                      if (lr, b) in points)
         covers = design(outcomes(points[(first, b)]))
+        rerun = rerun_words(point_summary(points[(first, b)]), fam)
         mde = (f" The design detects paired differences of about "
                f"{float(np.median([r['mde'] for r in table.values()])):.3f} (80 % power)."
                if table else "")
-        out.append(f"At {b:,} teacher steps the escape rates (mean [95% bootstrap over {covers}]) "
-                   f"are {'; '.join(parts)}. Paired over the same sets and episodes, ranked only "
-                   f"where Holm's adjustment over these {len(table)} comparisons excludes 0 "
-                   f"(intervals at its step levels): {'; '.join(verdicts)}.{mde}")
+        out.append(f"At {b:,} teacher steps the escape rates (mean [95 % bootstrap interval "
+                   f"over {covers}] (where a rerun lands: {rerun})) are {'; '.join(parts)}. "
+                   "Paired over the same sets and episodes, ranked only where Holm's adjustment "
+                   f"over these {len(table)} comparisons excludes 0 (intervals at its step "
+                   f"levels): {'; '.join(verdicts)}.{mde}")
     for learner in sorted({lr for lr, _ in points if lr.startswith("ppo")}):
-        parts, covers = [], set()
+        parts, covers, reruns = [], set(), set()
         for b in sorted(b for lr, b in points if lr == learner):
-            p = point_summary(points[(learner, b)])
+            p = point_summary(points[(learner, b)], family=fam)
             covers.add(p.get("covers", p.get("distance_covers")))
+            reruns.add(rerun_words(p, fam, "PPO seeds"))
             if "escape_mean" in p:
                 val = (f"escapes {p['escape_mean']:.3f} [{p['escape_ci'][0]:.3f}, "
-                       f"{p['escape_ci'][1]:.3f}] (median {p['escape_median']:.2f}, 10th "
+                       f"{p['escape_ci'][1]:.3f}] (a rerun: {p['escape_rep'][0]:.2f}-"
+                       f"{p['escape_rep'][1]:.2f}; median {p['escape_median']:.2f}, 10th "
                        f"percentile {p['escape_p10']:.2f})")
             else:
                 val = (f"wanders {p['distance_mean']:.1f} m [{p['distance_ci'][0]:.1f}, "
-                       f"{p['distance_ci'][1]:.1f}]")
+                       f"{p['distance_ci'][1]:.1f}] (a rerun: {p['distance_rep'][0]:.1f}-"
+                       f"{p['distance_rep'][1]:.1f} m)")
             parts.append(f"at {_budget(learner, b)} it {val}, failing on {p['failures']} of "
                          f"{p['n']} seeds")
         over = "; ".join(sorted(c for c in covers if c)).replace("training sets", "PPO seeds")
-        out.append(f"{_name(learner)} (mean [95% bootstrap over {over}]): {'; '.join(parts)}.")
+        out.append(f"{_name(learner)} (mean [95 % bootstrap interval over {over}] (where a "
+                   "rerun lands: "
+                   f"{'; '.join(sorted(reruns))})): {'; '.join(parts)}.")
     return out
 
 
@@ -260,21 +313,26 @@ def check(published_rows, check_rows) -> dict:
     """How the claims of ``published_rows`` fare on a check sweep (new training sets and a new
     evaluation bank, the acceptance test of a claim): ``{"levels": [...], "pairs": [...]}``.
 
-    A level (learner, budget, metric) is *covered* when the published 95 % interval contains the
-    check's mean. A published comparison *held* when the check's own verdict (Holm over its
-    table) is the same, *reversed* when the check ranks the other learner above, and
-    *flipped* when the check's mean difference has the other sign (a reversal in the making)."""
+    A level (learner, budget, metric) is *covered* when the published replication interval
+    (simultaneous over the published points) contains the check's mean; ``in_ci`` says whether
+    the level's 95 % confidence interval does (it is about the mean alone, and misses a rerun's
+    value more often than 5 %). A published comparison *held* when the check's own verdict
+    (Holm over its table) is the same, *reversed* when the check ranks the other learner above,
+    and *flipped* when the check's mean difference has the other sign (a reversal in the making)."""
     pub, new = by_point(published_rows), by_point(check_rows)
     levels = []
     for key in sorted(set(pub) & set(new)):
-        p, c = point_summary(pub[key]), point_summary(new[key])
+        p, c = point_summary(pub[key], family=len(pub)), point_summary(new[key])
         for metric in ("escape", "distance"):
             if f"{metric}_mean" in p and f"{metric}_mean" in c:
-                lo, hi = p[f"{metric}_ci"]
+                lo, hi = p[f"{metric}_rep"]
                 value = c[f"{metric}_mean"]
                 levels.append({"learner": key[0], "budget": key[1], "metric": metric,
-                               "published": p[f"{metric}_mean"], "ci": (lo, hi),
-                               "check": value, "covered": bool(lo <= value <= hi)})
+                               "published": p[f"{metric}_mean"], "replication": (lo, hi),
+                               "ci": p[f"{metric}_ci"], "check": value,
+                               "covered": bool(lo <= value <= hi),
+                               "in_ci": bool(p[f"{metric}_ci"][0] <= value
+                                             <= p[f"{metric}_ci"][1])})
     pairs = []
     for b in sorted({b for _, b in pub} & {b for _, b in new}):
         tp, tc = budget_table(pub, b), budget_table(new, b)
@@ -291,15 +349,42 @@ def check(published_rows, check_rows) -> dict:
     return {"levels": levels, "pairs": pairs}
 
 
+def held_out_banks(rows, seed: int = 0) -> list[dict]:
+    """Each evaluation bank held out in turn: for every point and metric with per-episode
+    outcomes on at least 2 banks, the 95 % interval from the other banks' episodes (training
+    sets and episodes resampled as everywhere) and the held-out bank's mean, with ``covered``.
+    The real-data counterpart of a fresh bank's check (the same policies, new episodes)."""
+    out = []
+    for key, sets in sorted(by_point(rows).items()):
+        for metric in ("escape", "distance"):
+            oc = outcomes(sets, metric)
+            if oc is None or len(np.unique(oc.banks)) < 2:
+                continue
+            for b in np.unique(oc.banks):
+                rest = oc.banks != b
+                lv = crossed.level(crossed.Outcomes(oc.sets, oc.values[:, rest], oc.banks[rest]),
+                                   seed=seed, resamples=RESAMPLES)
+                value = float(oc.values[:, ~rest].mean())
+                lo, hi = lv["replication"]
+                out.append({"learner": key[0], "budget": key[1], "metric": metric,
+                            "bank": int(b), "ci": lv["ci"], "replication": (lo, hi),
+                            "value": value,
+                            "covered": bool(lv["ci"][0] <= value <= lv["ci"][1]),
+                            "in_replication": bool(lo <= value <= hi)})
+    return out
+
+
 def check_report(result: dict) -> str:
     """Markdown of :func:`check`: the levels, the comparisons, and a one-line tally."""
     lv, pr = result["levels"], result["pairs"]
-    lines = ["| learner | budget | metric | published [95 %] | check | covered |",
-             "|---|---:|---|---|---:|---|"]
+    lines = ["| learner | budget | metric | published [a rerun lands in] | 95 % CI | check | "
+             "covered | in the CI |", "|---|---:|---|---|---|---:|---|---|"]
     for q in lv:
         lines.append(f"| {q['learner']} | {q['budget']:,} | {q['metric']} | {q['published']:.3f} "
+                     f"[{q['replication'][0]:.3f}, {q['replication'][1]:.3f}] | "
                      f"[{q['ci'][0]:.3f}, {q['ci'][1]:.3f}] | {q['check']:.3f} | "
-                     f"{'yes' if q['covered'] else '**no**'} |")
+                     f"{'yes' if q['covered'] else '**no**'} | "
+                     f"{'yes' if q['in_ci'] else 'no'} |")
     lines += ["", "| pair | budget | published | verdict | check | check's verdict | held |",
               "|---|---:|---|---|---|---|---|"]
     for q in pr:
@@ -311,7 +396,8 @@ def check_report(result: dict) -> str:
                      + ("**reversed**" if q["reversed"] else "yes" if q["held"] else
                         "sign flipped" if q["flipped"] else "verdict differs") + " |")
     ranked = [q for q in pr if q["verdict"]]
-    lines += ["", f"Levels covered: {sum(q['covered'] for q in lv)} of {len(lv)}. Published "
+    lines += ["", f"Levels covered: {sum(q['covered'] for q in lv)} of {len(lv)} (in the 95 % "
+              f"CI: {sum(q['in_ci'] for q in lv)}). Published "
               f"rankings: {len(ranked)}; reversed {sum(q['reversed'] for q in ranked)}, sign "
               f"flipped {sum(q['flipped'] for q in ranked)}, held "
               f"{sum(q['held'] for q in ranked)}. Comparisons without a published ranking that "

@@ -115,18 +115,69 @@ def crossed_bootstrap(values: np.ndarray, banks: np.ndarray, seed: int = 0,
     return (set_w * per_set).sum(axis=1) / n_sets
 
 
+def replication_draws(values: np.ndarray, banks: np.ndarray, n_sets: int | None = None,
+                      n_episodes: int | None = None, seed: int = 0,
+                      resamples: int = RESAMPLES) -> np.ndarray:
+    """Bootstrap draws (``(resamples,)``) of a *rerun's* mean: ``n_sets`` new training sets
+    (default: as many as ``values`` has rows) evaluated on a new bank of ``n_episodes`` episodes
+    (default: the size of one bank). The new sets are drawn from the rows, the new bank's
+    episodes from one bank drawn at random (from every episode when there are fewer than
+    :data:`MIN_BANKS_AS_LEVEL` banks: too few to tell banks apart), both with replacement."""
+    v = np.asarray(values, dtype=float)
+    b = np.asarray(banks)
+    labels, inverse = np.unique(b, return_inverse=True)
+    members = [np.flatnonzero(inverse == k) for k in range(len(labels))]
+    n_sets = v.shape[0] if n_sets is None else int(n_sets)
+    n_episodes = min(len(m) for m in members) if n_episodes is None else int(n_episodes)
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(0, v.shape[0], size=(resamples, n_sets))
+    if len(labels) >= MIN_BANKS_AS_LEVEL:
+        bank = rng.integers(0, len(labels), size=resamples)
+        cols = np.empty((resamples, n_episodes), int)
+        for k, idx in enumerate(members):
+            at = np.flatnonzero(bank == k)
+            cols[at] = idx[rng.integers(0, len(idx), size=(len(at), n_episodes))]
+    else:
+        cols = rng.integers(0, v.shape[1], size=(resamples, n_episodes))
+    # the mean of v[rows_i][:, cols_i] without the (n_sets, n_episodes) gathers
+    col_w = np.zeros((resamples, v.shape[1]))
+    np.add.at(col_w, (np.arange(resamples)[:, None], cols), 1.0 / n_episodes)
+    per_row = col_w @ v.T  # (resamples, n_rows): each row's mean over the drawn episodes
+    return np.take_along_axis(per_row, rows, axis=1).mean(axis=1)
+
+
+def replication_interval(values: np.ndarray, banks: np.ndarray, confidence: float,
+                         seed: int = 0, resamples: int = RESAMPLES, n_sets: int | None = None,
+                         n_episodes: int | None = None) -> tuple[float, float]:
+    """Where a rerun's mean (:func:`replication_draws`) lands with probability ``confidence``:
+    both the published mean's error and the rerun's own, ``rerun - published`` drawn as the
+    difference of independent bootstrap draws around the mean, kept within the data's range."""
+    v = np.asarray(values, dtype=float)
+    pub = crossed_bootstrap(v, banks, seed, resamples)
+    rep = replication_draws(v, banks, n_sets, n_episodes, seed + 1, resamples)
+    lo, hi = percentile_interval(np.clip(rep - pub + v.mean(), v.min(), v.max()), confidence)
+    return lo, hi
+
+
 def percentile_interval(draws: np.ndarray, level: float) -> tuple[float, float]:
     lo, hi = np.percentile(draws, [50 * (1 - level), 50 * (1 + level)])
     return float(lo), float(hi)
 
 
 def level(out: Outcomes, seed: int = 0, resamples: int = RESAMPLES,
-          confidence: float = 1 - ALPHA) -> dict:
-    """A learner's level (mean over training sets and episodes) with its crossed interval."""
+          confidence: float = 1 - ALPHA, family: int = 1) -> dict:
+    """A learner's level (mean over training sets and episodes): ``ci`` its crossed confidence
+    interval (at ``confidence``), ``replication`` the interval a rerun of one bank (as many new
+    training sets, a new bank of one bank's episodes) lands in, simultaneous over ``family``
+    levels (Bonferroni: each at ``1 - (1 - confidence) / family``)."""
     draws = crossed_bootstrap(out.values, out.banks, seed, resamples)
+    rep_level = 1 - (1 - confidence) / max(family, 1)
+    # enough draws that each tail of the replication interval holds about 50 of them
+    rep = replication_interval(out.values, out.banks, rep_level, seed,
+                               max(resamples, int(np.ceil(100 / (1 - rep_level)))))
     return {"mean": float(out.values.mean()), "ci": percentile_interval(draws, confidence),
-            "n_sets": len(out.sets), "n_episodes": out.values.shape[1],
-            "n_banks": len(np.unique(out.banks))}
+            "replication": rep, "family": int(family), "n_sets": len(out.sets),
+            "n_episodes": out.values.shape[1], "n_banks": len(np.unique(out.banks))}
 
 
 def paired(a: Outcomes, b: Outcomes, seed: int = 0, resamples: int = RESAMPLES) -> dict | None:

@@ -120,8 +120,10 @@ def test_a_distance_interval_covers_episodes_too():
     assert lo < with_eps["distance_mean"] < hi
     assert hi - lo > 3 * (sets_only["distance_ci"][1] - sets_only["distance_ci"][0])
     text = claims.claim_sentences(rows)[0]
-    assert text.startswith("PPO (wander reward) (mean [95% bootstrap over PPO seeds and "
-                           "evaluation episodes (40 in 2 banks)]): at 200k env steps it wanders")
+    assert text.startswith("PPO (wander reward) (mean [95 % bootstrap interval over PPO seeds "
+                           "and evaluation episodes (40 in 2 banks)] (where a rerun lands: 10 new "
+                           "PPO seeds on a new bank of 20 episodes per env, 95 %)): at 200k env "
+                           "steps it wanders")
 
 
 def test_a_check_sweep_is_compared_level_by_level_and_verdict_by_verdict():
