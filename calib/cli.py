@@ -83,7 +83,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="held-out check: leave-one-pose-out rms may be at most F times the "
                    "in-sample residual (default 20)")
     f.add_argument("--known-sigma", type=positive_float, metavar="S",
-                   help="joint: accuracy of each known load component (load units)")
+                   help="joint: accuracy of each stated load component (load units; a "
+                   "robot's kinematics): weighs the known loads, widens the predicted held-out "
+                   "error")
     f.add_argument("--magnitude-sigma", type=positive_float, metavar="S",
                    help="joint: accuracy of the load magnitude of each row (load units)")
     f.add_argument("--known-samples", type=int_in_range(1, 10**9), metavar="N",

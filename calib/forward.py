@@ -600,8 +600,28 @@ def _global_cov(fit: dict) -> np.ndarray | None:
 MC_TEST_READINGS = 2000
 
 
+def _label_cov(W, X, A, sd) -> np.ndarray:
+    """Covariance ``(p (r+1), p (r+1))`` of the weighted normal equations' right-hand side that
+    errors of the stated loads cause: a pose's load off by ``delta`` (sd ``sd`` per component)
+    reads as the reading error ``A delta`` (correlated across channels through ``A``)."""
+    W2 = W**2 * sd**2
+    G = np.einsum("jc,je,jd,jf->cdef", W2, W**2, X, X)
+    G *= (A @ A.T)[:, None, :, None]
+    n = G.shape[0] * G.shape[1]
+    return G.reshape(n, n)
+
+
+def _sampler(cov) -> np.ndarray:
+    """A factor ``L`` with ``L L^T = cov`` (cov symmetric positive semi-definite)."""
+    try:
+        return np.linalg.cholesky(cov + 1e-300 * np.eye(len(cov)))
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+        return V * np.sqrt(np.clip(w, 0, None))
+
+
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
-                  coverage: float = 0.90) -> dict:
+                  coverage: float = 0.90, load_sd: float = 0.0) -> dict:
     """The held-out load error expected of the fit's calibration on new single readings at the
     rig's poses (as many as it has poses), with an interval, and the same for least squares
     with every load known (the reference the verdict compares with).
@@ -612,7 +632,13 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     test readings' noise. ``rms`` is the median over draws, ``interval`` the central
     ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
     ``ratio`` their quotient. Returns None when the covariance does not exist (a singular
-    fit: nothing identified)."""
+    fit: nothing identified).
+
+    ``load_sd``: the stated loads' own error (standard deviation per component, load units; a
+    robot's kinematics, a weighing): the known poses' loads then move the fit (linearised: the
+    error ``delta`` of a known load reads as the reading error ``A delta``; for least squares,
+    every pose's), and the held-out error is measured against loads stated as accurately. 0:
+    stated loads exact."""
     rng = np.random.default_rng(seed)
     r, p = pr.r, pr.p
     cov = _global_cov(fit)
@@ -626,16 +652,20 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
         M = M[np.linspace(0, len(M) - 1, MC_TEST_READINGS).round().astype(int)]
     P = len(M)
     dof = np.maximum(pr.P - fit["leverage"].sum(axis=0), 1.0)
-    try:
-        L = np.linalg.cholesky(cov + 1e-300 * np.eye(nth))
-    except np.linalg.LinAlgError:
-        w, V = np.linalg.eigh(cov)
-        L = V * np.sqrt(np.clip(w, 0, None))
+    L = _sampler(cov)
     # least squares with every load known: per channel (X^T W^2 X)^-1 at the fit's weights
     X = np.column_stack([Mfull, np.ones(len(Mfull))])
     W2 = fit["W"] ** 2
-    Hc = np.einsum("jc,jd,je->cde", W2, X, X)
-    Lls = np.linalg.cholesky(np.linalg.inv(Hc) + 1e-300 * np.eye(r + 1))  # (p, r+1, r+1)
+    Hinv = np.linalg.inv(np.einsum("jc,jd,je->cde", W2, X, X))
+    Lls = np.linalg.cholesky(Hinv + 1e-300 * np.eye(r + 1))  # (p, r+1, r+1)
+    sd = float(load_sd)
+    if sd > 0:  # what the stated loads' error does to each fit (its own draw, not the noise's)
+        K = pr.known
+        L_lab = _sampler(cov @ _label_cov(fit["W"][K], X[K], A, sd) @ cov)
+        Hb = np.zeros((nth, nth))
+        for c in range(p):
+            Hb[c * (r + 1):(c + 1) * (r + 1), c * (r + 1):(c + 1) * (r + 1)] = Hinv[c]
+        L_lab_ls = _sampler(Hb @ _label_cov(fit["W"], X, A, sd) @ Hb)
     err, err_ls = np.empty(draws), np.empty(draws)
     truth = M @ A.T + o  # noise-free readings at the poses' loads
     for i in range(draws):
@@ -643,11 +673,15 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
         vi = v / s  # the variance an estimate of v could have come from
         # the fit's error scales with the true noise: each channel's block by sqrt(vi / v)
         d = (L @ rng.standard_normal(nth)).reshape(p, r + 1) * np.sqrt(1.0 / s)[:, None]
-        Ah, oh = A + d[:, :r], o + d[:, r]
         Z = truth + rng.standard_normal((P, p)) * np.sqrt(vi + pr.within**2)  # one reading
+        dl = np.einsum("cab,cb->ca", Lls, rng.standard_normal((p, r + 1)))
+        if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
+            d = d + (L_lab @ rng.standard_normal(nth)).reshape(p, r + 1)
+            dl = dl + (L_lab_ls @ rng.standard_normal(nth)).reshape(p, r + 1)
+            Z = Z - (sd * rng.standard_normal((P, r))) @ A.T  # the applied load, not the stated
+        Ah, oh = A + d[:, :r], o + d[:, r]
         Ch = gls_inverse(Ah, v)  # the calibration weighs by the estimate, the truth is vi
         err[i] = np.sqrt(np.mean(np.sum(((Z - oh) @ Ch.T - M) ** 2, axis=1)))
-        dl = np.einsum("cab,cb->ca", Lls, rng.standard_normal((p, r + 1)))
         Al, ol = A + dl[:, :r], o + dl[:, r]
         Cl = gls_inverse(Al, v)
         err_ls[i] = np.sqrt(np.mean(np.sum(((Z - ol) @ Cl.T - M) ** 2, axis=1)))

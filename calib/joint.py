@@ -124,7 +124,7 @@ def fit_joint(
         rows = data.source.strided(_forward_step(data.n))
         rows = rows[np.all(np.isfinite(rows), axis=1)]
         return fit_forward_rows(rows, known_Z, known_M, dof, magnitude, known_samples, motion,
-                                n_total=data.n)
+                                n_total=data.n, known_sigma=known_sigma)
     from .models import choose
     from .rig import find_poses, rig_calibration, rig_pose_loads
 
@@ -144,7 +144,8 @@ def fit_joint(
                                    "poses were found in this one")
         if dof in (2, 3):
             return fit_forward_rows(Za[:: _forward_step(len(Za))], known_Z, known_M, dof,
-                                    magnitude, known_samples, motion, n_total=len(Za))
+                                    magnitude, known_samples, motion, n_total=len(Za),
+                                    known_sigma=known_sigma)
         return sampson()
     Mk = np.atleast_2d(np.asarray(known_M, float))[:, : motion.C.shape[0]]
     t = np.linspace(0.0, 1.0, len(Za))
@@ -225,13 +226,17 @@ def _forward_step(n: int) -> int:
 
 
 def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=None,
-                     motion=None, seed: int = 0, n_total: int | None = None):
+                     motion=None, seed: int = 0, n_total: int | None = None,
+                     known_sigma: float | None = None):
     """A log with no static poses (one reading per pose, or a continuous sweep): every reading
     its own pose in the maximum-likelihood forward fit (:mod:`calib.forward`), the Sampson and
     centered routes among its starts. A known reading that is a row of the log makes that row
     a known pose; any other known reading is a pose of its own, the mean of ``known_samples``
     readings (default 1). The calibration is the fit's ``C = (A^T V^-1 A)^-1 A^T V^-1`` with
-    ``V`` the estimated channel variances, the offset its ``o``."""
+    ``V`` the estimated channel variances, the offset its ``o``. ``known_sigma`` (the stated
+    loads' own error per component, load units) widens the predicted held-out error: the known
+    loads' error moves the fit, and held-out loads are stated as accurately
+    (:func:`calib.forward.predict_error`); the fit's weights do not use it."""
     from .forward import Problem, fit_forward, gls_inverse, predict_error
     from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor
 
@@ -274,7 +279,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     fit = fit_forward(pr, starts, seed=seed)
     C = gls_inverse(fit["A"], fit["v"])
     offset = fit["o"]
-    pred = predict_error(pr, fit, seed=seed)
+    pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0)
     from .forward import _global_cov
 
     cov = _global_cov(fit)

@@ -6,7 +6,9 @@ torques, each channel with its own scale (1e-2..1e2) and noise (0.2-2 % of its s
 wrist holds it in orientations 30-90 degrees from vertical, one reading per pose unless the case
 says otherwise. Every other pose trains, the others test (new directions); the test target is
 the stated (kinematic) load. 4 known loads on the training poses ``choose_known_poses``
-recommends, their readings the log's own rows (``known_samples=1``). Routes:
+recommends, their readings the log's own rows (``known_samples=1``; where the kinematics are
+off, their accuracy stated instead: ``known_sigma``, the per-component error a direction error
+of that many degrees gives, ``|m| theta sqrt(2/9)``). Routes:
 
 - least squares with every load known (bias on): the reference;
 - joint, the default of ``calib fit --method joint`` (no static poses: the maximum-likelihood
@@ -80,10 +82,14 @@ def one(job):
     ls = err(ls_cal.C, ls_cal.offset)
     kn = choose_known_poses(M[tr] / np.linalg.norm(M[tr], axis=1, keepdims=True), 4)
     out = {"ls": ls}
+    # what the user knows of the stated loads: exact but for the readings' noise, or the
+    # kinematics' accuracy (the mass error is common to every pose: it scales stated loads alike)
+    accuracy = ({"known_sigma": rig.magnitude * np.radians(kw["misalignment_deg"]) * np.sqrt(2 / 9)}
+                if kw.get("misalignment_deg") else {"known_samples": 1})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            cal = fit_joint(Z, Z[kn], M[tr][kn], 3, known_samples=1)
+            cal = fit_joint(Z, Z[kn], M[tr][kn], 3, **accuracy)
             e = err(cal.C, cal.offset)
             pe = cal.diagnostics["joint"].get("predicted_error") or {}
             lo, hi = pe.get("interval", (np.nan, np.nan))
@@ -91,7 +97,7 @@ def one(job):
         except CalibrationError:
             out["joint"] = (np.nan, True, False)
         try:
-            sam = fit_joint(Z, Z[kn], M[tr][kn], 3, known_samples=1, poses=None)
+            sam = fit_joint(Z, Z[kn], M[tr][kn], 3, poses=None, **accuracy)
             out["sampson"] = err(sam.C, sam.offset) / ls
         except CalibrationError:
             out["sampson"] = np.nan
