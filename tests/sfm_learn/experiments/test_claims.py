@@ -153,6 +153,29 @@ def test_a_check_sweep_is_compared_level_by_level_and_verdict_by_verdict():
     assert "**reversed**" in text and "**no**" in text and "reversed 1" in text
 
 
+def test_each_bank_held_out_is_judged_by_the_other_banks():
+    """Rows on 3 banks: every (point, metric, bank) gets an interval from the other two banks
+    and the held-out bank's own mean; a bank whose episodes are much harder than the others'
+    falls outside both intervals, and the tables say how many levels were covered."""
+    rng = np.random.default_rng(4)
+    rows = []
+    for s in range(12):
+        p = np.r_[np.full(40, 0.95), np.full(40, 0.95), np.full(40, 0.5)]  # bank 2 is hard
+        esc = (rng.random(120) < p).astype(int)
+        row = _row("sfm", 1200, s, escape=float(esc.mean()), distance=14.0)
+        row["episodes"] = {"MKVJam-v1": {"bank": [i // 40 for i in range(120)],
+                                         "escaped": esc.tolist(), "distance_m": [1.0] * 120}}
+        rows.append(row)
+    held = claims.held_out_banks(rows)
+    assert [(q["metric"], q["bank"]) for q in held] == [("escape", 0), ("escape", 1),
+                                                         ("escape", 2)]
+    hard = held[2]
+    assert hard["value"] < 0.6 and not hard["covered"] and not hard["in_replication"]
+    assert held[0]["replication"][0] <= held[0]["ci"][0] and held[0]["ci"][1] <= (
+        held[0]["replication"][1])
+    assert "escape levels in the 95 % CI" in claims.tables(rows)
+
+
 def test_a_table_is_one_holm_family():
     """Three comparisons near the edge: each alone would rank at 95 %, Holm ranks fewer."""
     rng = np.random.default_rng(11)
