@@ -3,6 +3,7 @@
     python scripts/claims_summary.py SWEEP_DIR [SWEEP_DIR ...] > docs/claims_20_sets.md
     python scripts/claims_summary.py --bundle OUT.json SWEEP_DIR [SWEEP_DIR ...]
     python scripts/claims_summary.py SWEEP_DIR [...] --check CHECK_DIR [CHECK_DIR ...]
+    python scripts/claims_summary.py --bundled [--check CHECK_DIR ...]   # the published rows
 
 Reads ``SWEEP_DIR/rows/*.json`` (``mkv sweep``) and prints the tables and the claim sentences of
 :mod:`sfm_learn.experiments.claims`. ``--bundle`` instead writes the rows (policy paths dropped)
@@ -40,14 +41,26 @@ def read_rows(folder: str) -> list[dict]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("sweeps", nargs="+", metavar="SWEEP_DIR")
+    ap.add_argument("sweeps", nargs="*", metavar="SWEEP_DIR",
+                    help="mkv sweep --out folders (default with --bundled: none)")
+    ap.add_argument("--bundled", action="store_true",
+                    help="the package's bundled claims rows (the published ones) as SWEEP_DIR")
     ap.add_argument("--bundle", metavar="OUT.json", help="write the reference bundle instead")
     ap.add_argument("--check", nargs="+", metavar="CHECK_DIR",
                     help="compare the claims with a check sweep's rows instead")
     args = ap.parse_args(argv)
     if args.check and args.bundle:
         ap.error("--check and --bundle do not go together")
+    if not args.sweeps and not args.bundled:
+        ap.error("give SWEEP_DIR or --bundled")
+    if args.bundled and args.bundle:
+        ap.error("--bundled rows are already the bundle")
     rows, specs = [], []
+    if args.bundled:
+        from sfm_learn.experiments.claims import load_reference
+
+        doc = load_reference()
+        rows, specs = list(doc["rows"]), list(doc["specs"])
     for d in args.sweeps:
         rows += read_rows(d)
         with open(os.path.join(d, "spec.json"), encoding="utf-8") as fh:

@@ -108,12 +108,14 @@ def _rerun(oc: crossed.Outcomes) -> dict:
     return {"rerun": (oc.values.shape[0], int(sizes.min()))}
 
 
-def rerun_words(p: dict | None, family: int, unit: str = "training sets") -> str:
-    """What a point's replication interval (``point_summary``; None: any point's) is, in
-    words."""
-    n, e = p["rerun"] if p is not None else ("as many", 1)
-    bank = (f" on a new bank of {e} episodes per env" if isinstance(e, int) and e > 1
-            else " on a new bank of one bank's episodes" if e else " (the episodes held fixed)")
+def rerun_words(p: dict, family: int, unit: str = "training sets",
+                generic: bool = False) -> str:
+    """What a point's replication interval (``point_summary``) is, in words (``generic``: for
+    any point of the same design, without its counts)."""
+    n, e = p["rerun"]
+    if generic:
+        n, e = "as many", ("one bank's" if e else None)
+    bank = f" on a new bank of {e} episodes per env" if e else " (the episodes held fixed)"
     joint = f", 95 % jointly over the {family} levels stated" if family > 1 else ", 95 %"
     return f"{n} new {unit}{bank}{joint}"
 
@@ -212,7 +214,9 @@ def tables(rows) -> str:
         lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
                      f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
     if points:
-        lines += ["", f"A rerun lands in: the mean of {rerun_words(None, fam)} (Bonferroni; "
+        some = point_summary(next(iter(points.values())))
+        lines += ["", f"A rerun lands in: the mean of {rerun_words(some, fam, generic=True)} "
+                  "(Bonferroni; "
                   "one level per point is stated: escape, or distance for PPO with the wander "
                   "reward); the 95 % CI is about the level itself."]
     covered = {design(oc) for oc in map(outcomes, points.values()) if oc is not None}

@@ -138,7 +138,11 @@ def test_rig_fit_records_every_start_and_is_exact_without_noise():
     cal = fit_joint(rig.Z[tr], Zk, Mk, poses=rig.pose[tr])
     j = cal.diagnostics["joint"]
     assert {s["start"] for s in j["starts"]} >= {"affine from known poses",
-                                                 "Sampson-distance joint fit"}
+                                                 "Sampson-distance joint fit",
+                                                 "maximum-likelihood forward fit"}
+    # the chosen fit is no worse than the forward fit's optimum refined under the rig's weights
+    costs = {s["start"]: s["cost"] for s in j["starts"]}
+    assert min(costs.values()) <= costs["maximum-likelihood forward fit"]
     assert j["converged"] and abs(j["magnitude"] - 10.0) < 1e-6
     assert held_out(rig, cal, te) < 1e-6
     with pytest.raises(CalibrationError, match="pose labels"):
