@@ -1,5 +1,6 @@
 """sfm_learn.experiments.claims: failure rates, paired verdicts, the README's generated claims."""
 
+import json
 import pathlib
 import re
 
@@ -201,6 +202,18 @@ def test_the_docs_claims_are_the_generated_sentences_of_the_bundled_rows(page):
     assert block.group(1).strip() == expected.strip(), (
         f"{page}'s claims differ from the bundled rows: regenerate with "
         f"python -m sfm_learn.experiments.claims --write {page}")
+
+
+def test_the_bundle_says_which_sweep_ran_on_which_banks():
+    doc = claims.load_reference()
+    banks = {s.get("name"): s["eval"].get("banks", 1) for s in doc["specs"]}
+    head = claims.readme_block(doc).split("\n\n")[0].replace("\n", " ")
+    assert max(banks.values()) >= 3  # the published teacher-step claims: three banks
+    for spec in doc["specs"]:
+        assert f"`{spec['name']}` on " in head or len({json.dumps(s["eval"]) for s in
+                                                       doc["specs"]}) == 1
+    rows = [r for r in doc["rows"] if r["learner"] == "sfm"]
+    assert rows and all(len(set(r["episodes"]["MKVJam-v1"]["bank"])) == 3 for r in rows)
 
 
 def test_replace_block_swaps_only_the_marked_part():
