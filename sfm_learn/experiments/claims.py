@@ -11,7 +11,11 @@ What an interval covers (:func:`design`): with per-episode outcomes, training se
 evaluation episodes (and banks, with three or more), resampled independently
 (:mod:`sfm_learn.experiments.crossed`): the interval is about the learner, not about the
 episodes that happened to be drawn. Rows without them (sweeps before banks) give intervals over
-training sets only, the episodes held fixed, and say so.
+training sets only, the episodes held fixed, and say so. Beside each level's confidence interval
+the claims state where a *rerun* lands (as many new training sets on a new bank of one bank's
+episodes; :func:`crossed.replication_interval`), jointly over every level stated: the interval a
+replication checks (:func:`check` compares a check sweep with it; :func:`held_out_banks` holds
+each bank out in turn).
 
 Two learners are ranked only by a *paired* comparison (same training seeds, same episodes), and
 only when Holm's family-wise adjustment over the comparisons of the budget's table rejects "no
@@ -356,8 +360,11 @@ def check(published_rows, check_rows) -> dict:
 def held_out_banks(rows, seed: int = 0) -> list[dict]:
     """Each evaluation bank held out in turn: for every point and metric with per-episode
     outcomes on at least 2 banks, the 95 % interval from the other banks' episodes (training
-    sets and episodes resampled as everywhere) and the held-out bank's mean, with ``covered``.
-    The real-data counterpart of a fresh bank's check (the same policies, new episodes)."""
+    sets and episodes resampled as everywhere), a rerun's 95 % interval from them (one level:
+    no family adjustment) and the held-out bank's mean, with ``covered`` (in the CI) and
+    ``in_replication``. The real-data counterpart of a fresh bank's check (the same policies,
+    new episodes; the rerun's interval also allows for new training sets, so it is conservative
+    here)."""
     out = []
     for key, sets in sorted(by_point(rows).items()):
         for metric in ("escape", "distance"):

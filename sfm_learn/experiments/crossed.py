@@ -21,6 +21,15 @@ drawn within each bank (stratified), since two banks are too few to resample.
 Paired differences (learner a minus learner b on the same training-set seeds and the same
 episodes) resample the difference matrix ``Ya - Yb`` the same way, so what the two share cancels.
 
+A confidence interval of a level is about the mean; the value a *rerun* measures (new training
+sets on a new bank) has its own sampling error on top, so it falls outside that interval more
+often than the stated rate (about 20-25 % for a 95 % interval when the rerun is one bank).
+:func:`replication_interval` gives where a rerun lands: the published mean's bootstrap error and
+the rerun's own (:func:`replication_draws`: sets and one bank's episodes drawn anew), as the
+difference of independent draws; :func:`level` states it simultaneously over a family of levels
+(Bonferroni), so that every level of a table holds on one replication with the stated
+probability.
+
 Verdicts over a table of comparisons are family-wise: :func:`holm` adjusts the bootstrap
 p-values by Holm's step-down method (S. Holm, Scand. J. Statist. 6 (1979)), and each comparison
 is shown with the percentile interval at its Holm step's level, which excludes 0 exactly when the
