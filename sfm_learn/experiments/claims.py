@@ -218,7 +218,9 @@ def tables(rows) -> str:
         lines.append(f"| {learner} | {budget:,} | {p['n']} | {esc} | {dist} | "
                      f"{p['failures'] / p['n']:.2f} ({p['failures']}/{p['n']}) |")
     if points:
-        some = point_summary(next(iter(points.values())))
+        some = _rerun(next(oc for v in points.values() for oc in (outcomes(v),
+                                                                   outcomes(v, "distance"))
+                           if oc is not None))
         lines += ["", f"A rerun lands in: the mean of {rerun_words(some, fam, generic=True)} "
                   "(Bonferroni; "
                   "one level per point is stated: escape, or distance for PPO with the wander "
@@ -284,7 +286,7 @@ def claim_sentences(rows) -> list[str]:
         first = next(lr for lr in ("sfm", "bc", "dagger", "sfm-ols", "sfm-paper")
                      if (lr, b) in points)
         covers = design(outcomes(points[(first, b)]))
-        rerun = rerun_words(point_summary(points[(first, b)]), fam)
+        rerun = rerun_words(_rerun(outcomes(points[(first, b)])), fam)
         mde = (f" The design detects paired differences of about "
                f"{float(np.median([r['mde'] for r in table.values()])):.3f} (80 % power)."
                if table else "")

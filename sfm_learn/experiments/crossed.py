@@ -87,26 +87,39 @@ class Outcomes:
         return self.values[ia], other.values[ib]
 
 
+def _counts(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``shape`` counts of how often each (row, col) pair occurs (``rows`` broadcast against
+    ``cols``; lists of such pairs are pooled): ``np.add.at`` of ones, by one ``bincount``."""
+    if isinstance(cols, list):
+        flat = np.concatenate([(np.broadcast_to(r, c.shape) * shape[1] + c).ravel()
+                               for r, c in zip(rows, cols, strict=True)])
+    else:
+        flat = (np.broadcast_to(rows, cols.shape) * shape[1] + cols).ravel()
+    return np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape).astype(float)
+
+
 def _episode_weights(banks: np.ndarray, rng: np.random.Generator, resamples: int) -> np.ndarray:
     """``(resamples, n_episodes)`` counts: how often each episode is drawn in each resample."""
     labels, inverse = np.unique(banks, return_inverse=True)
-    n_ep = len(banks)
-    w = np.zeros((resamples, n_ep))
+    shape = (resamples, len(banks))
     members = [np.flatnonzero(inverse == k) for k in range(len(labels))]
+    rows, cols = [], []
     if len(labels) >= MIN_BANKS_AS_LEVEL:
         # banks with replacement, then episodes within each drawn bank
         drawn = rng.integers(0, len(labels), size=(resamples, len(labels)))
         for k, idx in enumerate(members):
             times = (drawn == k).sum(axis=1)  # how often bank k was drawn in each resample
             for t in np.unique(times[times > 0]):
-                rows = np.flatnonzero(times == t)
-                picks = rng.integers(0, len(idx), size=(len(rows), t * len(idx)))
-                np.add.at(w, (rows[:, None], idx[picks]), 1.0)
+                at = np.flatnonzero(times == t)
+                picks = rng.integers(0, len(idx), size=(len(at), t * len(idx)))
+                rows.append(at[:, None])
+                cols.append(idx[picks])
     else:
         for idx in members:  # stratified: episodes within each bank
             picks = rng.integers(0, len(idx), size=(resamples, len(idx)))
-            np.add.at(w, (np.arange(resamples)[:, None], idx[picks]), 1.0)
-    return w
+            rows.append(np.arange(resamples)[:, None])
+            cols.append(idx[picks])
+    return _counts(rows, cols, shape)
 
 
 def crossed_bootstrap(values: np.ndarray, banks: np.ndarray, seed: int = 0,
@@ -149,8 +162,7 @@ def replication_draws(values: np.ndarray, banks: np.ndarray, n_sets: int | None 
     else:
         cols = rng.integers(0, v.shape[1], size=(resamples, n_episodes))
     # the mean of v[rows_i][:, cols_i] without the (n_sets, n_episodes) gathers
-    col_w = np.zeros((resamples, v.shape[1]))
-    np.add.at(col_w, (np.arange(resamples)[:, None], cols), 1.0 / n_episodes)
+    col_w = _counts(np.arange(resamples)[:, None], cols, (resamples, v.shape[1])) / n_episodes
     per_row = col_w @ v.T  # (resamples, n_rows): each row's mean over the drawn episodes
     return np.take_along_axis(per_row, rows, axis=1).mean(axis=1)
 

@@ -1,5 +1,6 @@
 """sfm_learn.experiments.claims: failure rates, paired verdicts, the README's generated claims."""
 
+import functools
 import json
 import pathlib
 import re
@@ -10,6 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sfm_learn.experiments import claims
+
+
+@functools.lru_cache(maxsize=1)
+def _bundled_block() -> str:
+    """The README block of the bundled rows, computed once (its bootstraps take seconds)."""
+    return claims.readme_block(claims.load_reference())
 
 
 def _row(learner, budget, seed, escape=None, distance=None, status="ok", escaped=None):
@@ -198,7 +205,7 @@ def test_the_docs_claims_are_the_generated_sentences_of_the_bundled_rows(page):
     text = (pathlib.Path(__file__).resolve().parents[3] / page).read_text()
     block = re.search(r"<!-- claims:begin -->\n(.*?)\n<!-- claims:end -->", text, re.S)
     assert block, f"{page} has no generated claims block"
-    expected = claims.readme_block(claims.load_reference())
+    expected = _bundled_block()
     assert block.group(1).strip() == expected.strip(), (
         f"{page}'s claims differ from the bundled rows: regenerate with "
         f"python -m sfm_learn.experiments.claims --write {page}")
@@ -207,7 +214,7 @@ def test_the_docs_claims_are_the_generated_sentences_of_the_bundled_rows(page):
 def test_the_bundle_says_which_sweep_ran_on_which_banks():
     doc = claims.load_reference()
     banks = {s.get("name"): s["eval"].get("banks", 1) for s in doc["specs"]}
-    head = claims.readme_block(doc).split("\n\n")[0].replace("\n", " ")
+    head = _bundled_block().split("\n\n")[0].replace("\n", " ")
     assert max(banks.values()) >= 3  # the published teacher-step claims: three banks
     for spec in doc["specs"]:
         assert f"`{spec['name']}` on " in head or len({json.dumps(s["eval"]) for s in

@@ -174,3 +174,18 @@ def test_bad_shapes_are_refused():
     with pytest.raises(ValueError, match="same evaluation episodes"):
         crossed.Outcomes((0,), np.zeros((1, 2)), np.zeros(2)).common(
             crossed.Outcomes((0,), np.zeros((1, 2)), np.ones(2)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(resamples=st.integers(1, 30), n=st.integers(1, 12), k=st.integers(1, 40),
+       seed=st.integers(0, 2**31))
+def test_counts_are_add_at_of_ones(resamples, n, k, seed):
+    r = np.random.default_rng(seed)
+    rows = r.integers(0, resamples, size=(k, 1))
+    cols = r.integers(0, n, size=(k, 3))
+    expected = np.zeros((resamples, n))
+    np.add.at(expected, (rows, cols), 1.0)
+    np.testing.assert_array_equal(crossed._counts(rows, cols, (resamples, n)), expected)
+    pooled = crossed._counts([rows, rows[:1]], [cols, cols[:1]], (resamples, n))
+    np.add.at(expected, (rows[:1], cols[:1]), 1.0)
+    np.testing.assert_array_equal(pooled, expected)
