@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import glob
 import json
 import os
 import sys
@@ -28,15 +27,35 @@ from sfm_learn.experiments.claims import check, check_report, claim_sentences, t
 
 
 def read_rows(folder: str) -> list[dict]:
+    """The usable rows of a ``mkv sweep --out`` folder (:func:`sfm_learn.experiments.sweep.
+    read_rows`: regular files only, damaged ones named on stderr and left out), policy paths
+    dropped."""
+    from sfm_learn.experiments.sweep import read_rows as sweep_rows
+
     if not os.path.isdir(os.path.join(folder, "rows")):
         sys.exit(f"claims_summary.py: {folder} has no rows/ folder (a mkv sweep --out folder)")
-    rows = []
-    for f in sorted(glob.glob(os.path.join(folder, "rows", "*.json"))):
-        with open(f, encoding="utf-8") as fh:
-            r = json.load(fh)
+    damaged: list = []
+    rows = sweep_rows(folder, damaged)
+    for name, why in damaged:
+        print(f"claims_summary.py: {folder}/rows/{name} left out: {why}", file=sys.stderr)
+    for r in rows:
         r.pop("policy", None)
-        rows.append(r)
+        r.pop("_file", None)
     return rows
+
+
+def read_spec(folder: str) -> dict:
+    path = os.path.join(folder, "spec.json")
+    if not os.path.isfile(path):
+        sys.exit(f"claims_summary.py: {folder} has no spec.json (a mkv sweep --out folder)")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            spec = json.load(fh)
+    except (OSError, ValueError) as e:
+        sys.exit(f"claims_summary.py: {path} is not a sweep spec ({type(e).__name__})")
+    if not isinstance(spec, dict) or not isinstance(spec.get("eval"), dict):
+        sys.exit(f"claims_summary.py: {path} is not a sweep spec")
+    return spec
 
 
 def main(argv=None):
@@ -63,8 +82,7 @@ def main(argv=None):
         rows, specs = list(doc["rows"]), list(doc["specs"])
     for d in args.sweeps:
         rows += read_rows(d)
-        with open(os.path.join(d, "spec.json"), encoding="utf-8") as fh:
-            specs.append(json.load(fh))
+        specs.append(read_spec(d))
     if args.check:
         print(check_report(check(rows, [r for d in args.check for r in read_rows(d)])))
         return 0

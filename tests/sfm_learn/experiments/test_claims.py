@@ -2,6 +2,7 @@
 
 import functools
 import json
+import os
 import pathlib
 import re
 
@@ -229,3 +230,52 @@ def test_replace_block_swaps_only_the_marked_part():
         "a\n<!-- claims:begin -->\nnew\n<!-- claims:end -->\nb\n")
     with pytest.raises(ValueError, match="no <!-- claims:begin"):
         claims.replace_block("nothing here", "x")
+
+
+def _summary_script():
+    import importlib.util
+
+    path = pathlib.Path(__file__).resolve().parents[3] / "scripts" / "claims_summary.py"
+    spec = importlib.util.spec_from_file_location("claims_summary", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _sweep_dir(root, rows):
+    (root / "rows").mkdir(parents=True)
+    (root / "spec.json").write_text(json.dumps({"name": root.name, "eval": {"episodes": 2,
+                                                                             "seed": 1}}))
+    for k, r in enumerate(rows):
+        (root / "rows" / f"r{k}.json").write_text(json.dumps(r))
+
+
+def test_the_summary_script_checks_a_sweep_and_refuses_bad_folders(tmp_path, capsys):
+    mod = _summary_script()
+    rng = np.random.default_rng(0)
+    for name in ("pub", "chk"):
+        _sweep_dir(tmp_path / name, [_row(lr, 1200, s, float(rng.uniform(0.85, 0.95)), 14.0)
+                                     for lr in ("sfm", "bc") for s in range(12)])
+    assert mod.main([str(tmp_path / "pub"), "--check", str(tmp_path / "chk")]) == 0
+    out = capsys.readouterr().out
+    assert "Levels covered:" in out and "| sfm - bc | 1,200 |" in out
+    with pytest.raises(SystemExit) as e:
+        mod.main([str(tmp_path / "pub"), "--check", str(tmp_path / "missing")])
+    assert "has no rows/ folder" in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(SystemExit):
+        mod.main([])  # neither SWEEP_DIR nor --bundled: a usage error
+    with pytest.raises(SystemExit):
+        mod.main(["--bundled", "--bundle", str(tmp_path / "x.json")])
+    assert not (tmp_path / "x.json").exists()
+    # a FIFO, a broken file and a row with NaN metrics are left out by name, never read or hung on
+    os.mkfifo(tmp_path / "chk" / "rows" / "fifo.json")
+    (tmp_path / "chk" / "rows" / "broken.json").write_text("{")
+    bad = _row("sfm", 1200, 99, 0.9, 14.0)
+    bad["metrics"]["MKVJam-v1"]["escape_rate"] = float("nan")
+    (tmp_path / "chk" / "rows" / "nan.json").write_text(json.dumps(bad))
+    assert len(mod.read_rows(str(tmp_path / "chk"))) == 24
+    err = capsys.readouterr().err
+    assert all(f"{n}.json left out" in err for n in ("fifo", "broken", "nan"))
+    (tmp_path / "pub" / "spec.json").write_text("[1]")
+    with pytest.raises(SystemExit, match="not a sweep spec"):
+        mod.main([str(tmp_path / "pub")])
