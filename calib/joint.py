@@ -243,6 +243,9 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     Z = np.asarray(Z, float)
     Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
     Mk = np.atleast_2d(np.asarray(known_M, float))[:, :dof]
+    if known_sigma is not None and not known_sigma < np.median(np.linalg.norm(Mk, axis=1)):
+        raise CalibrationError(f"known_sigma {known_sigma:g} is as large as the known loads "
+                               "themselves: nothing to calibrate against")
     spread = np.maximum(Z.std(axis=0), 1e-300)
     rows, extra = [], []
     for k, zk in enumerate(Zk):

@@ -22,6 +22,7 @@ from calib.forward import (
 from calib.joint import choose_known_poses, fit_joint
 from calib.least_squares import fit_least_squares
 from calib.reliability import assess
+from calib.result import CalibrationError
 from calib.simulate import sample_directions, simulate_payload_rig
 
 
@@ -161,6 +162,9 @@ def test_the_joint_route_passes_the_stated_accuracy_to_the_prediction():
     a = exact.diagnostics["joint"]["predicted_error"]
     b = stated.diagnostics["joint"]["predicted_error"]
     assert b["rms"] > 1.5 * a["rms"] and b["ls_rms"] > 1.5 * a["ls_rms"]
+    for huge in (d.magnitude, 1e200):  # as large as the loads: refused, never an overflow
+        with pytest.raises(CalibrationError, match="as large as the known loads"):
+            fit_joint(Z, Z[known], M[known], 3, known_sigma=huge)
 
 
 def test_narrow_coverage_is_refused():
@@ -302,8 +306,6 @@ def test_known_readings_stated_as_means_weigh_more():
                                 {"com_m": (float("nan"), 1)}, {"tilt_deg": (90, 30)},
                                 {"poses": 1}, {"readings": 0}])
 def test_payload_simulator_refuses_bad_settings(kw):
-    from calib.result import CalibrationError
-
     with pytest.raises(CalibrationError):
         simulate_payload_rig(0, **kw)
 
