@@ -379,6 +379,9 @@ def _summary(args, cal, status) -> str:
            else "")
         + (", no static poses: every reading its own pose (forward maximum-likelihood fit)"
            if d.get("joint", {}).get("route") == "forward" else "")
+        + (", the channels' noise correlated (p = {:.1g}): fitted in whitened channels".format(
+            d["joint"]["noise_correlation"]["p_value"])
+           if d.get("joint", {}).get("noise_correlation", {}).get("used") else "")
         + _predicted(d)
         + (f" (each channel a degree-{d['joint']['index_model']['degree']} polynomial of its own "
            "signal)" if d.get("joint", {}).get("index_model", {}).get("used") else "")

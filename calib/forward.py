@@ -576,6 +576,93 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
             "chosen_start": best["start"], "rounds": rounds, "g0": g0}
 
 
+#: Significance level of :func:`noise_correlation`'s test (the conventional 1 %).
+CORRELATION_ALPHA = 0.01
+
+
+def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) -> dict:
+    """Whether the channels' noise is correlated in a way the calibration can use, and the
+    whitening that uses it.
+
+    The model above gives each channel its own noise, independent of the others'. A real
+    sensor's channels can share a disturbance: a commercial F/T sensor reports a wrench that
+    its factory matrix mixed from gauges, so one gauge's drift reads on a force and a torque
+    at once. Least squares with every load known then cancels it through the channel that sees
+    it without signal; the per-channel model cannot. The residuals, in channels scaled by their
+    noise, are split into their part in the span of ``A`` (which the directions' own errors and
+    the magnitude's misfit also enter, whatever the noise) and the rest; with independent
+    noise the two parts are independent. Their canonical correlations are tested (Wilks'
+    lambda, Bartlett's chi-square on ``r (p - r)`` degrees of freedom). Where ``p_value <
+    alpha``, ``T`` whitens the channels (``z -> T z``): each scaled by its noise, then the
+    residual correlation matrix's inverse square root (equivariant: channel units and order
+    carry through ``T``). Not iterated further: with a free direction per pose the likelihood
+    of a full noise covariance is unbounded (the directions fit the quietest channel
+    combination exactly), as a free variance per channel is (:data:`REWEIGHT_TOL`).
+
+    Returns ``{"p_value", "used", "max_abs_correlation"}`` and, when used, ``T`` (p, p) and
+    its inverse ``T_inv``; ``p_value`` None where there is nothing to test (``p <= r``, or
+    too few poses)."""
+    r, p = pr.r, pr.p
+    out = {"p_value": None, "used": False, "max_abs_correlation": 0.0}
+    n = pr.P
+    if p <= r or n <= p + r + 1:
+        return out
+    sd = np.sqrt(fit["v"])
+    E = (pr.Y - fit["M"] @ fit["A"].T - fit["o"]) * np.sqrt(pr.counts)[:, None] / sd
+    E = E - E.mean(axis=0)
+    R = E.T @ E
+    dR = np.sqrt(np.diag(R))
+    if not np.all(np.isfinite(R)) or np.any(dR <= 0):
+        return out
+    R = R / np.outer(dR, dR)
+    out["max_abs_correlation"] = float(np.max(np.abs(R - np.eye(p))))
+    Q, _ = np.linalg.qr(fit["A"] / sd[:, None], mode="complete")
+    h, f = E @ Q[:, :r], E @ Q[:, r:]
+    Shh, Sff, Shf = h.T @ h, f.T @ f, h.T @ f
+    try:
+        K = np.linalg.solve(Shh, Shf) @ np.linalg.solve(Sff, Shf.T)
+    except np.linalg.LinAlgError:
+        return out
+    lam = float(np.linalg.det(np.eye(r) - K))
+    if not np.isfinite(lam):
+        return out
+    from scipy import stats
+
+    stat = -(n - 1 - (p + 1) / 2) * np.log(max(lam, 1e-300))
+    out["p_value"] = float(stats.chi2.sf(stat, r * (p - r)))
+    w, V = np.linalg.eigh(R)
+    if out["p_value"] < alpha and w[0] > 1e3 * np.finfo(float).eps:
+        out["used"] = True
+        out["T"] = ((V / np.sqrt(w)) @ V.T) / sd[None, :]
+        out["T_inv"] = sd[:, None] * ((V * np.sqrt(w)) @ V.T)
+    return out
+
+
+def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
+                   only: dict | None = None):
+    """:func:`fit_forward`, then, where :func:`noise_correlation` finds the channels' noise
+    correlated, the same fit again in whitened channels from the first fit's loads (and the
+    same starts). Returns ``(problem, fit, T, T_inv, correlation)``: the problem and fit in the
+    channels fitted (``T`` the identity when not whitened); the calibration in the original
+    channels is ``gls_inverse(A, v) @ T`` with offset ``T_inv @ o``."""
+    fit = fit_forward(pr, start_loads, seed=seed, only=only)
+    correlation = noise_correlation(pr, fit)
+    T = correlation.pop("T", None)
+    T_inv = correlation.pop("T_inv", None)
+    if T is None:
+        return pr, fit, np.eye(pr.p), np.eye(pr.p), correlation
+    if pr.repeats:  # the within-pose scatter is per channel: not defined after mixing them
+        correlation["used"] = False
+        return pr, fit, np.eye(pr.p), np.eye(pr.p), correlation
+    prw = Problem(pr.Y @ T.T, pr.counts, None, pr.known, pr.known_M, pr.magnitude)
+    if only is None:
+        starts = {"independent-noise fit": fit["M"], **(start_loads or {})}
+        fit = fit_forward(prw, starts, seed=seed)
+    else:
+        fit = fit_forward(prw, seed=seed, only=only)
+    return prw, fit, T, T_inv, correlation
+
+
 def gls_inverse(A, v) -> np.ndarray:
     """The calibration of a fitted forward model: ``C = (A^T V^-1 A)^-1 A^T V^-1`` (dof, p), the
     maximum-likelihood load of a new reading ``z`` being ``C (z - o)``."""
@@ -600,15 +687,36 @@ def _global_cov(fit: dict) -> np.ndarray | None:
 MC_TEST_READINGS = 2000
 
 
-def _label_cov(W, X, A, sd) -> np.ndarray:
+def _label_cov(W, X, A, sd, tangent=False) -> np.ndarray:
     """Covariance ``(p (r+1), p (r+1))`` of the weighted normal equations' right-hand side that
-    errors of the stated loads cause: a pose's load off by ``delta`` (sd ``sd`` per component)
-    reads as the reading error ``A delta`` (correlated across channels through ``A``)."""
-    W2 = W**2 * sd**2
-    G = np.einsum("jc,je,jd,jf->cdef", W2, W**2, X, X)
-    G *= (A @ A.T)[:, None, :, None]
+    errors of the stated loads cause: a pose's load off by ``delta`` reads as the reading error
+    ``A delta`` (correlated across channels through ``A``). ``delta`` has sd ``sd`` per
+    component: isotropic, or with ``tangent`` a direction error (loads of one known magnitude:
+    the error lies in the plane perpendicular to the load, total variance ``3 sd^2`` as the
+    isotropic one's)."""
+    W2 = W**2
+    G = np.einsum("jc,je,jd,jf->cdef", W2, W2, X, X) * (A @ A.T)[:, None, :, None]
+    if tangent:
+        B = _unit(X[:, :-1]) @ A.T  # (n, p): each pose's load direction read through A
+        WB = W2 * B
+        G = 1.5 * (G - np.einsum("jc,je,jd,jf->cdef", WB, WB, X, X))
     n = G.shape[0] * G.shape[1]
-    return G.reshape(n, n)
+    return (sd**2 * G).reshape(n, n)
+
+
+def _unit(M) -> np.ndarray:
+    """Rows of ``M`` scaled to unit length (zero rows stay zero)."""
+    n = np.linalg.norm(M, axis=1, keepdims=True)
+    return M / np.where(n > 0, n, 1.0)
+
+
+def _label_error(rng, M, sd, tangent) -> np.ndarray:
+    """One draw of the stated loads' error at loads ``M`` (see :func:`_label_cov`)."""
+    d = sd * rng.standard_normal(M.shape)
+    if tangent:
+        u = _unit(M)
+        d = np.sqrt(1.5) * (d - np.sum(d * u, axis=1, keepdims=True) * u)
+    return d
 
 
 def _sampler(cov) -> np.ndarray:
@@ -659,13 +767,17 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     Hinv = np.linalg.inv(np.einsum("jc,jd,je->cde", W2, X, X))
     Lls = np.linalg.cholesky(Hinv + 1e-300 * np.eye(r + 1))  # (p, r+1, r+1)
     sd = float(load_sd)
+    # loads of one magnitude (a proof mass, a gripper: the fit holds g): a stated load can then be
+    # wrong only in its direction (a weighing's error is common to every pose and cancels), so
+    # its error lies in the plane perpendicular to it
+    tangent = not pr.fit_g
     if sd > 0:  # what the stated loads' error does to each fit (its own draw, not the noise's)
         K = pr.known
-        L_lab = _sampler(cov @ _label_cov(fit["W"][K], X[K], A, sd) @ cov)
+        L_lab = _sampler(cov @ _label_cov(fit["W"][K], X[K], A, sd, tangent) @ cov)
         Hb = np.zeros((nth, nth))
         for c in range(p):
             Hb[c * (r + 1):(c + 1) * (r + 1), c * (r + 1):(c + 1) * (r + 1)] = Hinv[c]
-        L_lab_ls = _sampler(Hb @ _label_cov(fit["W"], X, A, sd) @ Hb)
+        L_lab_ls = _sampler(Hb @ _label_cov(fit["W"], X, A, sd, tangent) @ Hb)
     err, err_ls = np.empty(draws), np.empty(draws)
     truth = M @ A.T + o  # noise-free readings at the poses' loads
     for i in range(draws):
@@ -678,7 +790,7 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
         if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
             d = d + (L_lab @ rng.standard_normal(nth)).reshape(p, r + 1)
             dl = dl + (L_lab_ls @ rng.standard_normal(nth)).reshape(p, r + 1)
-            Z = Z - (sd * rng.standard_normal((P, r))) @ A.T  # the applied load, not the stated
+            Z = Z - _label_error(rng, M, sd, tangent) @ A.T  # the applied load, not the stated
         Ah, oh = A + d[:, :r], o + d[:, r]
         Ch = gls_inverse(Ah, v)  # the calibration weighs by the estimate, the truth is vi
         err[i] = np.sqrt(np.mean(np.sum(((Z - oh) @ Ch.T - M) ** 2, axis=1)))

@@ -237,7 +237,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     loads' own error per component, load units) widens the predicted held-out error: the known
     loads' error moves the fit, and held-out loads are stated as accurately
     (:func:`calib.forward.predict_error`); the fit's weights do not use it."""
-    from .forward import Problem, fit_forward, gls_inverse, predict_error
+    from .forward import Problem, fit_correlated, gls_inverse, predict_error
     from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor
 
     Z = np.asarray(Z, float)
@@ -279,17 +279,19 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             starts[name] = cal.apply(Y)
         except (CalibrationError, ValueError):
             continue
-    fit = fit_forward(pr, starts, seed=seed)
-    C = gls_inverse(fit["A"], fit["v"])
-    offset = fit["o"]
+    # noise the channels share (a wrench mixed from gauges): refit in whitened channels; the
+    # problem and fit below are in the channels fitted, the calibration mapped back
+    pr, fit, T, T_inv, correlation = fit_correlated(pr, starts, seed=seed)
+    C = gls_inverse(fit["A"], fit["v"]) @ T
+    offset = T_inv @ fit["o"]
     pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0)
     from .forward import _global_cov
 
     cov = _global_cov(fit)
     nth = pr.p * (pr.r + 1)
     if cov is not None:
-        se = np.sqrt(np.diag(cov)[:nth]).reshape(pr.p, pr.r + 1)
-        off_se = se[:, pr.r]
+        io = np.arange(pr.p) * (pr.r + 1) + pr.r
+        off_se = np.sqrt(np.clip(np.diag(T_inv @ cov[np.ix_(io, io)] @ T_inv.T), 0, None))
         g_rel_se = (float(np.sqrt(cov[nth, nth])) / fit["g"]) if pr.fit_g else None
         # C's standard errors by the delta method on the GLS inverse (A's columns)
         J = []
@@ -300,7 +302,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
                 A1 = fit["A"].copy()
                 h = eps * max(abs(A1[c, a]), 1e-12 + np.abs(fit["A"]).max())
                 A1[c, a] += h
-                J.append((gls_inverse(A1, fit["v"]).ravel() - base) / h)
+                J.append(((gls_inverse(A1, fit["v"]) @ T).ravel() - base) / h)
         J = np.array(J).T  # (dof*p, p*r)
         idx = np.array([c * (pr.r + 1) + a for c in range(pr.p) for a in range(pr.r)])
         covA = cov[np.ix_(idx, idx)]
@@ -332,7 +334,8 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             "known_samples": known_samples,
             "magnitude": float(fit["g"]),
             "magnitude_fitted": pr.fit_g,
-            "channel_noise": np.sqrt(fit["v"]),
+            "channel_noise": np.sqrt(np.einsum("ck,k,ck->c", T_inv, fit["v"], T_inv)),
+            "noise_correlation": correlation,
             "pose_magnitude_residual_rms": float(np.sqrt(np.mean((mag - fit["g"]) ** 2))),
             "pose_residual_rms": float(np.sqrt(np.mean(np.sum(
                 (loads - fit["M"][: len(Z)]) ** 2, axis=1)) / dof)),

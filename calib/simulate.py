@@ -432,6 +432,7 @@ def simulate_payload_rig(
     misalignment_deg: float = 0.0,
     mass_error: float = 0.0,
     wrench: bool = False,
+    gauges: int = 0,
 ) -> RigData:
     """A robot wrist holding a gripper on a 6-axis force/torque sensor: the load is the gripper's
     weight in the sensor frame, known from the robot's kinematics.
@@ -443,7 +444,11 @@ def simulate_payload_rig(
       torques (a random 6 x p map), then gets its own scale, log-uniform in ``scales`` (counts,
       volts, microstrain: units never agree); ``p = 6`` with ``scales = (1, 1)`` is a sensor
       that reports the wrench itself; ``wrench=True`` is a commercial F/T sensor's output (6
-      channels, forces in N, torques in N*m, no mixing).
+      channels, forces in N, torques in N*m, no mixing). With ``gauges=q`` (and ``wrench``)
+      that output is what the sensor's factory matrix computes from ``q`` strain gauges, each
+      with its own noise (``noise`` of its own spread; torques weigh on a gauge as forces at
+      5 cm): the wrench channels' noise is then correlated, one gauge's noise reading on a
+      force and a torque at once.
     - Noise per channel: a fraction of that channel's spread over the loads, log-uniform in
       ``noise``.
     - Orientations a wrist reaches: gravity in the sensor frame ``tilt_deg`` degrees from the
@@ -460,6 +465,8 @@ def simulate_payload_rig(
     rng = np.random.default_rng(rng)
     if poses < 2 or readings < 1 or p < 3:
         raise CalibrationError("a payload rig needs >= 2 poses, >= 1 reading each, >= 3 channels")
+    if gauges and (not wrench or int(gauges) < 6):
+        raise CalibrationError("gauges: a wrench output (wrench=True) from >= 6 gauges")
     for name, pair in (("mass_kg", mass_kg), ("com_m", com_m), ("scales", scales),
                        ("noise", noise)):
         a, b = (float(t) for t in pair)
@@ -509,6 +516,14 @@ def simulate_payload_rig(
     spread = weight * np.linalg.norm(S, axis=0)  # each channel's spread over the load sphere
     z0 = rng.normal(size=p) * spread * rng.uniform(0.1, 10.0, p)
     levels = spread * np.exp(rng.uniform(np.log(noise[0]), np.log(noise[1]), p))
-    Z = z0 + lin + rng.normal(size=lin.shape) * levels
+    if wrench and gauges:
+        # each gauge's response to the wrench; a sensor's rated torque is about its rated force
+        # times a few centimetres (e.g. 80 N and 4 N*m), so torques weigh 1 / (5 cm)
+        G = rng.normal(size=(6, int(gauges))) * np.r_[np.ones(3), np.full(3, 20.0)][:, None]
+        g_levels = (weight * np.linalg.norm(S @ G, axis=0)
+                    * np.exp(rng.uniform(np.log(noise[0]), np.log(noise[1]), int(gauges))))
+        Z = z0 + lin + (rng.normal(size=(n, int(gauges))) * g_levels) @ np.linalg.pinv(G)
+    else:
+        Z = z0 + lin + rng.normal(size=lin.shape) * levels
     return RigData(Z=Z, pose=pose, stated_loads=weight * U, true_loads=F, directions=U, S=S,
                    offset=z0, magnitude=float(weight))
