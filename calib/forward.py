@@ -450,13 +450,14 @@ def _directions(L):
 
 def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
                 random_starts: int = RANDOM_STARTS, restarts: int = 2,
-                only: dict | None = None) -> dict:
+                only: dict | None = None, v0: np.ndarray | None = None) -> dict:
     """The maximum-likelihood forward fit of a rig (module docstring).
 
     ``start_loads``: named (P, r) arrays of every pose's load as another route estimates them
     (the closed-form routes' calibrations applied to the pose means); their directions at the
     unknown poses start the search. ``only``: named unit directions (nu, r) that are the *only*
-    starts (the oracle: the true directions). Returns the final fit (:func:`solve`'s dict) plus
+    starts (the oracle: the true directions). ``v0``: channel variances to start the
+    feasible-GLS rounds from (default: weights that favour no channel). Returns the final fit (:func:`solve`'s dict) plus
     ``v`` (pose-level variance per channel), ``W``, ``starts`` (every start: name, cost under the
     final weights, converged, iterations), ``chosen_start``, ``rounds`` (feasible-GLS rounds),
     ``g0``.
@@ -474,7 +475,8 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     else:
         pick, sp = np.arange(nu), pr
     # start weights that favour no channel (and are equivariant): each channel's spread
-    W0 = np.broadcast_to(1.0 / pr.spread, (sp.P, sp.p)).copy()
+    W0 = (np.broadcast_to(1.0 / pr.spread, (sp.P, sp.p)).copy() if v0 is None
+          else sp.weights(np.asarray(v0, float)))
     named = []
     if only is not None:
         for name, U in only.items():
@@ -538,7 +540,7 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     # weights and the lowest cost kept: the returned fit is the best of all starts under one
     # objective
     identified = (pr.p - pr.r) ** 2 >= pr.p + pr.r
-    v, rounds = None, 0
+    v, rounds = (None if v0 is None else np.asarray(v0, float)), 0
     while rounds < (MAX_REWEIGHT_ROUNDS if identified else UNIDENTIFIED_ROUNDS):
         rounds += 1
         v, settled = _reweight_step(sp, best, v)
@@ -630,36 +632,88 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
 
     stat = -(n - 1 - (p + 1) / 2) * np.log(max(lam, 1e-300))
     out["p_value"] = float(stats.chi2.sf(stat, r * (p - r)))
-    w, V = np.linalg.eigh(R)
-    if out["p_value"] < alpha and w[0] > 1e3 * np.finfo(float).eps:
+    step = _whitener(R * np.outer(sd, sd))
+    if out["p_value"] < alpha and step is not None:
         out["used"] = True
-        out["T"] = ((V / np.sqrt(w)) @ V.T) / sd[None, :]
-        out["T_inv"] = sd[:, None] * ((V * np.sqrt(w)) @ V.T)
+        out["T"], out["T_inv"] = step
     return out
+
+
+#: Rounds of :func:`fit_correlated`'s whitened refits: until the corrected residual correlation
+#: in the whitened channels is below :data:`REWEIGHT_TOL` of a correlation's standard error
+#: (``1 / sqrt(P)``) everywhere, at most this many.
+MAX_CORRELATION_ROUNDS = 16
+
+
+def _whitener(S) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(T, T_inv)`` that whiten a covariance ``S``: each channel scaled by its standard
+    deviation, then the correlation matrix's inverse square root (equivariant to the channels'
+    units and order). None when ``S`` is not positive definite."""
+    sd = np.sqrt(np.diag(S))
+    if not np.all(np.isfinite(S)) or np.any(sd <= 0):
+        return None
+    R = S / np.outer(sd, sd)
+    w, V = np.linalg.eigh(0.5 * (R + R.T))
+    if w[0] <= 1e3 * np.finfo(float).eps:
+        return None
+    return ((V / np.sqrt(w)) @ V.T) / sd[None, :], sd[:, None] * ((V * np.sqrt(w)) @ V.T)
+
+
+def corrected_covariance(pr: Problem, fit: dict) -> np.ndarray:
+    """The channels' noise covariance from a fit's residuals, with what the fitted directions
+    took out of them added back (the EM step of the errors-in-variables model): a pose's
+    direction, fitted to its own reading, absorbs the noise along the two tangent directions of
+    its load, ``B (B^T W B)^-1 B^T`` to first order (``B = g A t``, ``t`` the tangent basis, ``W``
+    the fit's weights). Without it the residual covariance is too small along those directions
+    and, re-used, drives them to zero (the degenerate point of the likelihood)."""
+    A, v, g = fit["A"], fit["v"], fit["g"]
+    E = (pr.Y - fit["M"] @ A.T - fit["o"]) * np.sqrt(pr.counts)[:, None]
+    U = fit["M"][pr.unknown] / g
+    B = g * np.einsum("ca,jba->jcb", A, tangents(U))  # (nu, p, r - 1)
+    Bw = B / v[None, :, None]
+    K = np.linalg.inv(np.einsum("jcb,jcd->jbd", Bw, B))
+    S = E.T @ E + np.einsum("jcb,jbd,jed->ce", B, K, B)
+    return S / max(pr.P - pr.r - 1, 1)
 
 
 def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
                    only: dict | None = None):
     """:func:`fit_forward`, then, where :func:`noise_correlation` finds the channels' noise
-    correlated, the same fit again in whitened channels from the first fit's loads (and the
-    same starts). Returns ``(problem, fit, T, T_inv, correlation)``: the problem and fit in the
-    channels fitted (``T`` the identity when not whitened); the calibration in the original
-    channels is ``gls_inverse(A, v) @ T`` with offset ``T_inv @ o``."""
+    correlated, the same fit in whitened channels: the first time from the first fit's loads
+    and the same starts, then, in rounds, from the last round's loads, each round whitening by
+    the last fit's :func:`corrected_covariance` (at most :data:`MAX_CORRELATION_ROUNDS`; the
+    count is ``correlation["rounds"]``). Returns ``(problem, fit, T, T_inv, correlation)``: the
+    problem and fit in the channels fitted (``T`` the identity when not whitened); the
+    calibration in the original channels is ``gls_inverse(A, v) @ T``, its offset
+    ``T_inv @ o``."""
     fit = fit_forward(pr, start_loads, seed=seed, only=only)
     correlation = noise_correlation(pr, fit)
     T = correlation.pop("T", None)
     T_inv = correlation.pop("T_inv", None)
-    if T is None:
-        return pr, fit, np.eye(pr.p), np.eye(pr.p), correlation
-    if pr.repeats:  # the within-pose scatter is per channel: not defined after mixing them
+    if T is None or pr.repeats:  # (a within-pose scatter is per channel: not after mixing)
         correlation["used"] = False
         return pr, fit, np.eye(pr.p), np.eye(pr.p), correlation
-    prw = Problem(pr.Y @ T.T, pr.counts, None, pr.known, pr.known_M, pr.magnitude)
-    if only is None:
-        starts = {"independent-noise fit": fit["M"], **(start_loads or {})}
-        fit = fit_forward(prw, starts, seed=seed)
-    else:
-        fit = fit_forward(prw, seed=seed, only=only)
+    tol = REWEIGHT_TOL / np.sqrt(pr.P)
+    for k in range(MAX_CORRELATION_ROUNDS):
+        prw = Problem(pr.Y @ T.T, pr.counts, None, pr.known, pr.known_M, pr.magnitude)
+        if only is not None:
+            fit = fit_forward(prw, seed=seed, only=only)
+        elif k == 0:
+            fit = fit_forward(prw, {"independent-noise fit": fit["M"], **(start_loads or {})},
+                              seed=seed, v0=np.ones(pr.p))
+        else:
+            fit = fit_forward(prw, seed=seed, v0=np.ones(pr.p), only={
+                "previous round": _directions(fit["M"][pr.unknown])})
+        correlation["rounds"] = k + 1
+        S = corrected_covariance(prw, fit)
+        step = _whitener(S)
+        if step is None:
+            break
+        sd = np.sqrt(np.diag(S))
+        settled = np.max(np.abs(S / np.outer(sd, sd) - np.eye(pr.p))) < tol
+        if settled or k == MAX_CORRELATION_ROUNDS - 1:
+            break
+        T, T_inv = step[0] @ T, T_inv @ step[1]
     return prw, fit, T, T_inv, correlation
 
 
