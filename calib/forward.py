@@ -458,9 +458,9 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     unknown poses start the search. ``only``: named unit directions (nu, r) that are the *only*
     starts (the oracle: the true directions). ``v0``: channel variances to start the
     feasible-GLS rounds from (default: weights that favour no channel). Returns the final fit
-    (:func:`solve`'s dict) plus ``v`` (pose-level variance per channel), ``W``, ``starts`` (every start: name, cost under the
-    final weights, converged, iterations), ``chosen_start``, ``rounds`` (feasible-GLS rounds),
-    ``g0``.
+    (:func:`solve`'s dict) plus ``v`` (pose-level variance per channel), ``W``, ``starts``
+    (every start: name, cost under the final weights, converged, iterations),
+    ``chosen_start``, ``rounds`` (feasible-GLS rounds), ``g0``.
     """
     rng = np.random.default_rng(seed)
     known_mag = np.linalg.norm(pr.known_M, axis=1)
