@@ -20,8 +20,8 @@ of that many degrees gives, ``|m| theta sqrt(2/9)``). Routes:
 Cells: held-out load rms over least squares' (and over the oracle's), median / 95th percentile /
 worst over the rigs, and (in brackets) the share of joint fits :func:`calib.reliability.assess`
 refuses (``calib fit`` exit 3). The last columns count joint fits beyond 3x least squares that
-still exit 0 (target: none) and the share of fits whose held-out error lies in the predicted 90 %
-interval.
+still exit 0 (target: none), the share of fits whose held-out error lies in the predicted 90 %
+interval, and the share in which the channels' noise was found correlated (whitened fit).
 
     python scripts/calib_payload_study.py [--rigs 100] [--workers 2] [--write docs/calib_study.md]
 """
@@ -96,9 +96,10 @@ def one(job):
             e = err(cal.C, cal.offset)
             pe = cal.diagnostics["joint"].get("predicted_error") or {}
             lo, hi = pe.get("interval", (np.nan, np.nan))
-            out["joint"] = (e / ls, bool(assess(cal, Z[kn], M[tr][kn])), bool(lo <= e <= hi))
+            out["joint"] = (e / ls, bool(assess(cal, Z[kn], M[tr][kn])), bool(lo <= e <= hi),
+                            bool(cal.diagnostics["joint"].get("noise_correlation", {}).get("used")))
         except CalibrationError:
-            out["joint"] = (np.nan, True, False)
+            out["joint"] = (np.nan, True, False, False)
         try:
             sam = fit_joint(Z, Z[kn], M[tr][kn], 3, poses=None, **accuracy)
             out["sampson"] = err(sam.C, sam.offset) / ls
@@ -116,8 +117,8 @@ def one(job):
 
 def table(results):
     lines = ["| case | joint / LS (refused) | joint / oracle | oracle / LS | Sampson / LS | "
-             ">3x LS and exit 0 | in predicted 90 % interval |",
-             "|---|---|---|---|---|---|---|"]
+             ">3x LS and exit 0 | in predicted 90 % interval | noise found correlated |",
+             "|---|---|---|---|---|---|---|---|"]
     for case in CASES:
         rows = [r[2] for r in results if r[0] == case]
         j = np.array([r["joint"][0] for r in rows])
@@ -129,7 +130,8 @@ def table(results):
         lines.append(
             f"| {case} | {fmt(j)} ({100 * refused.mean():.0f} %) | {fmt(j / orc)} | {fmt(orc)} "
             f"| {fmt([r['sampson'] for r in rows])} | {bad} | "
-            + (f"{100 * inside[ok].mean():.0f} %" if ok.any() else "n/a") + " |")
+            + (f"{100 * inside[ok].mean():.0f} %" if ok.any() else "n/a")
+            + f" | {100 * np.mean([r['joint'][3] for r in rows]):.0f} % |")
     return "\n".join(lines)
 
 
