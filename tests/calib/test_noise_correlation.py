@@ -46,8 +46,8 @@ def test_gauge_mixed_wrench_noise_is_found_and_used():
     """6 rigs of a 6-axis sensor whose wrench is mixed from 8 gauges (100 training poses): the
     forward route finds the correlation on every one (measured 6 of 6; 10 of 12 with 40
     poses), says so, and its calibration beats the same fit that ignores it (held-out error,
-    median ratio measured 0.8). It does not reach least squares with every load known: 1.52x
-    (median, these rigs), docs/calib.md."""
+    ratio measured 0.38-0.91, median 0.62). It does not quite reach least squares with every
+    load known: 1.13-1.27x on these rigs, docs/calib.md."""
     used, ratios = 0, []
     for seed in range(6):
         rig = simulate_payload_rig(2_000 + seed, poses=200, wrench=True, gauges=8)
@@ -65,4 +65,4 @@ def test_gauge_mixed_wrench_noise_is_found_and_used():
             ratios.append(_err(rig, te, M, cal.C, cal.offset)
                           / _err(rig, te, M, gls_inverse(fit["A"], fit["v"]), fit["o"]))
     assert used >= 5, used
-    assert np.median(ratios) < 0.9, ratios
+    assert np.median(ratios) < 0.8 and max(ratios) < 1.0, ratios
