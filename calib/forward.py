@@ -693,19 +693,28 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     if T is None or pr.repeats:  # (a within-pose scatter is per channel: not after mixing)
         correlation["used"] = False
         return pr, fit, np.eye(pr.p), np.eye(pr.p), correlation
-    tol = REWEIGHT_TOL / np.sqrt(pr.P)
+    # the rounds run on at most SEARCH_POSES unknown poses (a sweep's evenly strided subset),
+    # then the whole log is fitted once more in the channels they settled on
+    nu = len(pr.unknown)
+    pick = (np.unique(np.linspace(0, nu - 1, SEARCH_POSES).round().astype(int))
+            if nu > SEARCH_POSES and only is None else np.arange(nu))
+    rows = np.sort(np.r_[pr.known, pr.unknown[pick]])
+    q = pr.sub(pr.unknown[pick]) if len(pick) < nu else pr
+    first = fit["M"]
+    tol = REWEIGHT_TOL / np.sqrt(q.P)
     for k in range(MAX_CORRELATION_ROUNDS):
-        prw = Problem(pr.Y @ T.T, pr.counts, None, pr.known, pr.known_M, pr.magnitude)
+        qw = Problem(q.Y @ T.T, q.counts, None, q.known, q.known_M, q.magnitude)
         if only is not None:
-            fit = fit_forward(prw, seed=seed, only=only)
+            fit = fit_forward(qw, seed=seed, only=only)
         elif k == 0:
-            fit = fit_forward(prw, {"independent-noise fit": fit["M"], **(start_loads or {})},
-                              seed=seed, v0=np.ones(pr.p))
+            fit = fit_forward(qw, {"independent-noise fit": first[rows], **{
+                name: np.asarray(L)[rows] for name, L in (start_loads or {}).items()}},
+                seed=seed, v0=np.ones(pr.p))
         else:
-            fit = fit_forward(prw, seed=seed, v0=np.ones(pr.p), only={
-                "previous round": _directions(fit["M"][pr.unknown])})
+            fit = fit_forward(qw, seed=seed, v0=np.ones(pr.p), only={
+                "previous round": _directions(fit["M"][q.unknown])})
         correlation["rounds"] = k + 1
-        S = corrected_covariance(prw, fit)
+        S = corrected_covariance(qw, fit)
         step = _whitener(S)
         if step is None:
             break
@@ -714,6 +723,13 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
         if settled or k == MAX_CORRELATION_ROUNDS - 1:
             break
         T, T_inv = step[0] @ T, T_inv @ step[1]
+    if q is pr:
+        return qw, fit, T, T_inv, correlation
+    prw = Problem(pr.Y @ T.T, pr.counts, None, pr.known, pr.known_M, pr.magnitude)
+    full = np.array(first, float)
+    full[rows] = fit["M"]
+    fit = fit_forward(prw, {"correlated rounds": full, "independent-noise fit": first},
+                      seed=seed, v0=np.ones(pr.p))
     return prw, fit, T, T_inv, correlation
 
 
