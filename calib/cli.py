@@ -21,6 +21,7 @@ import numpy as np
 from sfm_common.cli import (
     OneLineParser,
     UsageError,
+    caused_by_interrupt,
     int_in_range,
     interrupts_not_lost,
     one_line,
@@ -205,6 +206,11 @@ def main(argv=None) -> int:
         print(f"calib: error: {e.filename or ''}: {e.strerror}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        print("calib: interrupted", file=sys.stderr)
+        return 130
+    except RuntimeError as e:  # a Ctrl-C that a hook wrapped (caused_by_interrupt)
+        if not caused_by_interrupt(e):
+            raise
         print("calib: interrupted", file=sys.stderr)
         return 130
 

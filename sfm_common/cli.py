@@ -78,6 +78,19 @@ class OneLineParser(argparse.ArgumentParser):
         raise UsageError(self.prog, f"{message} (see {self.prog} --help)")
 
 
+def caused_by_interrupt(e: BaseException) -> bool:
+    """Whether a Ctrl-C lies under an exception: Python wraps a ``KeyboardInterrupt`` raised in
+    some hooks (a descriptor's ``__set_name__`` while a class is created, e.g. during torch's
+    lazy imports) in a ``RuntimeError`` whose cause it is."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def one_line(e: BaseException) -> str:
     """The first line of an exception's text (its type name if it has none)."""
     text = str(e).strip()

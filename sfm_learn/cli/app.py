@@ -24,7 +24,13 @@ import warnings
 from dataclasses import dataclass
 
 import sfm_learn  # noqa: F401  (registers the policy specs)
-from sfm_common.cli import OneLineParser, UsageError, interrupts_not_lost, one_line
+from sfm_common.cli import (
+    OneLineParser,
+    UsageError,
+    caused_by_interrupt,
+    interrupts_not_lost,
+    one_line,
+)
 from sfm_learn.cli.common import CliError
 
 EXIT_USAGE = 2
@@ -105,7 +111,12 @@ def main(argv=None, *, nested: bool = False) -> int:
         args = build_parser().parse_args(argv)
         prog = args._prog
         with _held_warnings(), interrupts_not_lost():
-            return int(args._run(args) or 0)
+            try:
+                return int(args._run(args) or 0)
+            except RuntimeError as e:  # a Ctrl-C that a hook wrapped: still a Ctrl-C
+                if caused_by_interrupt(e):
+                    raise KeyboardInterrupt from e
+                raise
     except KeyboardInterrupt:
         if nested:
             raise

@@ -1,0 +1,75 @@
+"""A Ctrl-C that Python wraps in another exception is still a Ctrl-C: one line, exit 130.
+
+Python wraps a ``KeyboardInterrupt`` raised in a descriptor's ``__set_name__`` (while a class is
+created) in a ``RuntimeError``. A Ctrl-C during torch's lazy import of ``torch._dynamo`` (inside
+PPO's optimiser set-up) ended ``mkv train-ppo`` that way with a traceback and exit 1 (CI of stop
+47, tests/sfm_learn/cli/test_interrupts.py)."""
+
+import argparse
+
+import pytest
+
+import calib.cli
+import sfm_learn.cli.app as app
+from sfm_common.cli import caused_by_interrupt
+
+
+def _wrapped_interrupt() -> RuntimeError:
+    class Hook:
+        def __set_name__(self, owner, name):
+            raise KeyboardInterrupt
+
+    try:
+        type("Created", (), {"hook": Hook()})
+    except RuntimeError as e:
+        return e
+    pytest.skip("this Python does not wrap errors of __set_name__")
+
+
+def test_a_wrapped_interrupt_is_recognised_and_others_are_not():
+    assert caused_by_interrupt(_wrapped_interrupt())
+    assert caused_by_interrupt(KeyboardInterrupt())
+    assert not caused_by_interrupt(RuntimeError("boom"))
+    try:
+        try:
+            raise ValueError("inner")
+        except ValueError as inner:
+            raise RuntimeError("outer") from inner
+    except RuntimeError as e:
+        assert not caused_by_interrupt(e)
+
+
+def test_mkv_reports_a_wrapped_interrupt_in_one_line(monkeypatch, capsys):
+    err = _wrapped_interrupt()
+
+    def run(args):
+        raise err
+
+    class Parser:
+        def parse_args(self, argv):
+            return argparse.Namespace(_prog="mkv train-ppo", _run=run)
+
+    monkeypatch.setattr(app, "build_parser", Parser)
+    assert app.main([]) == app.EXIT_INTERRUPTED
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == ["mkv train-ppo: interrupted; no output written"]
+
+
+def test_calib_reports_a_wrapped_interrupt_in_one_line(monkeypatch, capsys):
+    err = _wrapped_interrupt()
+
+    def plan(args):
+        raise err
+
+    monkeypatch.setattr(calib.cli, "_plan", plan)
+    assert calib.cli.main(["plan", "poses.csv"]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["calib: interrupted"]
+
+
+def test_other_runtime_errors_still_propagate(monkeypatch):
+    def plan(args):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(calib.cli, "_plan", plan)
+    with pytest.raises(RuntimeError, match="a bug"):
+        calib.cli.main(["plan", "poses.csv"])
