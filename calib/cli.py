@@ -385,8 +385,8 @@ def _summary(args, cal, status) -> str:
            else "")
         + (", no static poses: every reading its own pose (forward maximum-likelihood fit)"
            if d.get("joint", {}).get("route") == "forward" else "")
-        + (", the channels' noise correlated (p = {:.1g}): fitted in whitened channels".format(
-            d["joint"]["noise_correlation"]["p_value"])
+        + (", the channels' noise correlated (p {}): fitted in whitened channels".format(
+            _p_text(d["joint"]["noise_correlation"]["p_value"]))
            if d.get("joint", {}).get("noise_correlation", {}).get("used") else "")
         + _predicted(d)
         + (f" (each channel a degree-{d['joint']['index_model']['degree']} polynomial of its own "
@@ -398,6 +398,11 @@ def _summary(args, cal, status) -> str:
            f"{d['cv_poses']['folds']} pose(s)" if "cv_poses" in d else "")
         + f"; {status}"
     )
+
+
+def _p_text(p: float) -> str:
+    """``= 3e-05``, or ``< 1e-300`` where the chi-square tail underflowed to 0."""
+    return f"= {p:.1g}" if p > 0 else "< 1e-300"
 
 
 def _predicted(d) -> str:

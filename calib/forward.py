@@ -597,9 +597,8 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
     lambda, Bartlett's chi-square on ``r (p - r)`` degrees of freedom). Where ``p_value <
     alpha``, ``T`` whitens the channels (``z -> T z``): each scaled by its noise, then the
     residual correlation matrix's inverse square root (equivariant: channel units and order
-    carry through ``T``). Not iterated further: with a free direction per pose the likelihood
-    of a full noise covariance is unbounded (the directions fit the quietest channel
-    combination exactly), as a free variance per channel is (:data:`REWEIGHT_TOL`).
+    carry through ``T``); :func:`fit_correlated` refits in those channels and refines ``T`` in
+    rounds.
 
     Returns ``{"p_value", "used", "max_abs_correlation"}`` and, when used, ``T`` (p, p) and
     its inverse ``T_inv``; ``p_value`` None where there is nothing to test (``p <= r``, or
@@ -714,7 +713,10 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
             fit = fit_forward(qw, seed=seed, v0=np.ones(pr.p), only={
                 "previous round": _directions(fit["M"][q.unknown])})
         correlation["rounds"] = k + 1
-        S = corrected_covariance(qw, fit)
+        try:
+            S = corrected_covariance(qw, fit)
+        except np.linalg.LinAlgError:  # a pose's tangent directions not read by any channel
+            break
         step = _whitener(S)
         if step is None:
             break

@@ -34,10 +34,12 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from calib.bias import fit_bias  # noqa: E402
+from calib.io import open_regular  # noqa: E402
 from calib.joint import choose_known_poses, fit_joint  # noqa: E402
 from calib.least_squares import fit_least_squares  # noqa: E402
 from calib.reliability import assess  # noqa: E402
 from calib.result import CalibrationError  # noqa: E402
+from sfm_common.cli import one_line  # noqa: E402
 
 POSE = "recorded_messages_pose_100.txt"
 WRENCH = "recorded_messages_wrench_100.txt"
@@ -46,8 +48,17 @@ WRENCH = "recorded_messages_wrench_100.txt"
 def load(folder: str):
     """Sensor-frame readings (n, 6), the weight in the sensor frame (n, 3), and the base-frame
     force model's residual rms (N)."""
-    pose = np.loadtxt(os.path.join(folder, POSE), delimiter=",", ndmin=2)
-    wrench = np.loadtxt(os.path.join(folder, WRENCH), delimiter=",", ndmin=2)
+    def read(name):
+        path = os.path.join(folder, name)
+        try:
+            with open_regular(path) as f:
+                return np.loadtxt(f, delimiter=",", ndmin=2)
+        except (OSError, ValueError, CalibrationError) as e:
+            raise SystemExit(f"{path}: {one_line(e)}") from None
+
+    pose, wrench = read(POSE), read(WRENCH)
+    if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(wrench))):
+        raise SystemExit(f"{folder}: NaN or inf in {POSE} or {WRENCH}")
     if pose.shape[1] != 7 or wrench.shape[1] != 6 or len(pose) != len(wrench):
         raise SystemExit(f"{folder}: expected {POSE} rows of 7 and {WRENCH} rows of 6, "
                          f"one per pose; got {pose.shape} and {wrench.shape}")

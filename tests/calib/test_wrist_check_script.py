@@ -49,3 +49,21 @@ def test_a_malformed_folder_is_one_line(tmp_path, load_script):
     (tmp_path / "recorded_messages_wrench_100.txt").write_text("1, 2, 3, 4, 5, 6\n")
     with pytest.raises(SystemExit, match="expected"):
         load_script("calib_wrist_check").main(["--data", str(tmp_path)])
+
+
+def test_missing_nonregular_and_nonfinite_files_are_one_line(tmp_path, load_script):
+    import os
+
+    import pytest
+
+    main = load_script("calib_wrist_check").main
+    with pytest.raises(SystemExit, match="recorded_messages_pose_100.txt"):
+        main(["--data", str(tmp_path)])  # missing
+    os.mkfifo(tmp_path / "recorded_messages_pose_100.txt")  # would block a plain open
+    (tmp_path / "recorded_messages_wrench_100.txt").write_text("1, 2, 3, 4, 5, 6\n")
+    with pytest.raises(SystemExit, match="not a regular file"):
+        main(["--data", str(tmp_path)])
+    os.remove(tmp_path / "recorded_messages_pose_100.txt")
+    (tmp_path / "recorded_messages_pose_100.txt").write_text("0, 0, 0, 0, 0, 0, nan\n")
+    with pytest.raises(SystemExit, match="NaN or inf"):
+        main(["--data", str(tmp_path)])
