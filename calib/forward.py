@@ -578,8 +578,108 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
             "chosen_start": best["start"], "rounds": rounds, "g0": g0}
 
 
-#: Significance level of :func:`noise_correlation`'s test (the conventional 1 %).
-CORRELATION_ALPHA = 0.01
+#: Significance level of :func:`noise_correlation`'s test: the conventional 5 %. A false
+#: positive costs little, the shared part being shrunk by its own significance
+#: (:func:`shared_noise`): on simulated rigs with independent noise the fits it whitened were as
+#: accurate as without (docs/calib.md).
+CORRELATION_ALPHA = 0.05
+
+
+def _range_and_complement(pr: Problem, fit: dict):
+    """A fit's residuals, in channels scaled by its noise (``sd``), as ``A_s eta + N xi``:
+    ``eta`` (P, r) in load units along the span of ``A_s = A / sd``, ``xi`` (P, p - r) along an
+    orthonormal basis ``N`` of its complement. Returns ``(Bm, eta, xi, sd, G0)`` with ``Bm =
+    [A_s N]`` and ``G0 = (A_s^T A_s)^-1`` (the covariance of ``eta`` were the scaled noise
+    white)."""
+    r = pr.r
+    sd = np.sqrt(fit["v"])
+    As = fit["A"] / sd[:, None]
+    E = (pr.Y - fit["M"] @ fit["A"].T - fit["o"]) * np.sqrt(pr.counts)[:, None] / sd
+    Q, _ = np.linalg.qr(As, mode="complete")
+    Bm = np.column_stack([As, Q[:, r:]])
+    coef = np.linalg.solve(Bm, E.T).T
+    return Bm, coef[:, :r], coef[:, r:], sd, np.linalg.inv(As.T @ As)
+
+
+def shared_noise(pr: Problem, fit: dict) -> dict | None:
+    """How much of the noise along the span of ``A`` the noise outside it predicts, and the
+    channels' noise covariance that follows.
+
+    In channels scaled by the fit's noise the residual is ``A_s eta + N xi``
+    (:func:`_range_and_complement`). ``xi`` is seen whole at every pose. ``eta`` is not: a
+    pose's fitted direction takes up its two tangent components, and what is left is its
+    radial part ``u^T eta`` (exactly, to first order, whatever the weights), at a known pose
+    all of it. Independent channel noise makes ``eta`` and ``xi`` independent; noise the
+    channels share (a wrench mixed from gauges) makes ``eta = Gamma xi + eps``. ``Gamma`` (r, p
+    - r) is the least-squares regression of the radial parts on ``u (x) xi`` (a known pose's
+    three components on ``I (x) xi``), each row weighted by its variance under independence
+    (``u^T G0 u``). Its Wald statistic ``W`` on ``m = r (p - r)`` coefficients tests ``Gamma =
+    0`` (``W / m ~ F(m, n - m)``, ``n`` the rows), and ``Gamma`` is shrunk by the positive-part
+    James-Stein factor ``1 - (m - 2) (n - m) / ((n - m + 2) W)`` (``m >= 3``; a weak estimate
+    is pulled toward independence by as much as it is noise, a strong one is kept). Why not the
+    full covariance: its part inside the span is seen one radial component per pose, and a free
+    direction per pose makes its likelihood unbounded (docs/calib.md); the calibration needs
+    only ``Gamma`` and the covariance of ``xi``, the rest (``eps``'s covariance, taken as the
+    radial residuals' variance times ``G0``) only weighs the directions.
+
+    Returns ``{"p_value", "wald", "m", "shrink", "gamma", "gamma_cov", "S"}`` (``S`` the
+    covariance in ``pr``'s channels, ``gamma_cov`` the unshrunk estimate's covariance), None
+    when there is nothing to test (``p <= r``, or fewer rows than coefficients)."""
+    r, p = pr.r, pr.p
+    if p <= r:
+        return None
+    Bm, eta, xi, sd, G0 = _range_and_complement(pr, fit)
+    P = pr.P
+    dofc = P / max(P - r - 1, 1)  # (A and o took r + 1 degrees of freedom per channel)
+    Cxi = xi.T @ xi / P * dofc
+    known = np.zeros(P, bool)
+    known[pr.known] = True
+    U = _unit(fit["M"])
+    iu = ~known
+    wu = 1.0 / np.sqrt(np.einsum("ja,ab,jb->j", U[iu], G0, U[iu]))
+    X = [np.einsum("ja,jb->jab", U[iu], xi[iu]).reshape(-1, r * (p - r)) * wu[:, None]]
+    y = [np.sum(U[iu] * eta[iu], axis=1) * wu]
+    if known.any():  # every component, rotated to unit variance under independence
+        L = np.linalg.cholesky(np.linalg.inv(G0))  # L^T G0 L = I
+        X.append(np.einsum("ab,jc->jbac", L, xi[known]).reshape(-1, r * (p - r)))
+        y.append((eta[known] @ L).ravel())
+    X, y = np.vstack(X), np.concatenate(y)
+    n, m = X.shape
+    if n <= m + 2 or not np.all(np.isfinite(X)) or not np.all(np.isfinite(y)):
+        return None
+    XtX = X.T @ X
+    try:
+        g = np.linalg.solve(XtX, X.T @ y)
+        XtX_inv = np.linalg.inv(XtX)
+    except np.linalg.LinAlgError:
+        return None
+    res = y - X @ g
+    s2 = float(res @ res) / (n - m)
+    if not s2 > 0:
+        return None
+    from scipy import stats
+
+    wald = float(g @ XtX @ g) / s2
+    shrink = (max(0.0, 1.0 - (m - 2) * (n - m) / ((n - m + 2) * wald)) if m >= 3 and wald > 0
+              else 1.0)
+    gamma = (shrink * g).reshape(r, p - r)
+    Cc = s2 * dofc * G0
+    K = gamma @ Cxi
+    C = np.block([[Cc + K @ gamma.T, K], [K.T, Cxi]])
+    S = (Bm @ C @ Bm.T) * np.outer(sd, sd)
+    return {"p_value": float(stats.f.sf(wald / m, m, n - m)), "wald": wald, "m": int(m),
+            "shrink": float(shrink), "gamma": gamma, "gamma_cov": s2 * XtX_inv,
+            "S": 0.5 * (S + S.T), "parts": (Bm, sd, Cc, Cxi)}
+
+
+def _shared_covariance(parts, dgamma) -> np.ndarray:
+    """The channels' covariance (in the fitted channels) were the shared part ``dgamma`` (r, p
+    - r) rather than the one fitted: :func:`shared_noise`'s ``parts`` with ``Gamma`` moved."""
+    Bm, sd, Cc, Cxi = parts
+    K = dgamma @ Cxi
+    C = np.block([[Cc + K @ dgamma.T, K], [K.T, Cxi]])
+    S = (Bm @ C @ Bm.T) * np.outer(sd, sd)
+    return 0.5 * (S + S.T)
 
 
 def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) -> dict:
@@ -590,58 +690,41 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
     sensor's channels can share a disturbance: a commercial F/T sensor reports a wrench that
     its factory matrix mixed from gauges, so one gauge's drift reads on a force and a torque
     at once. Least squares with every load known then cancels it through the channel that sees
-    it without signal; the per-channel model cannot. The residuals, in channels scaled by their
-    noise, are split into their part in the span of ``A`` (which the directions' own errors and
-    the magnitude's misfit also enter, whatever the noise) and the rest; with independent
-    noise the two parts are independent. Their canonical correlations are tested (Wilks'
-    lambda, Bartlett's chi-square on ``r (p - r)`` degrees of freedom). Where ``p_value <
-    alpha``, ``T`` whitens the channels (``z -> T z``): each scaled by its noise, then the
-    residual correlation matrix's inverse square root (equivariant: channel units and order
-    carry through ``T``); :func:`fit_correlated` refits in those channels and refines ``T`` in
-    rounds.
+    it without signal; the per-channel model cannot. :func:`shared_noise` regresses the
+    residual's part along the span of ``A`` on its part outside it and tests the regression
+    (F test). Where ``p_value < alpha``, ``T`` whitens the channels (``z -> T z``) by the
+    covariance that follows from the shrunk regression (equivariant: channel units and order
+    carry through ``T``); :func:`fit_correlated` refits in those channels, in rounds.
 
-    Returns ``{"p_value", "used", "max_abs_correlation"}`` and, when used, ``T`` (p, p) and
-    its inverse ``T_inv``; ``p_value`` None where there is nothing to test (``p <= r``, or
-    too few poses)."""
-    r, p = pr.r, pr.p
-    out = {"p_value": None, "used": False, "max_abs_correlation": 0.0}
-    n = pr.P
-    if p <= r or n <= p + r + 1:
+    Returns ``{"p_value", "used", "max_abs_correlation", "shrink"}`` (``max_abs_correlation``
+    the largest correlation between two channels' scaled residuals, ``shrink`` the James-Stein
+    factor) and, when used, ``T`` (p, p) and its inverse ``T_inv``; ``p_value`` None where
+    there is nothing to test (``p <= r``, or too few poses)."""
+    out = {"p_value": None, "used": False, "max_abs_correlation": 0.0, "shrink": 0.0}
+    if pr.p <= pr.r or pr.P <= pr.p + pr.r + 1:
         return out
-    sd = np.sqrt(fit["v"])
-    E = (pr.Y - fit["M"] @ fit["A"].T - fit["o"]) * np.sqrt(pr.counts)[:, None] / sd
+    E = (pr.Y - fit["M"] @ fit["A"].T - fit["o"]) * np.sqrt(pr.counts)[:, None]
     E = E - E.mean(axis=0)
     R = E.T @ E
     dR = np.sqrt(np.diag(R))
     if not np.all(np.isfinite(R)) or np.any(dR <= 0):
         return out
-    R = R / np.outer(dR, dR)
-    out["max_abs_correlation"] = float(np.max(np.abs(R - np.eye(p))))
-    Q, _ = np.linalg.qr(fit["A"] / sd[:, None], mode="complete")
-    h, f = E @ Q[:, :r], E @ Q[:, r:]
-    Shh, Sff, Shf = h.T @ h, f.T @ f, h.T @ f
-    try:
-        K = np.linalg.solve(Shh, Shf) @ np.linalg.solve(Sff, Shf.T)
-    except np.linalg.LinAlgError:
+    out["max_abs_correlation"] = float(np.max(np.abs(R / np.outer(dR, dR) - np.eye(pr.p))))
+    sn = shared_noise(pr, fit)
+    if sn is None:
         return out
-    lam = float(np.linalg.det(np.eye(r) - K))
-    if not np.isfinite(lam):
-        return out
-    from scipy import stats
-
-    stat = -(n - 1 - (p + 1) / 2) * np.log(max(lam, 1e-300))
-    out["p_value"] = float(stats.chi2.sf(stat, r * (p - r)))
-    step = _whitener(R * np.outer(sd, sd))
-    if out["p_value"] < alpha and step is not None:
+    out["p_value"], out["shrink"] = sn["p_value"], sn["shrink"]
+    step = _whitener(sn["S"])
+    if out["p_value"] < alpha and sn["shrink"] > 0 and step is not None:
         out["used"] = True
         out["T"], out["T_inv"] = step
     return out
 
 
-#: Rounds of :func:`fit_correlated`'s whitened refits: until the corrected residual correlation
-#: in the whitened channels is below :data:`REWEIGHT_TOL` of a correlation's standard error
-#: (``1 / sqrt(P)``) everywhere, at most this many.
-MAX_CORRELATION_ROUNDS = 16
+#: Rounds of :func:`fit_correlated`'s whitened refits: until the covariance
+#: :func:`shared_noise` finds in the whitened channels has no correlation above
+#: :data:`REWEIGHT_TOL` of a correlation's standard error (``1 / sqrt(P)``), at most this many.
+MAX_CORRELATION_ROUNDS = 8
 
 
 def _whitener(S) -> tuple[np.ndarray, np.ndarray] | None:
@@ -658,33 +741,16 @@ def _whitener(S) -> tuple[np.ndarray, np.ndarray] | None:
     return ((V / np.sqrt(w)) @ V.T) / sd[None, :], sd[:, None] * ((V * np.sqrt(w)) @ V.T)
 
 
-def corrected_covariance(pr: Problem, fit: dict) -> np.ndarray:
-    """The channels' noise covariance from a fit's residuals, with what the fitted directions
-    took out of them added back (the EM step of the errors-in-variables model): a pose's
-    direction, fitted to its own reading, absorbs the noise along the two tangent directions of
-    its load, ``B (B^T W B)^-1 B^T`` to first order (``B = g A t``, ``t`` the tangent basis, ``W``
-    the fit's weights). Without it the residual covariance is too small along those directions
-    and, re-used, drives them to zero (the degenerate point of the likelihood)."""
-    A, v, g = fit["A"], fit["v"], fit["g"]
-    E = (pr.Y - fit["M"] @ A.T - fit["o"]) * np.sqrt(pr.counts)[:, None]
-    U = fit["M"][pr.unknown] / g
-    B = g * np.einsum("ca,jba->jcb", A, tangents(U))  # (nu, p, r - 1)
-    Bw = B / v[None, :, None]
-    K = np.linalg.inv(np.einsum("jcb,jcd->jbd", Bw, B))
-    S = E.T @ E + np.einsum("jcb,jbd,jed->ce", B, K, B)
-    return S / max(pr.P - pr.r - 1, 1)
-
-
 def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
                    only: dict | None = None):
     """:func:`fit_forward`, then, where :func:`noise_correlation` finds the channels' noise
     correlated, the same fit in whitened channels: the first time from the first fit's loads
-    and the same starts, then, in rounds, from the last round's loads, each round whitening by
-    the last fit's :func:`corrected_covariance` (at most :data:`MAX_CORRELATION_ROUNDS`; the
-    count is ``correlation["rounds"]``). Returns ``(problem, fit, T, T_inv, correlation)``: the
-    problem and fit in the channels fitted (``T`` the identity when not whitened); the
-    calibration in the original channels is ``gls_inverse(A, v) @ T``, its offset
-    ``T_inv @ o``."""
+    and the same starts, then, in rounds, from the last round's directions, each round
+    whitening further by what :func:`shared_noise` still finds (until that is white, at most
+    :data:`MAX_CORRELATION_ROUNDS`; the count is ``correlation["rounds"]``). Returns
+    ``(problem, fit, T, T_inv, correlation)``: the problem and fit in the channels fitted
+    (``T`` the identity when not whitened); the calibration in the original channels is
+    ``gls_inverse(A, v) @ T``, its offset ``T_inv @ o``."""
     fit = fit_forward(pr, start_loads, seed=seed, only=only)
     correlation = noise_correlation(pr, fit)
     T = correlation.pop("T", None)
@@ -713,17 +779,13 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
             fit = fit_forward(qw, seed=seed, v0=np.ones(pr.p), only={
                 "previous round": _directions(fit["M"][q.unknown])})
         correlation["rounds"] = k + 1
-        try:
-            S = corrected_covariance(qw, fit)
-        except np.linalg.LinAlgError:  # a pose's tangent directions not read by any channel
+        sn = shared_noise(qw, fit)
+        step = _whitener(sn["S"]) if sn is not None else None
+        if step is None or k == MAX_CORRELATION_ROUNDS - 1:
             break
-        step = _whitener(S)
-        if step is None:
-            break
-        sd = np.sqrt(np.diag(S))
-        settled = np.max(np.abs(S / np.outer(sd, sd) - np.eye(pr.p))) < tol
-        if settled or k == MAX_CORRELATION_ROUNDS - 1:
-            break
+        sd = np.sqrt(np.diag(sn["S"]))
+        if np.max(np.abs(sn["S"] / np.outer(sd, sd) - np.eye(pr.p))) < tol:
+            break  # what is left is below a quarter of a correlation's standard error
         T, T_inv = step[0] @ T, T_inv @ step[1]
     if q is pr:
         return qw, fit, T, T_inv, correlation
@@ -801,7 +863,8 @@ def _sampler(cov) -> np.ndarray:
 
 
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
-                  coverage: float = 0.90, load_sd: float = 0.0) -> dict:
+                  coverage: float = 0.90, load_sd: float = 0.0,
+                  whitened: bool = False) -> dict:
     """The held-out load error expected of the fit's calibration on new single readings at the
     rig's poses (as many as it has poses), with an interval, and the same for least squares
     with every load known (the reference the verdict compares with).
@@ -811,14 +874,21 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     from its scaled chi-square (degrees of freedom as in :func:`estimate_variances`), and the
     test readings' noise. ``rms`` is the median over draws, ``interval`` the central
     ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
-    ``ratio`` their quotient. Returns None when the covariance does not exist (a singular
+    ``ratio`` their quotient, ``upper_ratio`` the interval's upper end over ``ls_rms`` (what
+    :func:`calib.reliability.assess` holds to its ceiling). Returns None when the covariance does not exist (a singular
     fit: nothing identified).
 
     ``load_sd``: the stated loads' own error (standard deviation per component, load units; a
     robot's kinematics, a weighing): the known poses' loads then move the fit (linearised: the
     error ``delta`` of a known load reads as the reading error ``A delta``; for least squares,
     every pose's), and the held-out error is measured against loads stated as accurately. 0:
-    stated loads exact."""
+    stated loads exact.
+
+    ``whitened``: the fit is in channels whitened by an estimate of the noise the channels
+    share (:func:`fit_correlated`). That estimate is uncertain: each draw also moves the shared
+    part by its own standard error (:func:`shared_noise`'s ``gamma_cov`` at the fit), so the
+    test readings' noise is correlated in a way the calibration does not weigh for, and the fit's
+    own error is mixed across channels as that noise is."""
     rng = np.random.default_rng(seed)
     r, p = pr.r, pr.p
     cov = _global_cov(fit)
@@ -852,13 +922,29 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
         L_lab_ls = _sampler(Hb @ _label_cov(fit["W"], X, A, sd, tangent) @ Hb)
     err, err_ls = np.empty(draws), np.empty(draws)
     truth = M @ A.T + o  # noise-free readings at the poses' loads
+    sn = shared_noise(pr, fit) if whitened else None
+    if sn is not None:
+        Lg = _sampler(sn["gamma_cov"])
+        sv = np.sqrt(v)
     for i in range(draws):
         s = rng.chisquare(dof) / dof
         vi = v / s  # the variance an estimate of v could have come from
         # the fit's error scales with the true noise: each channel's block by sqrt(vi / v)
         d = (L @ rng.standard_normal(nth)).reshape(p, r + 1) * np.sqrt(1.0 / s)[:, None]
-        Z = truth + rng.standard_normal((P, p)) * np.sqrt(vi + pr.within**2)  # one reading
         dl = np.einsum("cab,cb->ca", Lls, rng.standard_normal((p, r + 1)))
+        if sn is None:
+            Z = truth + rng.standard_normal((P, p)) * np.sqrt(vi + pr.within**2)  # one reading
+            Cw = None
+        else:  # the shared part's error: correlated noise, errors mixed across channels
+            dg = (Lg @ rng.standard_normal(len(Lg))).reshape(r, p - r)
+            Si = _shared_covariance(sn["parts"], dg) / np.sqrt(np.outer(s, s))
+            w, V = np.linalg.eigh(Si)
+            half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T
+            mix = half / sv[None, :]
+            d, dl = mix @ d * np.sqrt(s)[:, None], mix @ dl
+            Z = truth + rng.standard_normal((P, p)) @ half
+            Siw = np.linalg.pinv(Si)
+            Cw = Siw  # least squares with every load known weighs by the true covariance
         if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
             d = d + (L_lab @ rng.standard_normal(nth)).reshape(p, r + 1)
             dl = dl + (L_lab_ls @ rng.standard_normal(nth)).reshape(p, r + 1)
@@ -867,10 +953,12 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
         Ch = gls_inverse(Ah, v)  # the calibration weighs by the estimate, the truth is vi
         err[i] = np.sqrt(np.mean(np.sum(((Z - oh) @ Ch.T - M) ** 2, axis=1)))
         Al, ol = A + dl[:, :r], o + dl[:, r]
-        Cl = gls_inverse(Al, v)
+        Cl = (gls_inverse(Al, v) if Cw is None
+              else np.linalg.solve(Al.T @ Cw @ Al, Al.T @ Cw))
         err_ls[i] = np.sqrt(np.mean(np.sum(((Z - ol) @ Cl.T - M) ** 2, axis=1)))
     lo, hi = np.quantile(err, [(1 - coverage) / 2, (1 + coverage) / 2])
     med, med_ls = float(np.median(err)), float(np.median(err_ls))
     return {"rms": med, "interval": [float(lo), float(hi)], "coverage": coverage,
             "ls_rms": med_ls, "ratio": med / med_ls if med_ls > 0 else float("inf"),
+            "upper_ratio": float(hi) / med_ls if med_ls > 0 else float("inf"),
             "test_readings": int(P)}

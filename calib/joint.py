@@ -284,7 +284,8 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     pr, fit, T, T_inv, correlation = fit_correlated(pr, starts, seed=seed)
     C = gls_inverse(fit["A"], fit["v"]) @ T
     offset = T_inv @ fit["o"]
-    pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0)
+    pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0,
+                         whitened=bool(correlation.get("used")))
     from .forward import _global_cov
 
     cov = _global_cov(fit)

@@ -55,9 +55,14 @@ MAGNITUDE_TOLERANCE = 0.2
 #: Default factor of the held-out check (leave-one-pose-out rms over in-sample residual rms).
 #: Measured on simulated rigs (scripts/calib_rig_study.py): 3-8 for good fits.
 HOLDOUT_FACTOR = 20.0
-#: A forward fit whose predicted held-out error (:func:`calib.forward.predict_error`) exceeds
+#: A forward fit whose predicted held-out error (:func:`calib.forward.predict_error`) may exceed
 #: this multiple of what least squares with every load known would achieve on the same rig is
-#: refused: the ceiling the calibration study holds every written fit to (3x).
+#: refused: the ceiling the calibration study holds every written fit to (3x). "May": the
+#: upper end of the predicted 90 % interval, not its median, is held to it, so a fit is written
+#: only where its own uncertainty excludes (at 95 %) being beyond the ceiling. On the real wrist
+#: sensor with random sets of 4 known poses the median alone wrote fits measured 3.3-7.6x (their
+#: medians predicted 1.5-2.1x, their intervals reaching 4.7-6.1x); on simulated payload rigs no
+#: interval's upper end reached it (docs/calib.md).
 PREDICTED_RATIO_MAX = 3.0
 #: The held-out rms may never exceed this fraction of the load magnitude.
 HOLDOUT_MAX_FRACTION = 0.5
@@ -106,9 +111,11 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
         out.append(f"the scale is not identified: the fitted load magnitude's standard error is "
                    f"{se_g:.1%} of it (limit {OFFSET_STDERR_MAX_FRACTION:.0%})")
     pe = joint_d.get("predicted_error")
-    if isinstance(pe, dict) and not (pe.get("ratio", np.inf) <= PREDICTED_RATIO_MAX):
-        out.append(f"predicted held-out error {pe['rms']:.4g} is {pe['ratio']:.3g}x that of "
-                   f"least squares with every load known (limit {PREDICTED_RATIO_MAX:g}x)")
+    if isinstance(pe, dict) and not (pe.get("upper_ratio", np.inf) <= PREDICTED_RATIO_MAX):
+        out.append(f"predicted held-out error {pe['rms']:.4g} ({pe['ratio']:.3g}x least squares "
+                   f"with every load known) could reach {pe['interval'][1]:.4g}, "
+                   f"{pe['upper_ratio']:.3g}x (limit {PREDICTED_RATIO_MAX:g}x at the 90 % "
+                   "interval's upper end)")
     elif joint_d.get("route") == "forward" and pe is None:
         out.append("the fit's covariance does not exist: nothing is identified")
     if known_Z is None or known_M is None:
