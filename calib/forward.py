@@ -875,8 +875,8 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     test readings' noise. ``rms`` is the median over draws, ``interval`` the central
     ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
     ``ratio`` their quotient, ``upper_ratio`` the interval's upper end over ``ls_rms`` (what
-    :func:`calib.reliability.assess` holds to its ceiling). Returns None when the covariance does not exist (a singular
-    fit: nothing identified).
+    :func:`calib.reliability.assess` holds to its ceiling). Returns None when the covariance
+    does not exist (a singular fit: nothing identified).
 
     ``load_sd``: the stated loads' own error (standard deviation per component, load units; a
     robot's kinematics, a weighing): the known poses' loads then move the fit (linearised: the
