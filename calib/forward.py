@@ -622,8 +622,9 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
     only ``Gamma`` and the covariance of ``xi``, the rest (``eps``'s covariance, taken as the
     radial residuals' variance times ``G0``) only weighs the directions.
 
-    Returns ``{"p_value", "wald", "m", "shrink", "gamma", "gamma_cov", "S"}`` (``S`` the
-    covariance in ``pr``'s channels, ``gamma_cov`` the unshrunk estimate's covariance), None
+    Returns ``{"p_value", "wald", "m", "shrink", "gamma", "gamma_ls", "gamma_cov", "S",
+    "parts"}`` (``gamma_ls`` the unshrunk estimate, ``gamma_cov`` its covariance (row-major
+    ``vec``), ``S`` the covariance in ``pr``'s channels), None
     when there is nothing to test (``p <= r``, or fewer rows than coefficients)."""
     r, p = pr.r, pr.p
     if p <= r:
@@ -668,7 +669,8 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
     C = np.block([[Cc + K @ gamma.T, K], [K.T, Cxi]])
     S = (Bm @ C @ Bm.T) * np.outer(sd, sd)
     return {"p_value": float(stats.f.sf(wald / m, m, n - m)), "wald": wald, "m": int(m),
-            "shrink": float(shrink), "gamma": gamma, "gamma_cov": s2 * XtX_inv,
+            "shrink": float(shrink), "gamma": gamma, "gamma_ls": g.reshape(r, p - r),
+            "gamma_cov": s2 * XtX_inv,
             "S": 0.5 * (S + S.T), "parts": (Bm, sd, Cc, Cxi)}
 
 
