@@ -167,6 +167,20 @@ def test_the_joint_route_passes_the_stated_accuracy_to_the_prediction():
             fit_joint(Z, Z[known], M[known], 3, known_sigma=huge)
 
 
+def test_the_verdict_holds_the_interval_upper_end_to_the_ceiling():
+    """A forward fit is refused where the upper end of its predicted 90 % interval exceeds 3x
+    least squares with every load known, even with its median below; a good fit is written."""
+    _, Z, M, known, _, _ = _payload_split(11, poses=60)
+    cal = _joint(Z, Z[known], M[known])
+    pe = cal.diagnostics["joint"]["predicted_error"]
+    assert pe["upper_ratio"] >= pe["ratio"] > 0
+    assert pe["upper_ratio"] == pytest.approx(pe["interval"][1] / pe["ls_rms"])
+    assert not assess(cal, Z[known], M[known])
+    pe.update(ratio=1.5, upper_ratio=4.0, interval=[pe["interval"][0], 4.0 * pe["ls_rms"]])
+    reasons = assess(cal, Z[known], M[known])
+    assert any("could reach" in r and "4x" in r for r in reasons), reasons
+
+
 def test_narrow_coverage_is_refused():
     """Directions within 34 degrees of their mean: the offset is not identified and the fit is
     not reliable (exit 3 in the CLI), whatever its in-sample fit."""

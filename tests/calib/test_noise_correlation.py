@@ -2,14 +2,25 @@
 
 A commercial F/T sensor's wrench is mixed from its gauges by the factory matrix, so one gauge's
 noise reads on several channels at once (`simulate_payload_rig(wrench=True, gauges=8)`). The
-forward route tests the residuals for it (:func:`calib.forward.noise_correlation`) and refits in
-whitened channels where it finds it."""
+forward route regresses the residual's part along the span of ``A`` on its part outside it
+(:func:`calib.forward.shared_noise`), tests the regression (:func:`calib.forward.noise_correlation`)
+and refits in whitened channels where it finds it."""
 
 import warnings
 
 import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from calib.forward import Problem, fit_forward, gls_inverse, noise_correlation
+from calib.forward import (
+    CORRELATION_ALPHA,
+    Problem,
+    _range_and_complement,
+    fit_forward,
+    gls_inverse,
+    noise_correlation,
+    shared_noise,
+)
 from calib.joint import choose_known_poses, fit_joint
 from calib.simulate import simulate_payload_rig
 
@@ -41,7 +52,8 @@ def _with_and_without(rig):
 
 def test_independent_channel_noise_is_rarely_taken_for_correlated():
     """20 payload rigs whose channels' noise is independent (40 training poses, one reading
-    each): the 1 % test fires on at most 2 (measured 0 of 40 and 1 of 40 on other seeds)."""
+    each): the 5 % test fires on at most 3 (a binomial 1-in-60 upper bound; measured 1 of 40
+    and 2 of 40 on development seeds)."""
     fired = 0
     for seed in range(20):
         rig = simulate_payload_rig(1_000 + seed, poses=80)
@@ -53,7 +65,7 @@ def test_independent_channel_noise_is_rarely_taken_for_correlated():
         c = noise_correlation(pr, fit)
         assert c["p_value"] is not None and 0 <= c["p_value"] <= 1
         fired += c["used"]
-    assert fired <= 2, fired
+    assert fired <= 3, fired
 
 
 def test_gauge_mixed_wrench_noise_is_found_and_used():
@@ -69,7 +81,7 @@ def test_gauge_mixed_wrench_noise_is_found_and_used():
         d = cal.diagnostics["joint"]["noise_correlation"]
         used += d["used"]
         if d["used"]:
-            assert d["p_value"] < 0.01 and d["max_abs_correlation"] > 0
+            assert d["p_value"] < CORRELATION_ALPHA and d["max_abs_correlation"] > 0
             ratios.append(e / e_ind)
     assert used >= 5, used
     assert np.median(ratios) < 0.8 and max(ratios) < 1.0, ratios
@@ -83,3 +95,83 @@ def test_a_long_sweep_settles_the_correlation_on_a_subset_and_fits_every_reading
     d = cal.diagnostics["joint"]
     assert d["noise_correlation"]["used"] and d["n_poses"] == len(rig.split("poses")[0])
     assert e < e_ind, (e, e_ind)
+
+
+def _synthetic_residuals(seed, n=60, p=7, r=3):
+    """A fit at the truth whose residuals are noise of a known shared part: in channels scaled
+    by the noise, ``xi ~ N(0, I)`` outside the span of ``A_s``, ``eta = Gamma xi + eps`` along it
+    with ``eps ~ N(0, G0)`` (the regression's model exactly); the first 4 poses known, the
+    others' residuals keep only their radial part (what a fitted direction leaves)."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(p, r)) * np.exp(rng.uniform(-3, 3, p))[:, None]
+    v = np.exp(rng.uniform(-2, 2, p)) ** 2
+    U = rng.normal(size=(n, r))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    M = 2.0 * U
+    pr = Problem(M @ A.T, None, None, np.arange(4), M[:4], magnitude=2.0)
+    fit = {"A": A, "o": np.zeros(p), "v": v, "M": M}
+    Bm, _, _, sd, G0 = _range_and_complement(pr, fit)  # (the residuals are all zero here)
+    gamma = rng.normal(size=(r, p - r)) * 0.3
+    xi = rng.normal(size=(n, p - r))
+    eta = xi @ gamma.T + rng.multivariate_normal(np.zeros(r), G0, n)
+    unknown = np.arange(4, n)
+    eta[unknown] = U[unknown] * np.sum(U[unknown] * eta[unknown], axis=1, keepdims=True) / 1.0
+    # (a radial part u (u . eta) is what is left; its tangential parts went into the direction)
+    E = (np.column_stack([eta, xi]) @ Bm.T) * sd
+    return Problem(M @ A.T + E, None, None, np.arange(4), M[:4], magnitude=2.0), fit, gamma
+
+
+def test_the_shared_part_is_recovered_within_its_stated_standard_errors():
+    """Residuals of exactly the regression's model (:func:`_synthetic_residuals`, 30 rigs):
+    the estimate's Wald distance from the true ``Gamma`` over its stated covariance follows its
+    chi-square (mean over the rigs within 0.7-1.4 of the m degrees of freedom; 1 expected,
+    standard error 0.06), and a large shared part is kept, not shrunk away."""
+    w = []
+    for seed in range(30):
+        pr, fit, gamma = _synthetic_residuals(seed)
+        sn = shared_noise(pr, fit)
+        d = (sn["gamma_ls"] - gamma).ravel()
+        w.append(float(d @ np.linalg.solve(sn["gamma_cov"], d)) / sn["m"])
+        assert sn["p_value"] < CORRELATION_ALPHA and sn["shrink"] > 0.5
+    assert 0.7 < np.mean(w) < 1.4, np.mean(w)
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=list(HealthCheck))
+@given(log_scale=st.lists(st.floats(-4, 4), min_size=7, max_size=7), perm_seed=st.integers(0, 99),
+       seed=st.integers(0, 50))
+def test_shared_noise_is_equivariant(log_scale, perm_seed, seed):
+    """Channels rescaled by 1e-4..1e4 and permuted: the same test result and shrinkage, and
+    the covariance carried through (``S -> D S D``, reordered), to 1e-8 relative."""
+    pr, fit, _ = _synthetic_residuals(seed)
+    s = 10.0 ** np.asarray(log_scale)
+    perm = np.random.default_rng(perm_seed).permutation(pr.p)
+    pr2 = Problem((pr.Y * s)[:, perm], None, None, pr.known, pr.known_M, magnitude=2.0)
+    fit2 = {"A": (fit["A"] * s[:, None])[perm], "o": np.zeros(pr.p),
+            "v": (fit["v"] * s**2)[perm], "M": fit["M"]}
+    a, b = shared_noise(pr, fit), shared_noise(pr2, fit2)
+    assert abs(a["wald"] - b["wald"]) <= 1e-8 * a["wald"]
+    assert abs(a["shrink"] - b["shrink"]) <= 1e-8
+    Sa = (a["S"] * np.outer(s, s))[np.ix_(perm, perm)]
+    assert np.allclose(Sa, b["S"], rtol=1e-8, atol=1e-10 * np.abs(Sa).max())
+
+
+def test_no_shared_part_is_shrunk_toward_none():
+    """Independent noise (``Gamma = 0``): the James-Stein factor pulls the estimate toward 0
+    (median shrink factor below 0.5 over 30 rigs; the rigs where the test fires at 5 % keep
+    some)."""
+    shrinks = []
+    for seed in range(30):
+        pr, fit, _ = _synthetic_residuals(100 + seed)
+        pr0 = Problem(pr.Y, None, None, pr.known, pr.known_M, magnitude=2.0)
+        # the same rig with the shared part removed from the residuals
+        rng = np.random.default_rng(seed)
+        Bm, eta, xi, sd, G0 = _range_and_complement(pr0, fit)
+        xi0 = rng.normal(size=xi.shape)
+        eta0 = rng.multivariate_normal(np.zeros(3), G0, len(eta))
+        U = fit["M"] / 2.0
+        eta0[4:] = U[4:] * np.sum(U[4:] * eta0[4:], axis=1, keepdims=True)
+        E = (np.column_stack([eta0, xi0]) @ Bm.T) * sd
+        sn = shared_noise(Problem(fit["M"] @ fit["A"].T + E, None, None, pr.known, pr.known_M,
+                                  magnitude=2.0), fit)
+        shrinks.append(sn["shrink"])
+    assert np.median(shrinks) < 0.5, shrinks
