@@ -281,6 +281,11 @@ def write_csv(path: str, header, data: np.ndarray) -> None:
 def split_known(header, data, channels, dof) -> tuple[np.ndarray, np.ndarray]:
     """From a KNOWN.csv table pick the channel columns (in RAW order) and the load columns."""
     cols = load_columns(dof)
+    clash = [c for c in channels if c in cols]
+    if clash:  # e.g. a wrench sensor's channels named Fx..Tz: the loads would be read as them
+        raise CalibrationError(
+            f"channel name(s) {clash} are also load column names ({','.join(cols)} hold the "
+            "known loads): rename the sensor's channels in both files (e.g. raw_Fx)")
     missing = [c for c in list(channels) + cols if c not in header]
     if missing:
         raise CalibrationError(f"known-load file lacks column(s) {missing}")

@@ -144,8 +144,19 @@ def bad_cases(tmp_path, raw3):
         9 * np.column_stack([np.cos(t), np.sin(t), np.cos(t)]) / np.sqrt(2) @ raw3.S + raw3.offset,
     )
     (tmp_path / "cal_bad.json").write_text("{not json")
+    # a wrench sensor's channels named like the load columns, and a known file repeating one
+    wrench = ["Fx", "Fy", "Fz", "Tx", "Ty", "Tz", "c6", "c7"]
+    write_csv(tmp_path / "wrench.csv", wrench, raw3.Z)
+    write_csv(tmp_path / "wrench_known.csv", wrench + ["gx", "gy", "gz"],
+              np.hstack([raw3.Z[:4], np.eye(3)[[0, 1, 2, 0]]]))
+    (tmp_path / "dup_known.csv").write_text(
+        ",".join(CH + [CH[0], "Fx", "Fy", "Fz"]) + "\n" + ",".join(["1"] * 12) + "\n")
     out = tmp_path / "o.json"
     return [
+        (["fit", tmp_path / "wrench.csv", "--dof", 3, "--known", tmp_path / "wrench_known.csv",
+          "--out", out], "also load column names"),
+        (["fit", tmp_path / "raw.csv", "--dof", 3, "--known", tmp_path / "dup_known.csv",
+          "--out", out], "duplicate column names"),
         (["fit", tmp_path / "missing.csv", "--dof", 3, "--out", out], "cannot read"),
         (["fit", tmp_path / "few.csv", "--dof", 3, "--bias", "--out", out], "5 samples"),
         (["fit", tmp_path / "const.csv", "--dof", 3, "--bias", "--out", out], "constant"),
