@@ -666,22 +666,19 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
     shrink = (max(0.0, 1.0 - (m - 2) * (n - m) / ((n - m + 2) * wald)) if m >= 3 and wald > 0
               else 1.0)
     gamma = (shrink * g).reshape(r, p - r)
-    Cc = s2 * dofc * G0
-    K = gamma @ Cxi
-    C = np.block([[Cc + K @ gamma.T, K], [K.T, Cxi]])
-    S = (Bm @ C @ Bm.T) * np.outer(sd, sd)
+    parts = (Bm, sd, s2 * dofc * G0, Cxi)
     return {"p_value": float(stats.f.sf(wald / m, m, n - m)), "wald": wald, "m": int(m),
             "shrink": float(shrink), "gamma": gamma, "gamma_ls": g.reshape(r, p - r),
-            "gamma_cov": s2 * XtX_inv,
-            "S": 0.5 * (S + S.T), "parts": (Bm, sd, Cc, Cxi)}
+            "gamma_cov": s2 * XtX_inv, "S": _shared_covariance(parts, gamma), "parts": parts}
 
 
-def _shared_covariance(parts, dgamma) -> np.ndarray:
-    """The channels' covariance (in the fitted channels) were the shared part ``dgamma`` (r, p
-    - r) rather than the one fitted: :func:`shared_noise`'s ``parts`` with ``Gamma`` moved."""
+def _shared_covariance(parts, gamma) -> np.ndarray:
+    """The channels' covariance (in the fitted channels) that a shared part ``gamma`` (r, p - r)
+    implies, from :func:`shared_noise`'s ``parts``: ``cov(eta) = Cc + gamma Cxi gamma^T``,
+    ``cov(eta, xi) = gamma Cxi``, ``cov(xi) = Cxi``."""
     Bm, sd, Cc, Cxi = parts
-    K = dgamma @ Cxi
-    C = np.block([[Cc + K @ dgamma.T, K], [K.T, Cxi]])
+    K = gamma @ Cxi
+    C = np.block([[Cc + K @ gamma.T, K], [K.T, Cxi]])
     S = (Bm @ C @ Bm.T) * np.outer(sd, sd)
     return 0.5 * (S + S.T)
 
@@ -945,10 +942,10 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
             w, V = np.linalg.eigh(Si)
             half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T
             mix = half / sv[None, :]
-            d, dl = mix @ d * np.sqrt(s)[:, None], mix @ dl
+            # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
+            d, dl = mix @ (d * np.sqrt(s)[:, None]), mix @ dl
             Z = truth + rng.standard_normal((P, p)) @ half
-            Siw = np.linalg.pinv(Si)
-            Cw = Siw  # least squares with every load known weighs by the true covariance
+            Cw = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
         if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
             d = d + (L_lab @ rng.standard_normal(nth)).reshape(p, r + 1)
             dl = dl + (L_lab_ls @ rng.standard_normal(nth)).reshape(p, r + 1)

@@ -97,11 +97,12 @@ def test_a_long_sweep_settles_the_correlation_on_a_subset_and_fits_every_reading
     assert e < e_ind, (e, e_ind)
 
 
-def _synthetic_residuals(seed, n=60, p=7, r=3):
+def _synthetic_residuals(seed, n=60, p=7, r=3, shared=0.3):
     """A fit at the truth whose residuals are noise of a known shared part: in channels scaled
     by the noise, ``xi ~ N(0, I)`` outside the span of ``A_s``, ``eta = Gamma xi + eps`` along it
-    with ``eps ~ N(0, G0)`` (the regression's model exactly); the first 4 poses known, the
-    others' residuals keep only their radial part (what a fitted direction leaves)."""
+    (``Gamma`` of entries ``N(0, shared^2)``, ``eps ~ N(0, G0)``: the regression's model
+    exactly); the first 4 poses known, the others' residuals keep only their radial part ``u (u
+    . eta)`` (what a fitted direction leaves)."""
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(p, r)) * np.exp(rng.uniform(-3, 3, p))[:, None]
     v = np.exp(rng.uniform(-2, 2, p)) ** 2
@@ -111,12 +112,10 @@ def _synthetic_residuals(seed, n=60, p=7, r=3):
     pr = Problem(M @ A.T, None, None, np.arange(4), M[:4], magnitude=2.0)
     fit = {"A": A, "o": np.zeros(p), "v": v, "M": M}
     Bm, _, _, sd, G0 = _range_and_complement(pr, fit)  # (the residuals are all zero here)
-    gamma = rng.normal(size=(r, p - r)) * 0.3
+    gamma = rng.normal(size=(r, p - r)) * shared
     xi = rng.normal(size=(n, p - r))
     eta = xi @ gamma.T + rng.multivariate_normal(np.zeros(r), G0, n)
-    unknown = np.arange(4, n)
-    eta[unknown] = U[unknown] * np.sum(U[unknown] * eta[unknown], axis=1, keepdims=True) / 1.0
-    # (a radial part u (u . eta) is what is left; its tangential parts went into the direction)
+    eta[4:] = U[4:] * np.sum(U[4:] * eta[4:], axis=1, keepdims=True)
     E = (np.column_stack([eta, xi]) @ Bm.T) * sd
     return Problem(M @ A.T + E, None, None, np.arange(4), M[:4], magnitude=2.0), fit, gamma
 
@@ -157,21 +156,7 @@ def test_shared_noise_is_equivariant(log_scale, perm_seed, seed):
 
 def test_no_shared_part_is_shrunk_toward_none():
     """Independent noise (``Gamma = 0``): the James-Stein factor pulls the estimate toward 0
-    (median shrink factor below 0.5 over 30 rigs; the rigs where the test fires at 5 % keep
-    some)."""
-    shrinks = []
-    for seed in range(30):
-        pr, fit, _ = _synthetic_residuals(100 + seed)
-        pr0 = Problem(pr.Y, None, None, pr.known, pr.known_M, magnitude=2.0)
-        # the same rig with the shared part removed from the residuals
-        rng = np.random.default_rng(seed)
-        Bm, eta, xi, sd, G0 = _range_and_complement(pr0, fit)
-        xi0 = rng.normal(size=xi.shape)
-        eta0 = rng.multivariate_normal(np.zeros(3), G0, len(eta))
-        U = fit["M"] / 2.0
-        eta0[4:] = U[4:] * np.sum(U[4:] * eta0[4:], axis=1, keepdims=True)
-        E = (np.column_stack([eta0, xi0]) @ Bm.T) * sd
-        sn = shared_noise(Problem(fit["M"] @ fit["A"].T + E, None, None, pr.known, pr.known_M,
-                                  magnitude=2.0), fit)
-        shrinks.append(sn["shrink"])
+    (median shrink factor below 0.5 over 30 rigs; the rigs where the test fires keep some)."""
+    shrinks = [shared_noise(*_synthetic_residuals(100 + seed, shared=0.0)[:2])["shrink"]
+               for seed in range(30)]
     assert np.median(shrinks) < 0.5, shrinks
