@@ -52,8 +52,8 @@ def _with_and_without(rig):
 
 def test_independent_channel_noise_is_rarely_taken_for_correlated():
     """20 payload rigs whose channels' noise is independent (40 training poses, one reading
-    each): the 5 % test fires on at most 3 (3 of 20 is a 1-in-60 tail at 5 %; on the payload
-    study's development rigs it fired on 2-3 %)."""
+    each): the 1 % test fires on at most 3 (its F null runs a little hot on fitted residuals:
+    0-5 % of the payload study's rigs with independent noise; 3 of 20 is a 1-in-60 tail at 5 %)."""
     fired = 0
     for seed in range(20):
         rig = simulate_payload_rig(1_000 + seed, poses=80)
@@ -97,14 +97,12 @@ def test_a_long_sweep_settles_the_correlation_on_a_subset_and_fits_every_reading
     assert e < e_ind, (e, e_ind)
 
 
-def _synthetic_residuals(seed, n=60, p=7, r=3, shared=0.3, lean=0.0):
+def _synthetic_residuals(seed, n=60, p=7, r=3, shared=0.3):
     """A fit at the truth whose residuals are noise of a known shared part: in channels scaled
     by the noise, ``xi ~ N(0, I)`` outside the span of ``A_s``, ``eta = Gamma xi + eps`` along it
     (``Gamma`` of entries ``N(0, shared^2)``, ``eps ~ N(0, G0)``: the regression's model
     exactly); the first 4 poses known, the others' residuals keep only their radial part ``u (u
-    . eta)`` (what a fitted direction leaves). ``lean``: every pose's ``eta`` also carries ``Q
-    u``, ``Q`` (r, r) of entries ``N(0, lean^2)`` common to all poses (a fitted ``A`` that
-    leans)."""
+    . eta)`` (what a fitted direction leaves)."""
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(p, r)) * np.exp(rng.uniform(-3, 3, p))[:, None]
     v = np.exp(rng.uniform(-2, 2, p)) ** 2
@@ -117,7 +115,6 @@ def _synthetic_residuals(seed, n=60, p=7, r=3, shared=0.3, lean=0.0):
     gamma = rng.normal(size=(r, p - r)) * shared
     xi = rng.normal(size=(n, p - r))
     eta = xi @ gamma.T + rng.multivariate_normal(np.zeros(r), G0, n)
-    eta += U @ (rng.normal(size=(r, r)) * lean).T
     eta[4:] = U[4:] * np.sum(U[4:] * eta[4:], axis=1, keepdims=True)
     E = (np.column_stack([eta, xi]) @ Bm.T) * sd
     return Problem(M @ A.T + E, None, None, np.arange(4), M[:4], magnitude=2.0), fit, gamma
@@ -135,21 +132,6 @@ def test_the_shared_part_is_recovered_within_its_stated_standard_errors():
         d = (sn["gamma_ls"] - gamma).ravel()
         w.append(float(d @ np.linalg.solve(sn["gamma_cov"], d)) / sn["m"])
         assert sn["p_value"] < CORRELATION_ALPHA and sn["shrink"] > 0.5
-    assert 0.7 < np.mean(w) < 1.4, np.mean(w)
-
-
-def test_a_lean_common_to_every_pose_does_not_bias_the_shared_part():
-    """A systematic error of the fitted ``A`` reads at every pose as ``Q u`` (directions fitted
-    under per-channel weights give it one when the channels share noise). Projected out, it
-    leaves the estimate where it was: a lean ten times the shared part's scale, and the Wald
-    distance from the true ``Gamma`` still follows its chi-square (mean over 30 rigs within
-    0.7-1.4 of m); left in, the same lean puts that mean at 10."""
-    w = []
-    for seed in range(30):
-        pr, fit, gamma = _synthetic_residuals(seed, lean=3.0)
-        sn = shared_noise(pr, fit)
-        d = (sn["gamma_ls"] - gamma).ravel()
-        w.append(float(d @ np.linalg.solve(sn["gamma_cov"], d)) / sn["m"])
     assert 0.7 < np.mean(w) < 1.4, np.mean(w)
 
 
