@@ -436,7 +436,7 @@ def _held_out_variances(pr: Problem, fit: dict, lev, v, floor) -> np.ndarray:
     explains them best with that channel's weight zero (:func:`reinfer`), the channel's own
     residuals there (degrees of freedom: ``P - r - 1``, its coefficients). Measured on a
     simulated gauge-mixed wrench rig (payload study seed 15) whose Fz channel's variance had
-    fallen to the floor (1.5e-15 against 1.4e-2): the fit that wrote 4.26x least squares. Not
+    fallen to the floor (1.5e-15 against 1.4e-2): 3.64x least squares, now 1.43x. Not
     where ``p = r``: the other channels cannot set a direction without this one (in the study's
     p = r = 3 sensors at a 90 degree cap the estimate moved the joint route's p95 offset error
     1.28 -> 1.40 % of span)."""
