@@ -654,11 +654,16 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
     full covariance: its part inside the span is seen one radial component per pose, and a free
     direction per pose makes its likelihood unbounded (docs/calib.md); the calibration needs
     only ``Gamma`` and the covariance of ``xi``, the rest (``eps``'s covariance, taken as the
-    radial residuals' variance times ``G0``) only weighs the directions.
+    radial residuals' variance ``c`` times ``G0``) only weighs the directions. ``c``'s degrees
+    of freedom: the rows less the regression's ``m`` and the ``r (r + 1)`` that the fitted ``A``
+    and ``o`` take from the range (one more with a fitted magnitude; exact to first order,
+    whatever the weights and poses: with ``P / (P - r - 1)``, as for ``xi``, ``c`` came out
+    0.77x its truth at 40 poses).
 
     Returns ``{"p_value", "wald", "m", "shrink", "gamma", "gamma_ls", "gamma_cov", "S",
-    "parts"}`` (``gamma_ls`` the unshrunk estimate, ``gamma_cov`` its covariance (row-major
-    ``vec``), ``S`` the covariance in ``pr``'s channels), None
+    "parts", "rows"}`` (``gamma_ls`` the unshrunk estimate, ``gamma_cov`` its covariance
+    (row-major ``vec``, at the rows' variance ``c``), ``S`` the covariance in ``pr``'s channels,
+    ``rows`` what :func:`_radial_share` needs), None
     when there is nothing to test (``p <= r``, or fewer rows than coefficients)."""
     r, p = pr.r, pr.p
     if p <= r:
@@ -690,6 +695,11 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
         return None
     res = y - X @ g
     s2 = float(res @ res) / (n - m)
+    # the range's own variance: the rows' residual degrees of freedom are n - m less the
+    # r (r + 1) that the fitted A and o take from the range (its part of every channel's
+    # coefficients; the magnitude one more where fitted: exact to first order, whatever the
+    # weights and the poses)
+    c = float(res @ res) / max(n - m - r * (r + 1) - (1 if pr.fit_g else 0), 1)
     if not s2 > 0:
         return None
     from scipy import stats
@@ -698,10 +708,11 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
     shrink = (max(0.0, 1.0 - (m - 2) * (n - m) / ((n - m + 2) * wald)) if m >= 3 and wald > 0
               else 1.0)
     gamma = (shrink * g).reshape(r, p - r)
-    parts = (Bm, sd, s2 * dofc, Cxi)
+    parts = (Bm, sd, c, Cxi)
     return {"p_value": float(stats.f.sf(wald / m, m, n - m)), "wald": wald, "m": int(m),
             "shrink": float(shrink), "gamma": gamma, "gamma_ls": g.reshape(r, p - r),
-            "gamma_cov": s2 * XtX_inv, "S": _shared_covariance(parts, gamma), "parts": parts}
+            "gamma_cov": c * XtX_inv, "S": _shared_covariance(parts, gamma), "parts": parts,
+            "rows": (U[iu], wu, L if known.any() else None, int(known.sum()), n)}
 
 
 def _shared_covariance(parts, gamma) -> np.ndarray:
@@ -718,6 +729,125 @@ def _shared_covariance(parts, gamma) -> np.ndarray:
     K = As @ gamma + N
     S = (c * (Qa @ Qa.T) + K @ Cxi @ K.T) * np.outer(sd, sd)
     return 0.5 * (S + S.T)
+
+
+#: At most this many entries (``(P p)^2``) in :func:`attenuation`'s dense hat matrix (128 MB).
+HAT_ENTRIES = 16_000_000
+
+
+def _radial_share(sn: dict, delta) -> float:
+    """The variance a shared part ``delta`` (r, p - r) left unexplained would add to
+    :func:`shared_noise`'s regression rows, on average (``delta Cxi delta^T`` read as each
+    row reads the range). It cannot exceed the rows' residual variance ``c``: draws of the
+    shared part's error are held to it (:func:`predict_error`)."""
+    U, wu, L, n_known, n = sn["rows"]
+    D = delta @ sn["parts"][3] @ delta.T
+    q = np.sum(wu**2 * np.einsum("ja,ab,jb->j", U, D, U))
+    if L is not None:
+        q += n_known * np.trace(L.T @ D @ L)
+    return float(q / n)
+
+
+def _projected_blocks(G4, H, F1, F2) -> np.ndarray:
+    """Every pose's (p, p) block of ``R (I (x) S) R^T`` (``R = I - G`` the residual projection
+    of the linearised fit, ``G4`` its hat matrix as (P, p, P, p), ``H`` the diagonal blocks) for
+    a pose covariance ``S = F1 F2^T`` (symmetric)."""
+    S = F1 @ F2.T
+    HS = H @ S
+    GF1 = np.einsum("jaib,bq->jaiq", G4, F1)
+    GF2 = np.einsum("jaib,bq->jaiq", G4, F2) if F2 is not F1 else GF1
+    return S[None] - HS - HS.transpose(0, 2, 1) + np.einsum("jaiq,jbiq->jab", GF1, GF2)
+
+
+def attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | None:
+    """How much of a shared part the regression of :func:`shared_noise` recovers: ``Lambda``
+    (m, m) with ``E[gamma_ls] = Lambda vec(delta)`` for residual noise whose shared part is
+    ``delta`` (in the fit's scaled channels, to first order about ``delta = 0``).
+
+    The fitted directions and ``A`` take up part of a shared disturbance: a direction fitted
+    under per-channel weights leans toward it, and ``A`` with it, the same at every pose, so the
+    regression sees less of it than there is (simulated on gauge-mixed wrench rigs: 0.55-0.6 of
+    it; 0.95 with the true directions). Exact to first order: the fit's residuals are ``R e``
+    with ``R`` the residual projection of its linearised weighted least squares (directions,
+    ``A``, ``o`` and ``g`` together), so the regression's expected cross products are linear in
+    the noise covariance, ``E[X^T y] = sum_j f_j(R_j S R_j^T)``, and ``Lambda = E[X^T X]^-1
+    dE[X^T y] / d delta``. The rounds of :func:`fit_correlated` stop where the estimate is 0,
+    so what is left of the shared part has the regression's error divided by ``Lambda``:
+    :func:`predict_error` draws it so. Costs a dense hat matrix of the fit (``(P p)^2``
+    entries): on at most :data:`SEARCH_POSES` unknown poses and :data:`HAT_ENTRIES` entries (an
+    evenly strided subset beyond; fewer poses attenuate more, so the subset errs wide). None
+    where there is nothing to test."""
+    r, p = pr.r, pr.p
+    nu = len(pr.unknown)
+    most = max(min(SEARCH_POSES, int(np.sqrt(HAT_ENTRIES) / p) - len(pr.known)), 1)
+    if nu > most:
+        pick = np.unique(np.linspace(0, nu - 1, most).round().astype(int))
+        rows = np.sort(np.r_[pr.known, pr.unknown[pick]])
+        q = pr.sub(pr.unknown[pick])
+        fit = {**fit, "W": fit["W"][rows], "M": fit["M"][rows], "U": fit["U"][pick]}
+        pr, sn = q, None
+    sn = sn if sn is not None else shared_noise(pr, fit)
+    if sn is None:
+        return None
+    P = pr.P
+    W, A, U, g = fit["W"], fit["A"], fit["U"], fit["g"]
+    u = pr.unknown
+    k = r - 1
+    nt = p * (r + 1) + (1 if pr.fit_g else 0)
+    X1 = np.column_stack([pr.loads(U, g), np.ones(P)])
+    J = np.zeros((P, p, nt + len(u) * k))
+    for c in range(p):
+        J[:, c, c * (r + 1):(c + 1) * (r + 1)] = -W[:, c:c + 1] * X1
+    Jphi = -(W[u] * g)[:, :, None] * np.einsum("jkr,cr->jck", tangents(U), A)
+    for i, j in enumerate(u):
+        J[j, :, nt + i * k: nt + (i + 1) * k] = Jphi[i]
+    if pr.fit_g:
+        J[u, :, nt - 1] = -W[u] * (U @ A.T)
+    J = J.reshape(P * p, -1)
+    if not np.all(np.isfinite(J)):
+        return None
+    Q, Rq = np.linalg.qr(J)
+    keep = np.abs(np.diag(Rq)) > 1e-10 * np.abs(np.diag(Rq)).max()
+    Q = Q[:, keep]
+    G4 = (Q @ Q.T).reshape(P, p, P, p)
+    H = np.einsum("jajb->jab", G4)
+    Bm, _, c, Cxi = sn["parts"]
+    As, N = Bm[:, :r], Bm[:, r:]
+    Binv = np.linalg.inv(Bm)
+    Pa, Pn = Binv[:r], Binv[r:]
+    G0 = np.linalg.inv(As.T @ As)
+    L = np.linalg.cholesky(np.linalg.inv(G0))
+    known = np.zeros(P, bool)
+    known[pr.known] = True
+    iu = ~known
+    Uu = _unit(fit["M"])[iu]
+    wu2 = 1.0 / np.einsum("ja,ab,jb->j", Uu, G0, Uu)
+    m = r * (p - r)
+    # E[X^T X] at delta = 0: the pose covariance c Qa Qa^T + N Cxi N^T
+    Qa, _ = np.linalg.qr(As)
+    w, V = np.linalg.eigh(Cxi)
+    F0 = np.column_stack([np.sqrt(c) * Qa, N @ (V * np.sqrt(np.clip(w, 0, None)))])
+    Cr = _projected_blocks(G4, H, F0, F0)
+    Cxx = np.einsum("ca,jab,eb->jce", Pn, Cr, Pn)
+    EX = np.einsum("j,ja,jb,jce->acbe", wu2, Uu, Uu, Cxx[iu]).reshape(m, m)
+    EX += np.einsum("ab,jce->acbe", L @ L.T, Cxx[known]).reshape(m, m)
+    # dE[X^T y] / d delta_ab: the pose covariance's derivative A_s e_a (N Cxi e_b)^T + transpose
+    NC = N @ Cxi
+    D = np.empty((m, m))
+    for a in range(r):
+        for b in range(p - r):
+            F1 = np.column_stack([As[:, a], NC[:, b]])
+            F2 = np.column_stack([NC[:, b], As[:, a]])
+            Cr = _projected_blocks(G4, H, F1, F2)
+            Cxe = np.einsum("ca,jab,eb->jce", Pn, Cr, Pa)
+            out = np.einsum("j,ja,jc->ac", wu2, Uu, np.einsum("jce,je->jc", Cxe[iu], Uu))
+            out += np.einsum("ab,jce,eb->ac", L, Cxe[known], L)
+            D[:, a * (p - r) + b] = out.ravel()
+    try:
+        lam = np.linalg.solve(EX, D)
+    except np.linalg.LinAlgError:
+        return None
+    return lam if np.all(np.isfinite(lam)) else None
 
 
 def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) -> dict:
@@ -924,9 +1054,12 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
 
     ``whitened``: the fit is in channels whitened by an estimate of the noise the channels
     share (:func:`fit_correlated`). That estimate is uncertain: each draw also moves the shared
-    part by its own standard error (:func:`shared_noise`'s ``gamma_cov`` at the fit), so the
-    test readings' noise is correlated in a way the calibration does not weigh for, and the fit's
-    own error is mixed across channels as that noise is."""
+    part by its error, so the test readings' noise is correlated in a way the calibration does
+    not weigh for, and the fit's own error is mixed across channels as that noise is. The error
+    is the regression's (:func:`shared_noise`'s ``gamma_cov``) divided by its attenuation
+    (:func:`attenuation`: the rounds stop where the attenuated estimate is 0), and held to what
+    the regression's residuals leave room for (:func:`_radial_share`: a shared part adding
+    more variance to the rows than they have is scaled back to it)."""
     rng = np.random.default_rng(seed)
     r, p = pr.r, pr.p
     cov = _global_cov(fit)
@@ -963,6 +1096,12 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     sn = shared_noise(pr, fit) if whitened else None
     if sn is not None:
         Lg = _sampler(sn["gamma_cov"])
+        lam = attenuation(pr, fit, sn)
+        if lam is not None:  # what is left of the shared part: the regression's error / Lambda
+            try:
+                Lg = np.linalg.solve(lam, Lg)
+            except np.linalg.LinAlgError:
+                pass
         sv = np.sqrt(v)
     for i in range(draws):
         s = rng.chisquare(dof) / dof
@@ -975,6 +1114,9 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
             Cw = None
         else:  # the shared part's error: correlated noise, errors mixed across channels
             dg = (Lg @ rng.standard_normal(len(Lg))).reshape(r, p - r)
+            q = _radial_share(sn, dg)
+            if q > sn["parts"][2]:  # more than the radial residuals hold: to their variance
+                dg = dg * np.sqrt(sn["parts"][2] / q)
             Si = _shared_covariance(sn["parts"], dg) / np.sqrt(np.outer(s, s))
             w, V = np.linalg.eigh(Si)
             half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T

@@ -899,7 +899,9 @@ def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float |
 
     def refine(label, U0, g, model, weights, into):
         key = (id(model), id(weights), g, np.round(U0, 12).tobytes())
-        if key in solved:
+        if key in solved:  # the same directions as an earlier start: its result, this name
+            if solved[key] is not None:
+                into.append({**solved[key], "start": label})
             return
         try:
             res = model.solve(U0, g, weights)
