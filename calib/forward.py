@@ -851,23 +851,24 @@ def attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | 
 
 
 def _sphericity(C, n) -> float:
-    """Bartlett's test that a covariance ``C`` (k, k) estimated on ``n`` degrees of freedom has
-    uncorrelated components: the p-value of ``-(n - 1 - (2k + 5) / 6) ln det R`` (``R`` its
-    correlation matrix) against chi-square with ``k (k - 1) / 2`` degrees of freedom (1.0 for
-    ``k < 2``)."""
+    """Mauchly's test that a covariance ``C`` (k, k) estimated on ``n`` degrees of freedom is a
+    multiple of the identity: the p-value of ``-(n - (2k^2 + k + 2) / (6k)) ln W``, ``W = det C /
+    (tr C / k)^k``, against chi-square with ``k (k + 1) / 2 - 1`` degrees of freedom (1.0 for
+    ``k < 2``). Invariant to rotations of ``C``'s basis, so to the channels' order and units
+    where ``C`` is taken in an orthonormal basis of scaled channels."""
     from scipy import stats
 
     k = len(C)
-    if k < 2:
+    if k < 2 or not np.all(np.isfinite(C)):
         return 1.0
-    sd = np.sqrt(np.diag(C))
-    if not np.all(sd > 0) or not np.all(np.isfinite(C)):
+    t = np.trace(C) / k
+    if not t > 0:
         return 1.0
-    sign, logdet = np.linalg.slogdet(C / np.outer(sd, sd))
+    sign, logdet = np.linalg.slogdet(C / t)
     if sign <= 0:
         return 0.0
-    stat = -(n - 1 - (2 * k + 5) / 6) * logdet
-    return float(stats.chi2.sf(max(stat, 0.0), k * (k - 1) / 2))
+    stat = -(n - (2 * k * k + k + 2) / (6 * k)) * logdet
+    return float(stats.chi2.sf(max(stat, 0.0), k * (k + 1) / 2 - 1))
 
 
 def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) -> dict:
@@ -881,7 +882,7 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
     it without signal; the per-channel model cannot. :func:`shared_noise` regresses the
     residual's part along the span of ``A`` on its part outside it and tests the regression
     (F test, ``p_gamma``); the part outside the span, white if the channels' noise were
-    independent (in channels scaled by it), is tested for correlation too (Bartlett's
+    independent (in channels scaled by it), is tested for correlation too (Mauchly's
     sphericity test, ``p_complement``: the regression sees the range one radial component per
     pose and misses some mixed gauges the complement shows plainly: on 40 development gauge
     rigs it whitened 4 more (one fewer by the halved level), from 2.78, 3.46, 2.11 and 1.38x

@@ -220,7 +220,7 @@ def test_the_attenuation_predicts_what_the_regression_recovers():
 
 
 def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
-    """Bartlett's sphericity test on the complement's covariance (``calib.forward._sphericity``):
+    """Mauchly's sphericity test on the complement's covariance (``calib.forward._sphericity``):
     on independent normal components its p-values are close to uniform (10 % below 0.1 over
     400 draws, within 5-15 %), and it fires on gauge-mixed wrench rigs where the shared-part
     regression alone does not (development rigs of the payload study's generator: regression
