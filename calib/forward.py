@@ -635,7 +635,7 @@ def _range_and_complement(pr: Problem, fit: dict):
     return Bm, coef[:, :r], coef[:, r:], sd, np.linalg.inv(As.T @ As)
 
 
-def shared_noise(pr: Problem, fit: dict) -> dict | None:
+def _shared_noise(pr: Problem, fit: dict) -> dict | None:
     """How much of the noise along the span of ``A`` the noise outside it predicts, and the
     channels' noise covariance that follows.
 
@@ -759,7 +759,7 @@ def _projected_blocks(G4, H, F1, F2) -> np.ndarray:
     return S[None] - HS - HS.transpose(0, 2, 1) + np.einsum("jaiq,jbiq->jab", GF1, GF2)
 
 
-def attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | None:
+def _attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | None:
     """How much of a shared part the regression of :func:`shared_noise` recovers: ``Lambda``
     (m, m) with ``E[gamma_ls] = Lambda vec(delta)`` for residual noise whose shared part is
     ``delta`` (in the fit's scaled channels, to first order about ``delta = 0``).
@@ -848,6 +848,31 @@ def attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | 
     except np.linalg.LinAlgError:
         return None
     return lam if np.all(np.isfinite(lam)) else None
+
+def shared_noise(pr: Problem, fit: dict) -> dict | None:
+    """:func:`_shared_noise`, or None where its linear algebra fails (a singular or non-finite
+    regression on a degenerate fit): the callers then treat the noise as independent, as they
+    do where there is nothing to test, rather than stop."""
+    try:
+        with np.errstate(all="ignore"):
+            sn = _shared_noise(pr, fit)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    if sn is None or not all(np.all(np.isfinite(sn[k])) for k in ("S", "gamma_cov")):
+        return None
+    return sn
+
+
+def attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | None:
+    """:func:`_attenuation`, or None where its linear algebra fails or gives a non-finite
+    ``Lambda`` (:func:`predict_error` then draws the regression's error unattenuated)."""
+    try:
+        with np.errstate(all="ignore"):
+            lam = _attenuation(pr, fit, sn)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    return lam if lam is not None and np.all(np.isfinite(lam)) else None
+
 
 
 def _sphericity(C, n) -> float:

@@ -240,3 +240,28 @@ def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
             corr = noise_correlation(pr, fit_forward(pr, random_starts=2))
         assert corr["p_gamma"] > CORRELATION_ALPHA, corr  # the regression alone: not found
         assert corr["p_complement"] < CORRELATION_ALPHA / 2 and corr["used"], corr
+
+
+def test_a_failing_shared_noise_or_attenuation_falls_back_instead_of_raising(monkeypatch):
+    """Where the shared-part regression's or the attenuation's linear algebra fails (a singular
+    system on a degenerate fit), the prediction falls back (the regression's error drawn
+    unattenuated; no shared part at all) and still returns an interval, never a traceback."""
+    import calib.forward as fw
+
+    pr, fit, sn, _, _ = _world(0)
+    base = fw.predict_error(pr, fit, draws=200, whitened=True)
+
+    def boom(*a, **k):
+        raise np.linalg.LinAlgError("singular")
+
+    monkeypatch.setattr(fw, "_attenuation", boom)
+    assert fw.attenuation(pr, fit, sn) is None
+    unatt = fw.predict_error(pr, fit, draws=200, whitened=True)
+    monkeypatch.setattr(fw, "_shared_noise", boom)
+    assert fw.shared_noise(pr, fit) is None
+    plain = fw.predict_error(pr, fit, draws=200, whitened=True)
+    for pred in (base, unatt, plain):
+        lo, hi = pred["interval"]
+        assert np.isfinite(pred["rms"]) and 0 < lo <= pred["rms"] <= hi, pred
+    # unattenuated, the shared part's drawn error is smaller (Lambda's eigenvalues are <= 1)
+    assert unatt["interval"][1] <= base["interval"][1] * 1.05, (unatt, base)
