@@ -679,8 +679,9 @@ def _shared_noise(pr: Problem, fit: dict) -> dict | None:
     wu = 1.0 / np.sqrt(np.einsum("ja,ab,jb->j", U[iu], G0, U[iu]))
     X = [np.einsum("ja,jb->jab", U[iu], xi[iu]).reshape(-1, r * (p - r)) * wu[:, None]]
     y = [np.sum(U[iu] * eta[iu], axis=1) * wu]
+    As = Bm[:, :r]
+    L = np.linalg.cholesky(As.T @ As)  # L^T G0 L = I (G0 = (A_s^T A_s)^-1)
     if known.any():  # every component, rotated to unit variance under independence
-        L = np.linalg.cholesky(np.linalg.inv(G0))  # L^T G0 L = I
         X.append(np.einsum("ab,jc->jbac", L, xi[known]).reshape(-1, r * (p - r)))
         y.append((eta[known] @ L).ravel())
     X, y = np.vstack(X), np.concatenate(y)
@@ -712,22 +713,78 @@ def _shared_noise(pr: Problem, fit: dict) -> dict | None:
     return {"p_value": float(stats.f.sf(wald / m, m, n - m)), "wald": wald, "m": int(m),
             "shrink": float(shrink), "gamma": gamma, "gamma_ls": g.reshape(r, p - r),
             "gamma_cov": c * XtX_inv, "S": _shared_covariance(parts, gamma), "parts": parts,
-            "rows": (U[iu], wu, L if known.any() else None, int(known.sum()), n)}
+            "rows": (U[iu], wu, L if known.any() else None, int(known.sum()), n),
+            # the regression's residuals as seen in the range (coordinates where independent
+            # noise is white): one component along a_j at each unknown pose, three at a known
+            "radial": ((U[iu] @ np.linalg.inv(L).T) * wu[:, None], res[:int((~known).sum())],
+                       res[int((~known).sum()):].reshape(-1, r), n,
+                       m + r * (r + 1) + (1 if pr.fit_g else 0))}
 
 
-def _shared_covariance(parts, gamma) -> np.ndarray:
+def _range_draws(sn: dict, rng, draws: int, burn: int = 50) -> np.ndarray:
+    """Draws (draws, r, r) of the range's own covariance ``K`` (of ``eps``, in coordinates
+    where independent channel noise is white, so that the model of :func:`shared_noise` is
+    ``K = c I``) from its posterior given the regression's residuals: one radial component
+    at each unknown pose, all three at a known one. Data augmentation (Tanner and Wong): each
+    sweep draws the components a pose did not show from their conditional given ``K`` and the
+    one it showed, then ``K`` from its inverse-Wishart given the completed vectors. The
+    likelihood is tempered by ``(n - d) / n`` (``d`` the rows' degrees of freedom the fit and
+    the regression took; the residuals scaled up to match) so it carries what the rows carry.
+    Prior: inverse-Wishart with ``r + 2`` degrees of freedom and mean ``c I``."""
+    a, yu, Ek, n, d = sn["radial"]
+    r = a.shape[1]
+    c = sn["parts"][2]
+    lam = max(n - d, 1) / n
+    scale = np.sqrt(1.0 / lam)
+    yu, Ek = yu * scale, Ek * scale
+    N = len(yu) + len(Ek)
+    nu0 = r + 2
+    Psi0 = c * np.eye(r)
+    K = c * np.eye(r)
+    out = np.empty((draws, r, r))
+    for it in range(burn + draws):
+        Ka = a @ K  # (n_u, r): K a_j
+        s = np.einsum("ja,ja->j", Ka, a)
+        # eps_j | a_j^T eps_j = y_j ~ N(K a y / s, K - K a a^T K / s)
+        mean = Ka * (yu / s)[:, None]
+        Z = rng.standard_normal((len(yu), r))
+        Lk = np.linalg.cholesky(K + 1e-12 * c * np.eye(r))
+        X = Z @ Lk.T
+        X = X - Ka * (np.einsum("ja,ja->j", X, a) / s)[:, None]  # projected to the constraint
+        E = np.vstack([mean + X, Ek])
+        Psi = Psi0 + lam * (E.T @ E)
+        nu = nu0 + lam * N
+        # K ~ IW(Psi, nu): the inverse of a Wishart(Psi^-1, nu) draw (Bartlett)
+        Lp = np.linalg.cholesky(np.linalg.inv(Psi))
+        B = np.tril(rng.standard_normal((r, r)), -1)
+        B[np.diag_indices(r)] = np.sqrt(rng.chisquare(nu - np.arange(r)))
+        LB = Lp @ B
+        K = np.linalg.inv(LB @ LB.T)
+        K = 0.5 * (K + K.T)
+        if it >= burn:
+            out[it - burn] = K
+    return out
+
+
+def _shared_covariance(parts, gamma, K=None) -> np.ndarray:
     """The channels' covariance (in the fitted channels) that a shared part ``gamma`` (r, p - r)
     implies, from :func:`shared_noise`'s ``parts = (Bm, sd, c, Cxi)``: ``cov(eta) = c G0 + gamma
     Cxi gamma^T``, ``cov(eta, xi) = gamma Cxi``, ``cov(xi) = Cxi``. In the scaled channels that
     is ``c Qa Qa^T + (A_s gamma + N) Cxi (A_s gamma + N)^T`` (``Qa`` an orthonormal basis of
     ``A_s``'s span: ``A_s G0 A_s^T = Qa Qa^T`` without forming ``G0``, which an ill-conditioned
-    ``A_s`` makes lose every digit)."""
+    ``A_s`` makes lose every digit). ``K``: the range's own covariance in place of ``c I`` (in
+    the coordinates where independent noise is white; a draw of :func:`_range_draws`)."""
     Bm, sd, c, Cxi = parts
     r = gamma.shape[0]
     As, N = Bm[:, :r], Bm[:, r:]
     Qa, _ = np.linalg.qr(As)
-    K = As @ gamma + N
-    S = (c * (Qa @ Qa.T) + K @ Cxi @ K.T) * np.outer(sd, sd)
+    if K is None:
+        R = c * (Qa @ Qa.T)
+    else:  # K in the coordinates eps' = L^T eps (L L^T = A_s^T A_s): A_s L^-T K L^-1 A_s^T
+        B = np.linalg.solve(np.linalg.cholesky(As.T @ As), As.T).T  # orthonormal columns
+        R = B @ K @ B.T
+    Kx = As @ gamma + N
+    S = (R + Kx @ Cxi @ Kx.T) * np.outer(sd, sd)
     return 0.5 * (S + S.T)
 
 
@@ -1163,6 +1220,10 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
             except np.linalg.LinAlgError:
                 pass
         sv = np.sqrt(v)
+        try:  # the range's own covariance: its posterior given the rows (not one number)
+            Kd = _range_draws(sn, rng, draws)
+        except (np.linalg.LinAlgError, ValueError):
+            Kd = None
     for i in range(draws):
         s = rng.chisquare(dof) / dof
         vi = v / s  # the variance an estimate of v could have come from
@@ -1177,7 +1238,8 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
             q = _radial_share(sn, dg)
             if q > sn["parts"][2]:  # more than the radial residuals hold: to their variance
                 dg = dg * np.sqrt(sn["parts"][2] / q)
-            Si = _shared_covariance(sn["parts"], dg) / np.sqrt(np.outer(s, s))
+            Si = _shared_covariance(sn["parts"], dg, None if Kd is None else Kd[i]) / np.sqrt(
+                np.outer(s, s))
             w, V = np.linalg.eigh(Si)
             half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T
             mix = half / sv[None, :]

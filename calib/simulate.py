@@ -278,6 +278,8 @@ class RigData:
     directions : (P, r)       the rig's design directions (unit)
     S : (r, p), offset : (p,) the linear part of the sensor and its offset at time 0
     magnitude : float         the stated load magnitude
+    noise_cov : (p, p) | None the readings' noise covariance where the simulator knows it
+                              exactly (:func:`simulate_payload_rig`; None otherwise)
     """
 
     Z: np.ndarray
@@ -288,6 +290,7 @@ class RigData:
     S: np.ndarray
     offset: np.ndarray
     magnitude: float
+    noise_cov: np.ndarray | None = None
 
     def split(self, kind: str = "alternate"):
         """Train and test row indices: half the samples of every pose each.
@@ -522,8 +525,11 @@ def simulate_payload_rig(
         G = rng.normal(size=(6, int(gauges))) * np.r_[np.ones(3), np.full(3, 20.0)][:, None]
         g_levels = (weight * np.linalg.norm(S @ G, axis=0)
                     * np.exp(rng.uniform(np.log(noise[0]), np.log(noise[1]), int(gauges))))
-        Z = z0 + lin + (rng.normal(size=(n, int(gauges))) * g_levels) @ np.linalg.pinv(G)
+        Gp = np.linalg.pinv(G)
+        Z = z0 + lin + (rng.normal(size=(n, int(gauges))) * g_levels) @ Gp
+        cov = Gp.T @ (g_levels[:, None] ** 2 * Gp)
     else:
         Z = z0 + lin + rng.normal(size=lin.shape) * levels
+        cov = np.diag(levels**2)
     return RigData(Z=Z, pose=pose, stated_loads=weight * U, true_loads=F, directions=U, S=S,
-                   offset=z0, magnitude=float(weight))
+                   offset=z0, magnitude=float(weight), noise_cov=cov)

@@ -265,3 +265,45 @@ def test_a_failing_shared_noise_or_attenuation_falls_back_instead_of_raising(mon
         assert np.isfinite(pred["rms"]) and 0 < lo <= pred["rms"] <= hi, pred
     # unattenuated, the shared part's drawn error is smaller (Lambda's eigenvalues are <= 1)
     assert unatt["interval"][1] <= base["interval"][1] * 1.05, (unatt, base)
+
+
+def test_the_range_covariance_posterior_covers_the_truth():
+    """:func:`calib.forward._range_draws` on what the regression's rows show of a known range
+    covariance ``K`` (one radial component at each of 36 unknown poses in a 70 degree cap, all
+    three at 4 known ones): its central 90 % interval of a random quadratic form ``b^T K b``
+    and of the trace covers the truth on about 90 % of 120 worlds (measured 87 / 86 % on 200;
+    accepted 78-97 %). The model of one number (``c I``) covers an anisotropic ``K`` at no rate
+    at all: it has no interval."""
+    from calib.forward import _range_draws, _shared_covariance
+
+    rng = np.random.default_rng(1)
+    hits, hits_tr = [], []
+    for _ in range(120):
+        B = rng.normal(size=(3, 3))
+        K = B @ B.T + 0.05 * np.eye(3)
+        cz = rng.uniform(np.cos(np.radians(70)), 1, 36)
+        ph = rng.uniform(0, 2 * np.pi, 36)
+        a = np.column_stack([np.sqrt(1 - cz**2) * np.cos(ph), np.sqrt(1 - cz**2) * np.sin(ph),
+                             cz])
+        E = rng.multivariate_normal(np.zeros(3), K, size=40)
+        y = np.sum(a * E[:36], axis=1)
+        c = (np.sum(y**2) + np.sum(E[36:] ** 2)) / 48
+        Kd = _range_draws({"radial": (a, y, E[36:], 48, 0), "parts": (None, None, c, None)},
+                          rng, 400)
+        b = _unit_vector(rng)
+        lo, hi = np.quantile(np.einsum("a,iab,b->i", b, Kd, b), [0.05, 0.95])
+        hits.append(lo <= b @ K @ b <= hi)
+        lo, hi = np.quantile(np.trace(Kd, axis1=1, axis2=2), [0.05, 0.95])
+        hits_tr.append(lo <= np.trace(K) <= hi)
+    assert 0.78 <= np.mean(hits) <= 0.97 and 0.78 <= np.mean(hits_tr) <= 0.97, (
+        np.mean(hits), np.mean(hits_tr))
+    # K = c I in the range reproduces the one-number model's covariance
+    pr, fit, sn, _, _ = _world(0)
+    c = sn["parts"][2]
+    np.testing.assert_allclose(_shared_covariance(sn["parts"], sn["gamma"], c * np.eye(3)),
+                               sn["S"], rtol=1e-9, atol=1e-12 * np.abs(sn["S"]).max())
+
+
+def _unit_vector(rng):
+    b = rng.normal(size=3)
+    return b / np.linalg.norm(b)
