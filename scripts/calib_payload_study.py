@@ -20,7 +20,9 @@ of that many degrees gives, ``|m| theta sqrt(2/9)``). Routes:
 Cells: held-out load rms over least squares' (and over the oracle's), median / 95th percentile /
 worst over the rigs, and (in brackets) the share of joint fits :func:`calib.reliability.assess`
 refuses (``calib fit`` exit 3). The last columns count joint fits beyond 3x least squares that
-still exit 0 (target: none), the share of fits whose held-out error lies in the predicted 90 %
+still exit 0 (target: none), refused fits where the oracle is within 1.5x least squares (what
+the issue asks to be made, but for fits whose offset is not identified: those are refused by
+rule, the oracle or not), the share of fits whose held-out error lies in the predicted 90 %
 interval, and the share in which the channels' noise was found correlated (whitened fit).
 
     python scripts/calib_payload_study.py [--rigs 100] [--workers 2] [--write docs/calib_study.md]
@@ -117,8 +119,9 @@ def one(job):
 
 def table(results):
     lines = ["| case | joint / LS (refused) | joint / oracle | oracle / LS | Sampson / LS | "
-             ">3x LS and exit 0 | in predicted 90 % interval | noise found correlated |",
-             "|---|---|---|---|---|---|---|---|"]
+             ">3x LS and exit 0 | refused, oracle within 1.5x LS | in predicted 90 % interval | "
+             "noise found correlated |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for case in CASES:
         rows = [r[2] for r in results if r[0] == case]
         j = np.array([r["joint"][0] for r in rows])
@@ -126,10 +129,11 @@ def table(results):
         inside = np.array([r["joint"][2] for r in rows])
         orc = np.array([r["oracle"] for r in rows])
         bad = int(np.sum(~refused & ~(j <= 3)))
+        lost = int(np.sum(refused & (orc <= 1.5)))  # fits the oracle makes well, refused
         ok = ~refused
         lines.append(
             f"| {case} | {fmt(j)} ({100 * refused.mean():.0f} %) | {fmt(j / orc)} | {fmt(orc)} "
-            f"| {fmt([r['sampson'] for r in rows])} | {bad} | "
+            f"| {fmt([r['sampson'] for r in rows])} | {bad} | {lost} | "
             + (f"{100 * inside[ok].mean():.0f} %" if ok.any() else "n/a")
             + f" | {100 * np.mean([r['joint'][3] for r in rows]):.0f} % |")
     return "\n".join(lines)
