@@ -307,3 +307,26 @@ def test_the_range_covariance_posterior_covers_the_truth():
 def _unit_vector(rng):
     b = rng.normal(size=3)
     return b / np.linalg.norm(b)
+
+
+def test_the_interval_holds_most_gauge_mixed_fits():
+    """Gauge-mixed wrench rigs (40 training poses, 4 known, one reading each): the measured
+    held-out error lies in the predicted 90 % interval for most fits. Not 90 %: on the
+    development rigs 500-539, 82 % of written fits (stop 51, with the range's covariance drawn
+    from its posterior; 72 % before); this guards that level (at least 2/3 of 24 rigs, a
+    binomial 2 % lower bound at 82 %) on seeds used for nothing else."""
+    inside = predicted = 0
+    for seed in range(24):
+        rig = simulate_payload_rig(3_000 + seed, poses=80, wrench=True, gauges=8)
+        M, tr, te, kn = _split(rig)
+        Z = rig.Z[tr]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cal = fit_joint(Z, Z[kn], M[tr][kn], 3, known_samples=1)
+        pe = cal.diagnostics["joint"].get("predicted_error")
+        if pe is None:
+            continue
+        predicted += 1
+        lo, hi = pe["interval"]
+        inside += lo <= _err(rig, te, M, cal.C, cal.offset) <= hi
+    assert predicted >= 20 and inside >= 2 / 3 * predicted, (inside, predicted)
