@@ -1159,9 +1159,14 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     from its scaled chi-square (degrees of freedom as in :func:`estimate_variances`), and the
     test readings' noise. ``rms`` is the median over draws, ``interval`` the central
     ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
-    ``ratio`` their quotient, ``upper_ratio`` the interval's upper end over ``ls_rms`` (what
-    :func:`calib.reliability.assess` holds to its ceiling). Returns None when the covariance
-    does not exist (a singular fit: nothing identified).
+    ``ratio`` their quotient; ``upper_ratio`` the upper end of the central ``coverage`` range
+    of the ratio within each draw (the fit's error over least squares' on the same noise and the
+    same variances: what :func:`calib.reliability.assess` holds to its ceiling), and
+    ``interval_ratio`` the error interval's upper end over ``ls_rms`` (draws mixed: where the
+    noise level itself is uncertain, a few poses' variances, both errors grow together, and
+    this one counts the fit's high draws against least squares' typical one: on 20-pose rigs it
+    said 4.6x for a fit whose paired ratio is 1.5x and which measured 1.03x). Returns None
+    when the covariance does not exist (a singular fit: nothing identified).
 
     ``load_sd``: the stated loads' own error (standard deviation per component, load units; a
     robot's kinematics, a weighing): the known poses' loads then move the fit (linearised: the
@@ -1262,5 +1267,7 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     med, med_ls = float(np.median(err)), float(np.median(err_ls))
     return {"rms": med, "interval": [float(lo), float(hi)], "coverage": coverage,
             "ls_rms": med_ls, "ratio": med / med_ls if med_ls > 0 else float("inf"),
-            "upper_ratio": float(hi) / med_ls if med_ls > 0 else float("inf"),
+            "upper_ratio": float(np.quantile(err / np.maximum(err_ls, 1e-300),
+                                             (1 + coverage) / 2)),
+            "interval_ratio": float(hi) / med_ls if med_ls > 0 else float("inf"),
             "test_readings": int(P)}

@@ -168,17 +168,38 @@ def test_the_joint_route_passes_the_stated_accuracy_to_the_prediction():
 
 
 def test_the_verdict_holds_the_interval_upper_end_to_the_ceiling():
-    """A forward fit is refused where the upper end of its predicted 90 % interval exceeds 3x
-    least squares with every load known, even with its median below; a good fit is written."""
+    """A forward fit is refused where the upper end of its predicted 90 % interval of the ratio
+    to least squares with every load known exceeds 3x, even with its median below; a good fit
+    is written."""
     _, Z, M, known, _, _ = _payload_split(11, poses=60)
     cal = _joint(Z, Z[known], M[known])
     pe = cal.diagnostics["joint"]["predicted_error"]
     assert pe["upper_ratio"] >= pe["ratio"] > 0
-    assert pe["upper_ratio"] == pytest.approx(pe["interval"][1] / pe["ls_rms"])
+    assert pe["interval_ratio"] == pytest.approx(pe["interval"][1] / pe["ls_rms"])
     assert not assess(cal, Z[known], M[known])
-    pe.update(ratio=1.5, upper_ratio=4.0, interval=[pe["interval"][0], 4.0 * pe["ls_rms"]])
+    pe.update(ratio=1.5, upper_ratio=4.0)
     reasons = assess(cal, Z[known], M[known])
-    assert any("could reach" in r and "4x" in r for r in reasons), reasons
+    assert any("could reach 4x" in r for r in reasons), reasons
+
+
+def test_the_ceiling_compares_the_fit_with_least_squares_on_the_same_noise():
+    """A 20-pose payload rig (development seed 570 of the payload study's generator) whose
+    channels' variances are known from few degrees of freedom: in draws where the noise is
+    higher both the fit and least squares err more, so the fit's error interval reaches 4.6x
+    least squares' median while their ratio within a draw stays within 1.6x. The verdict holds
+    the paired ratio to 3x and writes the fit; it measures 1.03x least squares (the oracle,
+    fitted from the true directions, the same)."""
+    rig = simulate_payload_rig(10_570, poses=40)
+    M = rig.stated_loads[rig.pose]
+    tr, te = rig.split("poses")
+    Z = rig.Z[tr]
+    kn = choose_known_poses(M[tr] / np.linalg.norm(M[tr], axis=1, keepdims=True), 4)
+    cal = _joint(Z, Z[kn], M[tr][kn])
+    pe = cal.diagnostics["joint"]["predicted_error"]
+    assert pe["interval_ratio"] > 3 > 2 > pe["upper_ratio"], pe
+    assert not assess(cal, Z[kn], M[tr][kn])
+    ls = fit_least_squares(Z, M[tr], bias=True)
+    assert _heldout(cal, rig.Z[te], M[te]) < 1.2 * _heldout(ls, rig.Z[te], M[te])
 
 
 def test_narrow_coverage_is_refused():
