@@ -55,11 +55,17 @@ def test_children_ignore_sigint_holds_a_ctrl_c_and_children_start_with_it_blocke
     from sfm_common.workers import children_ignore_sigint
 
     reached_end = []
-    with pytest.raises(KeyboardInterrupt):
-        with children_ignore_sigint():
-            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while processes would be starting
-            time.sleep(0.05)
-            reached_end.append(True)  # not interrupted inside the block
+    # Python's own Ctrl-C handler, whatever the test was launched under (a background job of a
+    # shell without job control starts with SIGINT ignored, and Python then keeps it ignored)
+    launched = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with children_ignore_sigint():
+                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while processes would be starting
+                time.sleep(0.05)
+                reached_end.append(True)  # not interrupted inside the block
+    finally:
+        signal.signal(signal.SIGINT, launched)
     assert reached_end == [True]
 
     # an ignored SIGINT (a background job) stays ignored: nothing is raised
