@@ -906,6 +906,7 @@ def _attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray |
         return None
     return lam if np.all(np.isfinite(lam)) else None
 
+
 def shared_noise(pr: Problem, fit: dict) -> dict | None:
     """:func:`_shared_noise`, or None where its linear algebra fails (a singular or non-finite
     regression on a degenerate fit): the callers then treat the noise as independent, as they
@@ -929,7 +930,6 @@ def attenuation(pr: Problem, fit: dict, sn: dict | None = None) -> np.ndarray | 
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None
     return lam if lam is not None and np.all(np.isfinite(lam)) else None
-
 
 
 def _sphericity(C, n) -> float:

@@ -186,7 +186,8 @@ def test_the_ceiling_compares_the_fit_with_least_squares_on_the_same_noise():
     """A 20-pose payload rig (development seed 570 of the payload study's generator) whose
     channels' variances are known from few degrees of freedom: in draws where the noise is
     higher both the fit and least squares err more, so the fit's error interval reaches 4.6x
-    least squares' median while their ratio within a draw stays within 1.6x. The verdict holds
+    least squares' median while their ratio within a draw stays below 2x (measured 1.51x; the
+    assertion keeps room for other BLAS builds' roundoff in the search). The verdict holds
     the paired ratio to 3x and writes the fit; it measures 1.03x least squares (the oracle,
     fitted from the true directions, the same)."""
     rig = simulate_payload_rig(10_570, poses=40)
