@@ -577,6 +577,18 @@ def _fit_motion(Z, known_Z, known_M, dof, magnitude, known_sigma, magnitude_sigm
     return cal
 
 
+def _first_best(raw) -> int:
+    """The index of the largest of ``raw`` compared to 10 significant digits (rounding noise,
+    directions written to a CSV and read back, must not break a tie differently; exact ties
+    go to the first). Only values within 1e-7 of the largest can round to it: those are
+    rounded as ``float(f"{x:.10g}")`` does, the rest never need to be."""
+    raw = np.asarray(raw, float).ravel()
+    top = float(np.max(raw))
+    near = np.flatnonzero(raw >= top - 1e-7 * abs(top))
+    rounded = [float(f"{v:.10g}") for v in raw[near]]
+    return int(near[int(np.argmax(rounded))])
+
+
 def choose_known_poses(directions, k: int = 4) -> np.ndarray:
     """Which ``k`` of a rig's poses should get known loads: the most spread ones.
 
@@ -598,30 +610,61 @@ def choose_known_poses(directions, k: int = 4) -> np.ndarray:
     if U.ndim != 2 or len(U) < k or k < 1:
         raise CalibrationError(f"need an (n, r) array of n >= k = {k} pose directions, "
                                f"got shape {U.shape}")
+    if not np.all(np.isfinite(U)):
+        raise CalibrationError("pose directions must be finite")
     U = U / np.maximum(np.linalg.norm(U, axis=1, keepdims=True), 1e-300)
     X = np.column_stack([U, np.ones(len(U))])
+    n, d = X.shape
 
-    def score(idx):
-        A = X[list(idx)]
-        d = float(np.linalg.det(A.T @ A)) if len(idx) >= X.shape[1] else float(
-            np.linalg.det(A @ A.T))
-        # compared to 10 significant digits: rounding noise (directions written to a CSV and
-        # read back) must not break a tie differently; exact ties go to the lowest index
-        return float(f"{d:.10g}")
+    def dets(sets):  # det(A^T A) (det(A A^T) below d rows) of each index set (a row of sets)
+        A = X[sets]
+        G = (np.einsum("mia,mib->mab", A, A) if sets.shape[1] >= d
+             else np.einsum("mia,mja->mij", A, A))
+        return np.linalg.det(G)
 
-    if comb(len(U), k) <= 20_000:
-        best = max(itertools.combinations(range(len(U)), k), key=score)
-    else:  # greedy from the most spread pair, then exchanges (Fedorov) while one improves
-        best = list(max(itertools.combinations(range(len(U)), min(2, k)), key=score))
-        while len(best) < k:
-            rest = [i for i in range(len(U)) if i not in best]
-            best.append(max(rest, key=lambda i: score(best + [i])))
-        current = score(best)
-        for _ in range(100):
-            swaps = [(score(best[:a] + [i] + best[a + 1:]), a, i) for a in range(k)
-                     for i in range(len(U)) if i not in best]
-            top = max(swaps, key=lambda t: t[0])
-            if top[0] <= current:
-                break
-            current, best[top[1]] = top[0], top[2]
+    if comb(n, k) <= 20_000:
+        sets = np.array(list(itertools.combinations(range(n), k)), int).reshape(-1, k)
+        return sets[_first_best(dets(sets))]
+    # greedy from the most spread pair, then exchanges (Fedorov) while one improves; the pairs
+    # (det of each pair's 2 x 2 Gram matrix) in blocks of rows, never all n^2 at once (a sweep's
+    # 100,000 directions): each block keeps the pairs near its own top, a superset of those
+    # near the overall top, which then compete as every pair did
+    q = np.einsum("ia,ia->i", X, X)
+    step = max(1, 4_000_000 // n)
+    near, tops = [], []
+    for a in range(0, n - 1, step):
+        rows = np.arange(a, min(a + step, n - 1))
+        D = q[rows, None] * q[None, :] - (X[rows] @ X.T) ** 2
+        D[np.arange(n)[None, :] <= rows[:, None]] = -np.inf  # i < j only
+        top = float(D.max())
+        ii, jj = np.nonzero(D >= top - 1e-7 * abs(top))
+        near.append(np.column_stack([rows[ii], jj, D[ii, jj]]))
+        tops.append(top)
+    near = np.vstack(near)
+    top = max(tops)
+    pairs = near[near[:, 2] >= top - 1e-7 * abs(top), :2].astype(int)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]  # the order combinations gives
+    best = ([int(t) for t in pairs[_first_best(dets(pairs))]] if k >= 2
+            else [_first_best(dets(np.arange(n)[:, None]))])
+    rest = np.ones(n, bool)
+    rest[best] = False
+    while len(best) < k:
+        cand = np.flatnonzero(rest)
+        best.append(int(cand[_first_best(dets(np.column_stack(
+            [np.tile(best, (len(cand), 1)), cand])))]))
+        rest[best[-1]] = False
+    current = float(f"{dets(np.array([best]))[0]:.10g}")
+    for _ in range(100):
+        cand = np.flatnonzero(rest)
+        raw = np.empty((k, len(cand)))
+        for a in range(k):  # chosen pose a swapped for each candidate, in index order
+            sets = np.tile(best, (len(cand), 1))
+            sets[:, a] = cand
+            raw[a] = dets(sets)
+        flat = _first_best(raw)
+        if float(f"{raw.flat[flat]:.10g}") <= current:
+            break
+        a, c = divmod(flat, len(cand))
+        rest[best[a]], rest[cand[c]] = True, False
+        current, best[a] = float(f"{raw.flat[flat]:.10g}"), int(cand[c])
     return np.array(sorted(best))

@@ -304,6 +304,33 @@ def test_the_range_covariance_posterior_covers_the_truth():
                                sn["S"], rtol=1e-9, atol=1e-12 * np.abs(sn["S"]).max())
 
 
+def test_the_range_posterior_on_a_sweeps_rows_strides_them_and_keeps_their_weight():
+    """A sweep gives tens of thousands of radial rows: :func:`calib.forward._range_draws`
+    augments ``MC_TEST_READINGS`` strided ones, each weighing for the rows it stands for. On
+    10,000 rows of a known ``K`` its draws' mean is within 10 % of ``K`` (trace and a random
+    quadratic form), and the trace's spread is below what 2,000 rows alone give: measured
+    2.4 % of its mean (2.2 % on another seed), against 1.5 % augmenting every row and 3.2 %
+    with 2,000 rows unweighted."""
+    from calib.forward import MC_TEST_READINGS, _range_draws
+
+    rng = np.random.default_rng(4)
+    n = 5 * MC_TEST_READINGS
+    B = rng.normal(size=(3, 3))
+    K = B @ B.T + 0.1 * np.eye(3)
+    a = np.array([_unit_vector(rng) for _ in range(n)])
+    E = rng.multivariate_normal(np.zeros(3), K, size=n + 4)
+    y = np.sum(a * E[:n], axis=1)
+    c = float(np.mean(y**2))
+    Kd = _range_draws({"radial": (a, y, E[n:], n + 12, 0), "parts": (None, None, c, None)},
+                      rng, 300)
+    tr = np.trace(Kd, axis1=1, axis2=2)
+    assert abs(tr.mean() / np.trace(K) - 1) < 0.10, (tr.mean(), np.trace(K))
+    b = _unit_vector(rng)
+    q = np.einsum("a,iab,b->i", b, Kd, b)
+    assert abs(q.mean() / (b @ K @ b) - 1) < 0.10, (q.mean(), b @ K @ b)
+    assert tr.std() / tr.mean() < 0.027, tr.std() / tr.mean()
+
+
 def _unit_vector(rng):
     b = rng.normal(size=3)
     return b / np.linalg.norm(b)
