@@ -5,7 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from calib import fit_joint
@@ -216,9 +216,11 @@ def test_the_recommended_poses_do_not_depend_on_rounding_noise():
 
 
 def _choose_reference(U, k):
-    """The greedy-and-exchange search of ``choose_known_poses`` written one subset at a time
-    (the code it had before it was vectorised): the specification the fast one must match."""
+    """``choose_known_poses`` written one subset at a time (the code it had before it was
+    vectorised: exhaustive up to 20,000 subsets, else greedy and exchanges): the specification
+    the fast one must match."""
     import itertools
+    import math
 
     U = U / np.linalg.norm(U, axis=1, keepdims=True)
     X = np.column_stack([U, np.ones(len(U))])
@@ -228,6 +230,8 @@ def _choose_reference(U, k):
         d = np.linalg.det(A.T @ A) if len(idx) >= 4 else np.linalg.det(A @ A.T)
         return float(f"{d:.10g}")
 
+    if math.comb(len(U), k) <= 20_000:  # exhaustive search
+        return list(max(itertools.combinations(range(len(U)), k), key=score))
     best = list(max(itertools.combinations(range(len(U)), 2), key=score))
     while len(best) < k:
         best.append(max((i for i in range(len(U)) if i not in best),
@@ -242,12 +246,15 @@ def _choose_reference(U, k):
 
 
 @settings(max_examples=25, deadline=None)
-@given(n=st.integers(30, 70), k=st.integers(2, 6), seed=st.integers(0, 2**31 - 1),
+@example(n=30, k=3, seed=0, kind="sphere")  # exhaustive: 4,060 subsets
+@example(n=40, k=4, seed=0, kind="lattice")  # greedy and exchanges, exact ties
+@given(n=st.integers(20, 70), k=st.integers(2, 6), seed=st.integers(0, 2**31 - 1),
        kind=st.sampled_from(["sphere", "cap rounded", "lattice"]))
 def test_choose_known_poses_matches_the_one_subset_at_a_time_search(n, k, seed, kind):
     """The vectorised search (pairs in blocks, candidates scored at once) picks exactly the
-    poses the one-subset-at-a-time greedy-and-exchange search picks, ties included (a lattice
-    of directions: many exact ties; a cap rounded to 4 digits, as a CSV holds it)."""
+    poses the one-subset-at-a-time search picks (exhaustive or greedy and exchanges), ties
+    included (a lattice of directions: many exact ties; a cap rounded to 4 digits, as a CSV
+    holds it)."""
     from calib.simulate import sample_directions
 
     rng = np.random.default_rng(seed)
