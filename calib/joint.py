@@ -585,7 +585,8 @@ def _first_best(raw) -> int:
     raw = np.asarray(raw, float).ravel()
     top = float(np.max(raw))
     near = np.flatnonzero(raw >= top - 1e-7 * abs(top))
-    rounded = [float(f"{v:.10g}") for v in raw[near]]
+    values, where = np.unique(raw[near], return_inverse=True)  # many exact ties: format once
+    rounded = np.array([float(f"{v:.10g}") for v in values])[where.ravel()]
     return int(near[int(np.argmax(rounded))])
 
 
@@ -625,27 +626,28 @@ def choose_known_poses(directions, k: int = 4) -> np.ndarray:
     if comb(n, k) <= 20_000:
         sets = np.array(list(itertools.combinations(range(n), k)), int).reshape(-1, k)
         return sets[_first_best(dets(sets))]
-    # greedy from the most spread pair, then exchanges (Fedorov) while one improves; the pairs
+    # greedy from the most spread pair, then exchanges (Fedorov) while one improves. The pairs
     # (det of each pair's 2 x 2 Gram matrix) in blocks of rows, never all n^2 at once (a sweep's
-    # 100,000 directions): each block keeps the pairs near its own top, a superset of those
-    # near the overall top, which then compete as every pair did
-    q = np.einsum("ia,ia->i", X, X)
-    step = max(1, 4_000_000 // n)
-    near, tops = [], []
-    for a in range(0, n - 1, step):
-        rows = np.arange(a, min(a + step, n - 1))
-        D = q[rows, None] * q[None, :] - (X[rows] @ X.T) ** 2
-        D[np.arange(n)[None, :] <= rows[:, None]] = -np.inf  # i < j only
-        top = float(D.max())
-        ii, jj = np.nonzero(D >= top - 1e-7 * abs(top))
-        near.append(np.column_stack([rows[ii], jj, D[ii, jj]]))
-        tops.append(top)
-    near = np.vstack(near)
-    top = max(tops)
-    pairs = near[near[:, 2] >= top - 1e-7 * abs(top), :2].astype(int)
-    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]  # the order combinations gives
-    best = ([int(t) for t in pairs[_first_best(dets(pairs))]] if k >= 2
-            else [_first_best(dets(np.arange(n)[:, None]))])
+    # 100,000 directions): each block's best pair as every pair competed, the first block's
+    # on a tie (blocks and the pairs within them come in the order combinations gives)
+    if k >= 2:
+        q = np.einsum("ia,ia->i", X, X)
+        step = max(1, 1_000_000 // n)
+        best, best_score = None, -np.inf
+        for a in range(0, n - 1, step):
+            rows = np.arange(a, min(a + step, n - 1))
+            D = q[rows, None] * q[None, :] - (X[rows] @ X.T) ** 2
+            D[np.arange(n)[None, :] <= rows[:, None]] = -np.inf  # i < j only
+            top = float(D.max())
+            ii, jj = np.nonzero(D >= top - 1e-7 * abs(top))  # row-major: i, then j
+            pairs = np.column_stack([rows[ii], jj])
+            raw = dets(pairs)
+            w = _first_best(raw)
+            score = float(f"{raw[w]:.10g}")
+            if score > best_score:
+                best, best_score = [int(pairs[w, 0]), int(pairs[w, 1])], score
+    else:
+        best = [_first_best(dets(np.arange(n)[:, None]))]
     rest = np.ones(n, bool)
     rest[best] = False
     while len(best) < k:
