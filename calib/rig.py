@@ -457,6 +457,12 @@ class ForwardModel:
         self.pd = pd
         self.magnitude = magnitude
         self.fit_g = magnitude is None
+        # the pose means centred per channel for the solves (the offsets add the centre back):
+        # a channel whose offset is a thousand times its spread would otherwise lose three
+        # digits to cancellation in every residual, enough to make LM's finite-difference
+        # Jacobian noise and stop it short (the rig route's equivariance test found one)
+        self.center = pd.means.mean(axis=0)
+        self.centered = pd.means - self.center
 
     def loads(self, x, U0, T):
         """Every pose's load (P, r) at the parameters x: direction steps in the tangent planes T
@@ -490,14 +496,17 @@ class ForwardModel:
         pd = self.pd
         X = np.concatenate([Ms, np.ones(Ms.shape[:2] + (1,))], axis=2)
         Xc = np.broadcast_to(X[:, None], (len(Ms), pd.p) + X.shape[1:])
-        coef, resid = _wls_batch(Xc, pd.means, W)
+        coef, resid = _wls_batch(Xc, self.centered, W)
+        coef[:, :, pd.r] += self.center
         out = {"B": coef.transpose(0, 2, 1), "resid": resid}
         if self.bend:
             a = coef[:, :, : pd.r]
             s2 = np.einsum("bPr,bcr->bPc", Ms, a) ** 2  # (b, P, p)
             S = np.maximum(s2.max(axis=1), 1e-300)
             bendcol = (s2 / S[:, None, :]).transpose(0, 2, 1)[..., None]
-            bent, out["resid"] = _wls_batch(np.concatenate([Xc, bendcol], axis=3), pd.means, W)
+            bent, out["resid"] = _wls_batch(np.concatenate([Xc, bendcol], axis=3),
+                                            self.centered, W)
+            bent[:, :, pd.r] += self.center
             out.update(a=a, S=S, bent=bent)
         return out
 
@@ -520,13 +529,13 @@ class ForwardModel:
         :data:`SPHERE_GRID`) that the model fitted at M explains best: a global step per pose."""
         coef = self.coefficients(M, W)
         grid = g * sphere_grid(SPHERE_GRID, self.pd.r)
-        pred = self.predict(coef, grid)
+        pred = self.predict(coef, grid) - self.center
         out = M.copy()
         u = self.pd.unknown
-        # |W_j (zbar_j - pred)|^2 for every pose and grid point, expanded: (nu, grid)
+        # |W_j (zbar_j - pred)|^2 for every pose and grid point, expanded (centred): (nu, grid)
         W2 = W[u] ** 2
-        cost = (np.sum(W2 * self.pd.means[u] ** 2, axis=1)[:, None]
-                - 2 * (W2 * self.pd.means[u]) @ pred.T + W2 @ (pred**2).T)
+        Y = self.centered[u]
+        cost = (np.sum(W2 * Y**2, axis=1)[:, None] - 2 * (W2 * Y) @ pred.T + W2 @ (pred**2).T)
         out[u] = grid[np.argmin(cost, axis=1)]
         return out
 
@@ -600,6 +609,9 @@ class IndexModel:
         self.T = _tangents(self.U0)
         self.ng = self.T.shape[1] * len(self.unknown)
         self.scale = np.maximum(pd.means.std(axis=0), 1e-300)
+        # fitted to the pose means centred per channel (the offsets in theta are from the
+        # centre), for the reason :class:`ForwardModel` gives
+        self.Y = pd.means - pd.means.mean(axis=0)
 
     def loads_batch(self, xs):
         """The loads (b, P, r) of direction steps xs[:, :ng]."""
@@ -627,7 +639,7 @@ class IndexModel:
         pd = self.pd
         X = np.column_stack([self.loads_batch(np.zeros((1, self.ng)))[0] / self.g,
                              np.ones(pd.P)])
-        B = np.linalg.lstsq(X, pd.means, rcond=None)[0]
+        B = np.linalg.lstsq(X, self.Y, rcond=None)[0]
         return np.r_[np.zeros(self.ng), np.column_stack([B.T, np.zeros((pd.p, deg))]).ravel()]
 
     def grow(self, x, deg):
@@ -647,7 +659,7 @@ class IndexModel:
         def batch(xs):
             Ms = self.loads_batch(xs)
             th = xs[:, self.ng:].reshape(len(xs), pd.p, k)
-            return ((pd.means - self.predict(Ms, th, deg)) * W).reshape(len(xs), -1)
+            return ((self.Y - self.predict(Ms, th, deg)) * W).reshape(len(xs), -1)
 
         sol = least_squares(lambda x: batch(x[None])[0], x0, jac=batched_jacobian(batch),
                             method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12,
@@ -678,7 +690,7 @@ class IndexModel:
 
             def misfit(V, th=th, j=j):  # weighted residuals of pose j at directions V (n, r)
                 U = V / np.linalg.norm(V, axis=1, keepdims=True)
-                return (pd.means[j] - self.predict(U[None] * self.g, th, deg)[0]) * W[j]
+                return (self.Y[j] - self.predict(U[None] * self.g, th, deg)[0]) * W[j]
 
             if j not in unknown:
                 total += float(np.sum(misfit(f["M"][j][None]) ** 2))

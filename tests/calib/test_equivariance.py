@@ -18,7 +18,7 @@ import warnings
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
 
 from calib.bias import fit_bias
@@ -99,6 +99,13 @@ def test_motion_routes_are_equivariant(route, seed, log_scale, shift, perm_seed)
           phases=[Phase.explicit, Phase.reuse, Phase.generate])
 @given(seed=st.integers(0, 10_000), log_scale=scales, shift=shifts,
        perm_seed=st.integers(0, 99))
+# found by hypothesis (stop 53): offsets up to 1,000 spreads with scales to 10^3.2 cost the rig
+# fit's residuals three digits to cancellation, its LM stopped short (2.4e-4 of the load apart);
+# the pose means are now centred per channel inside the solves (5e-8)
+@example(seed=379, log_scale=[-3.616872148692389, -0.4916466581262702, 0.0, 3.2093285226934967,
+                              3.0, 0.0, -0.6814173625793591, 0.0],
+         shift=[-999.9999999999999, 0.0, 784.8105872217191, -459.96564210875, 358.217765950551,
+                388.3716857691131, 0.6, 931.0214893426844], perm_seed=50)
 def test_the_rig_route_is_equivariant(seed, log_scale, shift, perm_seed):
     rig, Zk, Mk = _rig(seed)
     tf = _transform(log_scale, perm_seed, shift, rig.Z)
