@@ -12,10 +12,12 @@ from hypothesis import strategies as st
 from calib.forward import (
     Problem,
     cost,
+    curvature,
     fit_forward,
     gls_inverse,
     grid,
     predict_error,
+    reweighting_dof,
     solve,
     sphere_minimum,
 )
@@ -131,11 +133,68 @@ def test_predicted_error_interval_covers_the_heldout_error():
     assert inside >= 0.8 * n
 
 
+def _payload_truth(seed):
+    """A default payload rig's 40 training poses and its true model as a fit's dict."""
+    d = simulate_payload_rig(seed, poses=80)
+    M = d.stated_loads[d.pose[d.split("poses")[0]]]
+    U = M / np.linalg.norm(M, axis=1, keepdims=True)
+    known = choose_known_poses(U, 4)
+    A, o, v = d.S.T, d.offset, np.diag(d.noise_cov)
+
+    def problem(Y):
+        return Problem(Y, None, None, known, M[known], magnitude=d.magnitude)
+
+    pr = problem(M @ A.T + o)
+    truth = {"A": A, "o": o, "U": U[pr.unknown], "g": d.magnitude, "M": M, "v": v,
+             "v0": None, "W": pr.weights(v)}
+    return problem, pr, truth
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_the_measured_degrees_of_freedom_describe_the_variance_estimates_spread(seed):
+    """The channel variances the feasible-GLS rounds estimate spread as reweighting_dof says,
+    not as the linear count P - sum(leverage) says (the rounds feed back: a channel estimated
+    quiet gets weight and absorbs more of the noise). 40 logs of one default payload rig from
+    its true model, each fitted by fit_forward from the true directions; the degrees of freedom
+    their log-variances imply, 2 / var(log(v_hat / v)), per channel, against reweighting_dof at
+    the truth (40 other logs) and against the linear count: the measured ones nearer on
+    average over the channels (log distance; on development seeds 0 and 1: 0.25 and 0.30
+    against 0.50 and 0.47)."""
+    problem, pr, truth = _payload_truth(seed)
+    v = truth["v"]
+    reps = 40
+    measured = reweighting_dof(pr, truth, reps=reps, seed=seed)
+    linear = pr.P - curvature(pr, truth)["leverage"].sum(axis=0)
+    rng = np.random.default_rng([seed, 5])
+    logs = []
+    for _ in range(reps):
+        Y = pr.Y + rng.normal(size=pr.Y.shape) * np.sqrt(v)
+        logs.append(np.log(fit_forward(problem(Y), only={"truth": truth["U"]})["v"] / v))
+    refits = 2.0 / np.var(np.array(logs), axis=0, ddof=1)
+    near = np.mean(np.abs(np.log(refits / measured)))
+    far = np.mean(np.abs(np.log(refits / linear)))
+    assert near < far, (near, far)
+    assert near < 0.4, near
+
+
+def test_reweighting_dof_is_seeded_and_left_to_the_linear_count_on_sweeps():
+    _, pr, truth = _payload_truth(3)
+    a = reweighting_dof(pr, truth, reps=5, seed=1)
+    assert a.shape == (pr.p,) and np.all(a >= 1)
+    assert np.array_equal(a, reweighting_dof(pr, truth, reps=5, seed=1))
+    assert reweighting_dof(pr, truth, reps=2) is None
+    big = Problem(np.zeros((450, 8)), None, None, np.arange(4), np.eye(3)[[0, 1, 2, 0]],
+                  magnitude=1.0)
+    assert reweighting_dof(big, truth) is None
+
+
 def test_stated_load_accuracy_widens_the_interval_to_cover_kinematic_errors():
-    """Stated loads off by a robot's kinematics (0.5 deg per pose): the interval that takes them
-    as exact misses most held-out errors measured against them; stating their accuracy
+    """Stated loads off by a robot's kinematics (0.5 deg per pose): the 90 % interval that takes
+    them as exact misses many held-out errors measured against them; stating their accuracy
     (``load_sd``, the per-component error 0.5 deg gives; ``known_sigma`` of the joint route)
-    brings the coverage back near 90 % (at least 70 % of 24, against at most 50 % without)."""
+    brings the coverage back near 90 % (at least 70 % of 24, against at most 60 % without: a
+    90 % interval covers 14 or fewer of 24 with probability 1e-4). Measured (stop 53, the
+    variances' degrees of freedom as the rounds give them): 19 and 13 of 24."""
     n, inside_exact, inside_stated = 24, 0, 0
     for seed in range(n):
         d, Z, M, known, Zt, Mt = _payload_split(900 + seed, poses=60, misalignment_deg=0.5)
@@ -149,7 +208,7 @@ def test_stated_load_accuracy_widens_the_interval_to_cover_kinematic_errors():
         lo2, hi2 = predict_error(pr, f, draws=500, load_sd=sd)["interval"]
         assert lo2 > lo and hi2 > hi
         inside_stated += lo2 <= e <= hi2
-    assert inside_exact <= 0.5 * n, inside_exact
+    assert inside_exact <= 0.6 * n, (inside_exact, inside_stated)
     assert inside_stated >= 0.7 * n, inside_stated
 
 
@@ -185,11 +244,13 @@ def test_the_verdict_holds_the_interval_upper_end_to_the_ceiling():
 def test_the_ceiling_compares_the_fit_with_least_squares_on_the_same_noise():
     """A 20-pose payload rig (development seed 570 of the payload study's generator) whose
     channels' variances are known from few degrees of freedom: in draws where the noise is
-    higher both the fit and least squares err more, so the fit's error interval reaches 4.6x
-    least squares' median while their ratio within a draw stays below 2x (measured 1.51x; the
-    assertion keeps room for other BLAS builds' roundoff in the search). The verdict holds
-    the paired ratio to 3x and writes the fit; it measures 1.03x least squares (the oracle,
-    fitted from the true directions, the same)."""
+    higher both the fit and least squares err more, so with the linear count of degrees of
+    freedom (``reweight_reps=0``) the fit's error interval reaches 4.6x least squares' median
+    while their ratio within a draw stays below 2x (measured 1.51x; the assertion keeps room
+    for other BLAS builds' roundoff in the search). The verdict holds the paired ratio to 3x
+    and writes the fit; it measures 1.03x least squares (the oracle, fitted from the true
+    directions, the same). (With the degrees of freedom the rounds give, this rig's variances
+    are better determined: the interval's upper end 2.0x least squares.)"""
     rig = simulate_payload_rig(10_570, poses=40)
     M = rig.stated_loads[rig.pose]
     tr, te = rig.split("poses")
@@ -197,7 +258,13 @@ def test_the_ceiling_compares_the_fit_with_least_squares_on_the_same_noise():
     kn = choose_known_poses(M[tr] / np.linalg.norm(M[tr], axis=1, keepdims=True), 4)
     cal = _joint(Z, Z[kn], M[tr][kn])
     pe = cal.diagnostics["joint"]["predicted_error"]
-    assert pe["interval_ratio"] > 3 > 2 > pe["upper_ratio"], pe
+    assert pe["upper_ratio"] < 2, pe
+    pr = Problem(Z, None, None, kn, M[tr][kn], magnitude=rig.magnitude)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        f = fit_forward(pr)
+    linear = predict_error(pr, f, reweight_reps=0)
+    assert linear["interval_ratio"] > 3 > 2 > linear["upper_ratio"], linear
     assert not assess(cal, Z[kn], M[tr][kn])
     ls = fit_least_squares(Z, M[tr], bias=True)
     assert _heldout(cal, rig.Z[te], M[te]) < 1.2 * _heldout(ls, rig.Z[te], M[te])
