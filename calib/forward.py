@@ -622,7 +622,8 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
 
 
 #: Logs :func:`reweighting_dof` simulates from a fit (each one solve and the feasible-GLS
-#: rounds from the fit's own start: 0.9 s for 40 one-reading poses of 8 channels, 2.5 s for 200).
+#: rounds from the fit's own start: 1.3 s for 40 one-reading poses of 8 channels, 2.2 s for
+#: 200). With 20 the interval's width moved by up to a fifth between seeds on one rig.
 REWEIGHT_REPS = 40
 
 
