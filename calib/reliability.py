@@ -65,8 +65,8 @@ HOLDOUT_FACTOR = 20.0
 #: is the noise level's, which moves both alike (4.6x said, 1.5x paired, 1.03x measured). On
 #: the real wrist sensor with random sets of 4 known poses the median alone wrote fits measured
 #: 3.3-7.6x (their medians predicted 1.5-2.1x, their intervals reaching 4.7-6.1x; paired, the
-#: same fits are refused); on the payload study's simulated rigs it refuses 0-5 % of fits
-#: outside the case whose offset is not identified (docs/calib_study.md).
+#: same fits are refused); on the payload study's simulated rigs it refuses 0-2 % of fits
+#: outside the case whose offset is not identified (docs/calib_study.md; 0-5 % before stop 54).
 PREDICTED_RATIO_MAX = 3.0
 #: The held-out rms may never exceed this fraction of the load magnitude.
 HOLDOUT_MAX_FRACTION = 0.5
