@@ -22,6 +22,12 @@ SPEC = {
     "learners": {"sfm": {}}, "budgets": {"sfm": [20_000, 30_000]},
 }
 VOLATILE = ("wall_s", "train_s", "policy", "_file")
+# a loaded 2-core machine (CI beside a study) once ended this test's driver with no summary: Ray's
+# defaults declare a node dead after 5 health checks of 10 s fail, and a raylet or driver away from
+# the control store for 60 s exits. A node killed here refuses connections at once, so the checks
+# still fail fast for it (failure threshold x period, 30 s); a live one only slow gets more room.
+SLOW_MACHINE = {"health_check_timeout_ms": 30_000, "health_check_failure_threshold": 10,
+                "gcs_rpc_server_reconnect_timeout_s": 300}
 
 
 def _stable(rows):
@@ -32,7 +38,8 @@ def _stable(rows):
 def test_a_worker_node_killed_mid_sweep_loses_no_job(tmp_path):
     if ray.is_initialized():
         ray.shutdown()
-    cluster = cluster_utils.Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    cluster = cluster_utils.Cluster(initialize_head=True, head_node_args={
+        "num_cpus": 1, "_system_config": SLOW_MACHINE})
     worker = cluster.add_node(num_cpus=1)
     cluster.wait_for_nodes()
     ray.init(address=cluster.address, include_dashboard=False, log_to_driver=False,
