@@ -156,6 +156,12 @@ class Problem:
         return q
 
 
+def _search_pick(nu: int) -> np.ndarray:
+    """The :data:`SEARCH_POSES` evenly strided unknown poses (indices into ``nu``) a long log's
+    search over starts, feasible-GLS rounds and correlation rounds run on."""
+    return np.unique(np.linspace(0, nu - 1, SEARCH_POSES).round().astype(int))
+
+
 def linear_fit(pr: Problem, M, W):
     """Every channel's (a_c, o_c) by weighted least squares at loads M: A (p, r), o (p,)."""
     X = np.column_stack([M, np.ones(pr.P)])
@@ -530,7 +536,7 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
         raise CalibrationError("every pose has a known load: use least squares")
     # the search runs on at most SEARCH_POSES unknown poses (evenly strided)
     if nu > SEARCH_POSES:
-        pick = np.unique(np.linspace(0, nu - 1, SEARCH_POSES).round().astype(int))
+        pick = _search_pick(nu)
         sp = pr.sub(pr.unknown[pick])
     else:
         pick, sp = np.arange(nu), pr
@@ -639,9 +645,15 @@ REWEIGHT_REPS = 40
 def reweighting_logs(pr: Problem, fit: dict, reps: int = REWEIGHT_REPS,
                      seed: int = 0) -> np.ndarray | None:
     """The logs of :func:`reweighting_dof`: ``log(v_b / v)`` of each refitted log (rows) and
-    channel (columns); None as there."""
-    if len(pr.unknown) > SEARCH_POSES or reps < 3:
+    channel (columns); None as there. Beyond :data:`SEARCH_POSES` unknown poses the logs are
+    simulated on the search's own strided subset (:func:`fit_forward`'s rounds ran there)."""
+    if reps < 3:
         return None
+    nu = len(pr.unknown)
+    if nu > SEARCH_POSES:
+        pick = _search_pick(nu)
+        rows = np.sort(np.r_[pr.known, pr.unknown[pick]])
+        pr, fit = pr.sub(pr.unknown[pick]), {**fit, "M": fit["M"][rows], "U": fit["U"][pick]}
     rng = np.random.default_rng([seed, 7919])
     A, o, U, g, v = fit["A"], fit["o"], fit["U"], fit["g"], fit["v"]
     v0 = fit.get("v0")
@@ -680,9 +692,16 @@ def reweighting_dof(pr: Problem, fit: dict, reps: int = REWEIGHT_REPS,
     rounds run it does not (6.9 / 9.6 %; on the channels with the highest signal-to-noise
     ratio, which carry the calibration, 9.1 / 14.0 %). Linear theory cannot see it.
 
-    None where the search ran on a subset (more than :data:`SEARCH_POSES` unknown poses: the
-    variances there have hundreds of degrees of freedom and the linear count is kept) or where
-    no simulated log could be refitted."""
+    Where the search ran on a subset (more than :data:`SEARCH_POSES` unknown poses: a sweep),
+    the logs are simulated on that subset, and its degrees of freedom are the fit's: the rounds
+    settle the variances there and the one re-estimate on every pose inherits their spread,
+    not the hundreds of degrees of freedom the linear count gives it. Measured on 20
+    development sweeps of 1,000 training readings (8 gauges, 160 channels): the fits' log
+    variance ratios to the truth over their standard deviation ``sqrt(2 / dof)`` spread with
+    sd 1.69 by the linear count, 1.08 by the subset's measured degrees of freedom (the subset
+    count scaled up by the poses' ratio: the interval's coverage on 60 sweeps 80 -> 85 % only).
+
+    None with fewer than 3 ``reps`` or where fewer than 3 simulated logs could be refitted."""
     logs = reweighting_logs(pr, fit, reps, seed)
     return None if logs is None else dof_of_logs(logs)
 
@@ -1156,8 +1175,7 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     # the rounds run on at most SEARCH_POSES unknown poses (a sweep's evenly strided subset),
     # then the whole log is fitted once more in the channels they settled on
     nu = len(pr.unknown)
-    pick = (np.unique(np.linspace(0, nu - 1, SEARCH_POSES).round().astype(int))
-            if nu > SEARCH_POSES and only is None else np.arange(nu))
+    pick = _search_pick(nu) if nu > SEARCH_POSES and only is None else np.arange(nu)
     rows = np.sort(np.r_[pr.known, pr.unknown[pick]])
     q = pr.sub(pr.unknown[pick]) if len(pick) < nu else pr
     first = fit["M"]
@@ -1267,8 +1285,9 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     Monte Carlo over what varies: the fitted (A, o) drawn from their covariance (the inverse
     Schur complement: the unknown directions are nuisance parameters), each channel's variance
     from its scaled chi-square (degrees of freedom as the feasible-GLS rounds give them,
-    measured on ``reweight_reps`` logs simulated from the fit, :func:`reweighting_dof`; 0, or
-    a sweep: the linear count ``P - sum(leverage)`` of :func:`estimate_variances`), and the
+    measured on ``reweight_reps`` logs simulated from the fit, :func:`reweighting_dof`, a
+    sweep's on its search subset; ``reweight_reps`` 0: the linear count ``P - sum(leverage)``
+    of :func:`estimate_variances`), and the
     test readings' noise. ``rms`` is the median over draws, ``interval`` the central
     ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
     ``ratio`` their quotient; ``upper_ratio`` the upper end of the central ``coverage`` range

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calib.forward import (
+    SEARCH_POSES,
     Problem,
     cost,
     curvature,
@@ -134,9 +135,10 @@ def test_predicted_error_interval_covers_the_heldout_error():
     assert inside >= 0.8 * n
 
 
-def _payload_truth(seed):
-    """A default payload rig's 40 training poses and its true model as a fit's dict."""
-    d = simulate_payload_rig(seed, poses=80)
+def _payload_truth(seed, poses=80):
+    """A default payload rig's training poses (half of ``poses``) and its true model as a
+    fit's dict."""
+    d = simulate_payload_rig(seed, poses=poses)
     M = d.stated_loads[d.pose[d.split("poses")[0]]]
     U = M / np.linalg.norm(M, axis=1, keepdims=True)
     known = choose_known_poses(U, 4)
@@ -233,15 +235,30 @@ def test_a_channel_the_rounds_let_go_is_not_given_a_truth_far_above_its_estimate
     assert 5.0 < dof_of_logs(logs)[0] < 20.0
 
 
-def test_reweighting_dof_is_seeded_and_left_to_the_linear_count_on_sweeps():
+def test_reweighting_dof_is_seeded():
     _, pr, truth = _payload_truth(3)
     a = reweighting_dof(pr, truth, reps=5, seed=1)
     assert a.shape == (pr.p,) and np.all(a >= 1)
     assert np.array_equal(a, reweighting_dof(pr, truth, reps=5, seed=1))
     assert reweighting_dof(pr, truth, reps=2) is None
-    big = Problem(np.zeros((450, 8)), None, None, np.arange(4), np.eye(3)[[0, 1, 2, 0]],
-                  magnitude=1.0)
-    assert reweighting_dof(big, truth) is None
+
+
+def test_a_long_logs_degrees_of_freedom_are_measured_on_its_search_subset():
+    """Beyond SEARCH_POSES unknown poses (a sweep) the variances settle in the rounds on the
+    search's strided subset, and the final re-estimate on every pose inherits their spread:
+    the degrees of freedom are measured there (the same numbers as on that subset), not left
+    to the linear count of every pose (hundreds: on development sweeps the variances spread
+    1.7x wider than it says)."""
+    _, pr, truth = _payload_truth(4, poses=2 * (SEARCH_POSES + 60))
+    nu = len(pr.unknown)
+    assert nu > SEARCH_POSES
+    pick = np.unique(np.linspace(0, nu - 1, SEARCH_POSES).round().astype(int))
+    rows = np.sort(np.r_[pr.known, pr.unknown[pick]])
+    sub = {**truth, "M": truth["M"][rows], "U": truth["U"][pick]}
+    a = reweighting_dof(pr, truth, reps=4, seed=2)
+    assert a is not None and a.shape == (pr.p,)
+    assert np.array_equal(a, reweighting_dof(pr.sub(pr.unknown[pick]), sub, reps=4, seed=2))
+    assert np.median(a) < np.median(pr.P - curvature(pr, truth)["leverage"].sum(axis=0))
 
 
 def test_stated_load_accuracy_widens_the_interval_to_cover_kinematic_errors():
