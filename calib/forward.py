@@ -1161,7 +1161,18 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     correlated, the same fit in whitened channels: the first time from the first fit's loads
     and the same starts, then, in rounds, from the last round's directions, each round
     whitening further by what :func:`shared_noise` still finds (until that is white, at most
-    :data:`MAX_CORRELATION_ROUNDS`; the count is ``correlation["rounds"]``). Returns
+    :data:`MAX_CORRELATION_ROUNDS`; the count is ``correlation["rounds"]``).
+
+    The rounds whiten by the regression's unshrunk estimate (``gamma_ls``). The James-Stein
+    shrinkage decides whether to whiten at all (:func:`noise_correlation`); once whitened, the
+    rounds solve the regression's estimating equation ``gamma_ls = 0``. Whitening by the shrunk
+    estimate stopped them where what is left is no longer significant, and the fit's
+    directions take up much of a shared part (the regression sees 0.3-1 of it:
+    :func:`attenuation`), so a shared part of up to about three of its standard errors stayed.
+    On 120 development gauge-mixed payload rigs (seeds 10,500-10,619) the fits' held-out error
+    over least squares with every load known went median 1.36 -> 1.29x, 95th percentile 2.21
+    -> 1.85x, worst 4.00 -> 2.26x (seed 10,501: its rig with 12 fresh noise draws, median
+    about 3.5 -> 1.4x), the interval's coverage 86.7 -> 89.2 %. Returns
     ``(problem, fit, T, T_inv, correlation)``: the problem and fit in the channels fitted
     (``T`` the identity when not whitened); the calibration in the original channels is
     ``gls_inverse(A, v) @ T``, its offset ``T_inv @ o``."""
@@ -1193,11 +1204,13 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
                 "previous round": _directions(fit["M"][q.unknown])})
         correlation["rounds"] = k + 1
         sn = shared_noise(qw, fit)
-        step = _whitener(sn["S"]) if sn is not None else None
+        # what is left, unshrunk (see the docstring)
+        S = _shared_covariance(sn["parts"], sn["gamma_ls"]) if sn is not None else None
+        step = _whitener(S) if S is not None else None
         if step is None or k == MAX_CORRELATION_ROUNDS - 1:
             break
-        sd = np.sqrt(np.diag(sn["S"]))
-        if np.max(np.abs(sn["S"] / np.outer(sd, sd) - np.eye(pr.p))) < tol:
+        sd = np.sqrt(np.diag(S))
+        if np.max(np.abs(S / np.outer(sd, sd) - np.eye(pr.p))) < tol:
             break  # what is left is below a quarter of a correlation's standard error
         T, T_inv = step[0] @ T, T_inv @ step[1]
     if q is pr:
