@@ -70,6 +70,20 @@ MAX_REWEIGHT_ROUNDS = 12
 #: rounds can only settle on noise: a fixed 3 from the neutral start instead (on the study's
 #: p = r = 3 sensors, settling rounds moved the 90 degree cap's p95 offset error 1.28 -> 1.59 %).
 UNIDENTIFIED_ROUNDS = 3
+#: The central share of the predicted held-out error's distribution its printed interval spans
+#: (:func:`predict_error`). 95 %, not 90 %: the interval is asked to hold the measured error on at
+#: least 90 % of fits, and a 90 % interval that is exactly calibrated does that only on average
+#: (on 60 rigs below 90 % about half the time; on the payload study's cases, 60 held-out rigs
+#: each, its coverage was 85-97 %, 90.8 % pooled, and on 580 development rigs 92.4 % with the
+#: measured error's rank among the draws uniform within sampling error, Kolmogorov-Smirnov
+#: p 0.06): on sensors not seen, whose noise departs from the model, it would leave no margin.
+#: The 95 % interval on the study's held-out rigs: 93-100 % per case, gauge-mixed 89.8 % (53 of
+#: 59; 92.5 % of 120 development rigs: short of 95 % there, docs/calib_study.md), 96.5 % pooled.
+#: The verdict does not move with it: :data:`RATIO_COVERAGE`.
+INTERVAL_COVERAGE = 0.95
+#: The central share of the fit-to-least-squares ratio's distribution whose upper end (its 95th
+#: percentile) the verdict holds to its ceiling (:data:`calib.reliability.PREDICTED_RATIO_MAX`).
+RATIO_COVERAGE = 0.90
 #: Variances below this fraction of a channel's spread squared are floored (an exactly
 #: redundant channel would otherwise get an infinite weight).
 VARIANCE_FLOOR = 1e-16
@@ -1292,8 +1306,9 @@ def _sampler(cov) -> np.ndarray:
 
 
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
-                  coverage: float = 0.90, load_sd: float = 0.0,
-                  whitened: bool = False, reweight_reps: int = REWEIGHT_REPS) -> dict:
+                  coverage: float = INTERVAL_COVERAGE, load_sd: float = 0.0,
+                  whitened: bool = False, reweight_reps: int = REWEIGHT_REPS,
+                  ratio_coverage: float = RATIO_COVERAGE) -> dict:
     """The held-out load error expected of the fit's calibration on new single readings at the
     rig's poses (as many as it has poses), with an interval, and the same for least squares
     with every load known (the reference the verdict compares with).
@@ -1306,8 +1321,8 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     of :func:`estimate_variances`), and the
     test readings' noise. ``rms`` is the median over draws, ``interval`` the central
     ``coverage`` range; ``ls_rms`` least squares with every load known, predicted the same way;
-    ``ratio`` their quotient; ``upper_ratio`` the upper end of the central ``coverage`` range
-    of the ratio within each draw (the fit's error over least squares' on the same test
+    ``ratio`` their quotient; ``upper_ratio`` the upper end of the central ``ratio_coverage``
+    range of the ratio within each draw (the fit's error over least squares' on the same test
     readings and the same variances, both fits' parameter errors scaled by the draw's true
     noise: what :func:`calib.reliability.assess` holds to its ceiling; the two parameter
     errors are drawn independently: drawn together through the linearised fits' common noise,
@@ -1427,6 +1442,7 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     return {"rms": med, "interval": [float(lo), float(hi)], "coverage": coverage,
             "ls_rms": med_ls, "ratio": med / med_ls if med_ls > 0 else float("inf"),
             "upper_ratio": float(np.quantile(err / np.maximum(err_ls, 1e-300),
-                                             (1 + coverage) / 2)),
+                                             (1 + ratio_coverage) / 2)),
+            "ratio_coverage": ratio_coverage,
             "interval_ratio": float(hi) / med_ls if med_ls > 0 else float("inf"),
             "test_readings": int(P)}

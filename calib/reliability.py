@@ -58,7 +58,8 @@ HOLDOUT_FACTOR = 20.0
 #: A forward fit whose predicted held-out error (:func:`calib.forward.predict_error`) may exceed
 #: this multiple of what least squares with every load known would achieve on the same rig is
 #: refused: the ceiling the calibration study holds every written fit to (3x). "May": the
-#: upper end of the predicted 90 % interval of the ratio, not its median, is held to it, so a
+#: 95th percentile of the predicted ratio (``RATIO_COVERAGE`` 0.90: the upper end of its central
+#: 90 % interval; the printed error interval is 95 %), not its median, is held to it, so a
 #: fit is written only where its own uncertainty excludes (at 95 %) being beyond the ceiling.
 #: The ratio is taken within each draw of the Monte Carlo (the same noise for both): its
 #: error's upper end over least squares' median refused fits on 20-pose rigs whose uncertainty
@@ -118,8 +119,8 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
     if isinstance(pe, dict) and not (pe.get("upper_ratio", np.inf) <= PREDICTED_RATIO_MAX):
         out.append(f"predicted held-out error {pe['rms']:.4g} ({pe['ratio']:.3g}x least squares "
                    f"with every load known) could reach {pe['upper_ratio']:.3g}x least squares "
-                   f"on the same noise (limit {PREDICTED_RATIO_MAX:g}x at the 90 % interval's "
-                   f"upper end; the error's interval reaches {pe['interval'][1]:.4g})")
+                   f"on the same noise (limit {PREDICTED_RATIO_MAX:g}x at the ratio's 95th "
+                   f"percentile; the error's interval reaches {pe['interval'][1]:.4g})")
     elif joint_d.get("route") == "forward" and pe is None:
         out.append("the fit's covariance does not exist: nothing is identified")
     if known_Z is None or known_M is None:

@@ -338,10 +338,11 @@ def _unit_vector(rng):
 
 def test_the_interval_holds_most_gauge_mixed_fits():
     """Gauge-mixed wrench rigs (40 training poses, 4 known, one reading each): the measured
-    held-out error lies in the predicted 90 % interval for most fits. Not 90 %: on the
-    development rigs 500-539, 82 % of written fits (stop 51, with the range's covariance drawn
-    from its posterior; 72 % before); this guards that level (at least 2/3 of 24 rigs, a
-    binomial 2 % lower bound at 82 %) on seeds used for nothing else."""
+    held-out error lies in the predicted 95 % interval (the printed one) for at least 19 of 24
+    fits (79 %): on the 120 development rigs 10,500-10,619 it held 92.5 % (the 90 % interval
+    89.2 %), and a 92.5 % rate gives 18 or fewer of 24 with probability 0.007. Seeds used for
+    nothing else (24 of 24 when the interval became 95 %; the 90 % one of stop 51 held 82 % of the
+    development rigs 500-539)."""
     inside = predicted = 0
     for seed in range(24):
         rig = simulate_payload_rig(3_000 + seed, poses=80, wrench=True, gauges=8)
@@ -356,7 +357,7 @@ def test_the_interval_holds_most_gauge_mixed_fits():
         predicted += 1
         lo, hi = pe["interval"]
         inside += lo <= _err(rig, te, M, cal.C, cal.offset) <= hi
-    assert predicted >= 20 and inside >= 2 / 3 * predicted, (inside, predicted)
+    assert predicted >= 20 and inside >= 0.79 * predicted, (inside, predicted)
 
 
 def test_the_rounds_take_out_a_shared_part_the_directions_mostly_absorb():
