@@ -1152,6 +1152,11 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
 #: Rounds of :func:`fit_correlated`'s whitened refits: until the covariance
 #: :func:`shared_noise` finds in the whitened channels has no correlation above
 #: :data:`REWEIGHT_TOL` of a correlation's standard error (``1 / sqrt(P)``), at most this many.
+#: Not to convergence: 30 rounds (stop 56) let the rounds reach their fixed point on
+#: development gauge-mixed rigs (3-29 rounds where 8 stopped 7 of 13 at the cap) and helped a
+#: hard one (10,501, 12 fresh-noise draws: worst 3.57 -> 2.06x least squares), but the held-out
+#: study did not move (gauge-mixed 1.25 / 1.58 / 2.47 -> 1.23 / 1.61 / 2.47x) and the real wrist
+#: sensor lost (docs/calib.md, "Rounds to convergence: tried, not kept").
 MAX_CORRELATION_ROUNDS = 8
 
 
@@ -1308,7 +1313,7 @@ def _sampler(cov) -> np.ndarray:
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
                   coverage: float = INTERVAL_COVERAGE, load_sd: float = 0.0,
                   whitened: bool = False, reweight_reps: int = REWEIGHT_REPS,
-                  ratio_coverage: float = RATIO_COVERAGE) -> dict:
+                  ratio_coverage: float = RATIO_COVERAGE, dof=None) -> dict:
     """The held-out load error expected of the fit's calibration on new single readings at the
     rig's poses (as many as it has poses), with an interval, and the same for least squares
     with every load known (the reference the verdict compares with).
@@ -1332,6 +1337,10 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     this one counts the fit's high draws against least squares' typical one: on 20-pose rigs it
     said 4.6x for a fit whose paired ratio is 1.5x and which measured 1.03x). Returns None
     when the covariance does not exist (a singular fit: nothing identified).
+
+    ``dof``: the channels' variance degrees of freedom where already measured for this fit
+    (``reweighting_dof(pr, fit, reweight_reps, seed)``: predictions of one fit at several
+    ``load_sd`` then share its simulated refits); None: measured here.
 
     ``load_sd``: the stated loads' own error (standard deviation per component, load units; a
     robot's kinematics, a weighing): the known poses' loads then move the fit (linearised: the
@@ -1363,7 +1372,12 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     if len(M) > MC_TEST_READINGS:  # the test set of the Monte Carlo: evenly strided poses
         M = M[np.linspace(0, len(M) - 1, MC_TEST_READINGS).round().astype(int)]
     P = len(M)
-    dof = reweighting_dof(pr, fit, reps=reweight_reps, seed=seed)
+    if dof is not None:
+        dof = np.asarray(dof, float)
+        if dof.shape != (pr.p,) or not np.all(dof > 0):
+            raise ValueError(f"dof must hold {pr.p} positive degrees of freedom, one a channel")
+    else:
+        dof = reweighting_dof(pr, fit, reps=reweight_reps, seed=seed)
     if dof is None:
         dof = np.maximum(pr.P - fit["leverage"].sum(axis=0), 1.0)
     L = _sampler(cov)

@@ -27,6 +27,7 @@ interval (the printed one, ``calib.forward.INTERVAL_COVERAGE``: 95 %), and the s
 the channels' noise was found correlated (whitened fit).
 
     python scripts/calib_payload_study.py [--rigs 100] [--workers 2] [--write docs/calib_study.md]
+    python scripts/calib_payload_study.py --rigs 60 --cases "default,from 8 gauges"
 """
 
 from __future__ import annotations
@@ -123,13 +124,13 @@ def one(job):
     return case, seed, out
 
 
-def table(results):
+def table(results, cases=None):
     lines = ["| case | joint / LS (refused) | joint / oracle | oracle / LS | Sampson / LS | "
              ">3x LS and exit 0 | refused, oracle within 1.5x LS | "
              f"in predicted {INTERVAL_COVERAGE * 100:.0f} % interval | "
              "noise found correlated |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for case in CASES:
+    for case in cases or CASES:
         rows = [r[2] for r in results if r[0] == case]
         j = np.array([r["joint"][0] for r in rows])
         refused = np.array([r["joint"][1] for r in rows])
@@ -152,8 +153,24 @@ def main(argv=None):
     ap.add_argument("--rigs", type=int, default=100, help="rigs per case")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--write", metavar="MD", help="replace the payload block of this markdown")
+    ap.add_argument("--cases", metavar="TEXT[,TEXT]",
+                    help="only the cases whose name contains one of these (comma-separated; "
+                         "each must name exactly one case; not with --write)")
     args = ap.parse_args(argv)
-    jobs = [(c, s) for c in CASES for s in range(args.rigs)]
+    if args.rigs < 1 or args.workers < 1:
+        ap.error("--rigs and --workers must be at least 1")
+    cases = list(CASES)
+    if args.cases is not None:
+        if args.write:
+            ap.error("--write replaces the whole table: run every case (no --cases)")
+        cases = []
+        for part in args.cases.split(","):
+            hit = [c for c in CASES if part.strip() and part.strip() in c]
+            if len(hit) != 1:
+                ap.error(f"--cases: {part.strip()!r} names {len(hit)} cases, not one "
+                         f"(cases: {'; '.join(CASES)})")
+            cases += [c for c in hit if c not in cases]
+    jobs = [(c, s) for c in cases for s in range(args.rigs)]
     t0 = time.time()
     with ProcessPoolExecutor(args.workers) as ex:
         results = list(ex.map(one, jobs, chunksize=4))
@@ -163,7 +180,7 @@ def main(argv=None):
             "load known (LS) or over the oracle (the same model fitted from the true "
             "directions), median / 95th percentile / worst over the rigs; in brackets the share "
             "of joint fits refused (`calib fit` exit 3); the interval column counts written "
-            "fits.\n\n" + table(results)
+            "fits.\n\n" + table(results, cases)
             + f"\n\nRun time {time.time() - t0:.0f} s with {args.workers} worker(s).")
     print(text)
     if args.write:

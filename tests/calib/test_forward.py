@@ -278,10 +278,12 @@ def test_stated_load_accuracy_widens_the_interval_to_cover_kinematic_errors():
         f = fit_forward(pr, random_starts=2, restarts=0)
         C = gls_inverse(f["A"], f["v"])
         e = float(np.sqrt(np.mean(np.sum(((Zt - f["o"]) @ C.T - Mt) ** 2, axis=1))))
-        lo, hi = predict_error(pr, f, draws=500, coverage=0.90)["interval"]
+        dof = reweighting_dof(pr, f)  # measured once, shared by both predictions
+        lo, hi = predict_error(pr, f, draws=500, coverage=0.90, dof=dof)["interval"]
         inside_exact += lo <= e <= hi
         sd = d.magnitude * np.radians(0.5) * np.sqrt(2 / 9)
-        lo2, hi2 = predict_error(pr, f, draws=500, load_sd=sd, coverage=0.90)["interval"]
+        lo2, hi2 = predict_error(pr, f, draws=500, load_sd=sd, coverage=0.90,
+                                 dof=dof)["interval"]
         assert lo2 > lo and hi2 > hi
         inside_stated += lo2 <= e <= hi2
     assert inside_exact <= 0.6 * n, (inside_exact, inside_stated)
@@ -344,6 +346,23 @@ def test_the_ceiling_compares_the_fit_with_least_squares_on_the_same_noise():
     assert not assess(cal, Z[kn], M[tr][kn])
     ls = fit_least_squares(Z, M[tr], bias=True)
     assert _heldout(cal, rig.Z[te], M[te]) < 1.2 * _heldout(ls, rig.Z[te], M[te])
+
+
+def test_degrees_of_freedom_measured_once_give_the_same_prediction():
+    """``predict_error(..., dof=reweighting_dof(...))`` is the prediction it would measure
+    itself (the same refits, the same draws), and a ``dof`` of the wrong shape or sign is a
+    one-line ValueError."""
+    d, Z, M, known, _, _ = _payload_split(11, poses=40)
+    pr = Problem(Z, None, None, known, M[known], magnitude=d.magnitude)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        f = fit_forward(pr, random_starts=2, restarts=0)
+    own = predict_error(pr, f, draws=300, seed=4)
+    shared = predict_error(pr, f, draws=300, seed=4, dof=reweighting_dof(pr, f, seed=4))
+    assert own["rms"] == shared["rms"] and own["interval"] == shared["interval"]
+    for bad in (np.ones(pr.p - 1), -np.ones(pr.p), np.full(pr.p, np.nan)):
+        with pytest.raises(ValueError, match="positive degrees of freedom"):
+            predict_error(pr, f, draws=10, dof=bad)
 
 
 def test_narrow_coverage_is_refused():
