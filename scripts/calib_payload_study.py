@@ -172,8 +172,11 @@ def main(argv=None):
             cases += [c for c in hit if c not in cases]
     jobs = [(c, s) for c in cases for s in range(args.rigs)]
     t0 = time.time()
-    with ProcessPoolExecutor(args.workers) as ex:
-        results = list(ex.map(one, jobs, chunksize=4))
+    if args.workers == 1:  # in this process (no pool: a traceback points at the rig)
+        results = [one(job) for job in jobs]
+    else:
+        with ProcessPoolExecutor(args.workers) as ex:
+            results = list(ex.map(one, jobs, chunksize=4))
     text = (f"Produced by `python scripts/calib_payload_study.py --rigs {args.rigs}` (set-up in "
             f"its docstring; {args.rigs} rigs per case, seeds 10,000 on: never used while the "
             "estimator was developed). Cells: held-out load rms over least squares with every "

@@ -1,0 +1,30 @@
+"""scripts/calib_payload_study.py: its options' one-line errors and a one-rig run of a chosen
+case (the study itself is run by hand; docs/calib_study.md)."""
+
+import pytest
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--cases", "gauges"], "names 5 cases, not one"),
+    (["--cases", "no such case"], "names 0 cases, not one"),
+    (["--cases", "default,"], "names 0 cases, not one"),
+    (["--cases", "default", "--write", "x.md"], "--write replaces the whole table"),
+    (["--rigs", "0"], "must be at least 1"),
+    (["--workers", "0"], "must be at least 1"),
+])
+def test_bad_options_are_one_line_errors(load_script, capsys, argv, message):
+    mod = load_script("calib_payload_study")
+    with pytest.raises(SystemExit) as e:
+        mod.main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1] and "Traceback" not in "".join(err)
+
+
+def test_one_case_prints_its_row_only(load_script, capsys):
+    mod = load_script("calib_payload_study")
+    mod.main(["--rigs", "1", "--workers", "1", "--cases", "20 poses"])
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| ") and "case" not in line]
+    assert len(rows) == 1 and rows[0].startswith("| 8 gauges, 20 poses |")
+    assert "in predicted 95 % interval" in out and "of 1)" in out
