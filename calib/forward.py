@@ -1356,6 +1356,9 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
     (:func:`attenuation`: the rounds stop where the attenuated estimate is 0), and held to what
     the regression's residuals leave room for (:func:`_radial_share`: a shared part adding
     more variance to the rows than they have is scaled back to it)."""
+    for name, level in (("coverage", coverage), ("ratio_coverage", ratio_coverage)):
+        if not 0.0 < level < 1.0:
+            raise ValueError(f"{name} must lie strictly between 0 and 1, not {level!r}")
     rng = np.random.default_rng(seed)
     # the stated loads' error from a stream of its own: the other draws are then the same with
     # and without it (common random numbers: ``load_sd`` widens the interval, the Monte Carlo

@@ -159,6 +159,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.rigs < 1 or args.workers < 1:
         ap.error("--rigs and --workers must be at least 1")
+    if args.write and not os.path.isfile(args.write):  # checked now, not after the run
+        ap.error(f"--write: {args.write} is not a regular file")
     cases = list(CASES)
     if args.cases is not None:
         if args.write:
@@ -192,8 +194,10 @@ def main(argv=None):
         block = f"{a}\n{text}\n{b}"
         doc = (doc[: doc.index(a)] + block + doc[doc.index(b) + len(b):]) if a in doc else (
             doc.rstrip("\n") + "\n\n## Robot-held payload rigs\n\n" + block + "\n")
-        with open(args.write, "w") as f:
+        tmp = args.write + ".tmp"  # never a half-written document
+        with open(tmp, "w") as f:
             f.write(doc)
+        os.replace(tmp, args.write)
 
 
 if __name__ == "__main__":

@@ -316,7 +316,8 @@ def test_the_verdict_holds_the_interval_upper_end_to_the_ceiling():
     assert not assess(cal, Z[known], M[known])
     pe.update(ratio=1.5, upper_ratio=4.0)
     reasons = assess(cal, Z[known], M[known])
-    assert any("could reach 4x" in r for r in reasons), reasons
+    assert any("could reach 4x" in r and "at the ratio's 95th percentile" in r
+               for r in reasons), reasons
 
 
 def test_the_ceiling_compares_the_fit_with_least_squares_on_the_same_noise():
@@ -363,6 +364,11 @@ def test_degrees_of_freedom_measured_once_give_the_same_prediction():
     for bad in (np.ones(pr.p - 1), -np.ones(pr.p), np.full(pr.p, np.nan)):
         with pytest.raises(ValueError, match="positive degrees of freedom"):
             predict_error(pr, f, draws=10, dof=bad)
+    for bad in (0.0, 1.0, -0.5, float("nan")):  # interval levels
+        with pytest.raises(ValueError, match="strictly between 0 and 1"):
+            predict_error(pr, f, draws=10, coverage=bad)
+        with pytest.raises(ValueError, match="strictly between 0 and 1"):
+            predict_error(pr, f, draws=10, ratio_coverage=bad)
 
 
 def test_narrow_coverage_is_refused():

@@ -8,14 +8,19 @@ import pytest
     (["--cases", "gauges"], "names 5 cases, not one"),
     (["--cases", "no such case"], "names 0 cases, not one"),
     (["--cases", "default,"], "names 0 cases, not one"),
-    (["--cases", "default", "--write", "x.md"], "--write replaces the whole table"),
+    (["--cases", "default", "--write", "{doc}"], "--write replaces the whole table"),
     (["--rigs", "0"], "must be at least 1"),
     (["--workers", "0"], "must be at least 1"),
+    (["--write", "/nonexistent/calib_study.md"], "is not a regular file"),
+    (["--write", "/dev/null"], "is not a regular file"),
 ])
-def test_bad_options_are_one_line_errors(load_script, capsys, argv, message):
+def test_bad_options_are_one_line_errors(load_script, capsys, tmp_path, argv, message):
     mod = load_script("calib_payload_study")
+    doc = tmp_path / "study.md"
+    doc.write_text("# a study\n")
     with pytest.raises(SystemExit) as e:
-        mod.main(argv)
+        mod.main([a.replace("{doc}", str(doc)) for a in argv])
+    assert doc.read_text() == "# a study\n"  # nothing written
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert message in err[-1] and "Traceback" not in "".join(err)
