@@ -27,13 +27,13 @@ demo: $(STAMP)
 # Two xdist workers (one per core), one BLAS/OpenMP thread each so the two do not oversubscribe
 # the cores; beside them, the Ray tests in one process of their own (they share machine-wide
 # state, and a Ray head started from an xdist worker does not answer), their output held back and
-# printed after the others'. Mostly waiting on Ray's start-up, they cost the others little: 385 s
+# printed after the others'; the 25 slowest tests listed (the suite aims at ten minutes). Mostly waiting on Ray's start-up, they cost the others little: 385 s
 # for both against 368 + 70 s one after the other. Fails if either part fails.
 TEST_ENV := SDL_VIDEODRIVER=dummy MPLBACKEND=Agg OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 test: $(STAMP)
 	@log=$$(mktemp); \
 	$(TEST_ENV) $(BIN)/python -m pytest -q -p no:cacheprovider -m ray tests >$$log 2>&1 & ray=$$!; \
-	$(TEST_ENV) $(BIN)/python -m pytest -q -n 2 -m "not ray" tests; main=$$?; \
+	$(TEST_ENV) $(BIN)/python -m pytest -q -n 2 --durations=25 -m "not ray" tests; main=$$?; \
 	wait $$ray; rayrc=$$?; \
 	echo "--- the Ray tests (run beside the others; exit $$rayrc) ---"; cat $$log; rm -f $$log; \
 	test $$main -eq 0 && test $$rayrc -eq 0
