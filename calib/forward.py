@@ -1255,8 +1255,8 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
         correlation["rounds"] = k + 1
         nll = round_nll(qw, fit, T)
         correlation["round_nll"].append(nll)
-        if best is None or nll < best[0]:
-            best = (nll, k + 1, qw, fit, T, T_inv)
+        if best is None or nll < best[0] or not np.isfinite(best[0]):
+            best = (nll, k + 1, qw, fit, T, T_inv)  # (a non-finite value never stays chosen)
         sn = shared_noise(qw, fit)
         # what is left, unshrunk (see the docstring)
         S = _shared_covariance(sn["parts"], sn["gamma_ls"]) if sn is not None else None

@@ -424,3 +424,24 @@ def test_round_nll_moves_with_the_units_by_a_constant(log_scale, seed):
     base = round_nll(pr, fit, T)
     scaled = round_nll(pr, fit, T @ np.linalg.inv(D))
     assert np.isclose(scaled - base, 2 * np.log(c), rtol=0, atol=1e-8)
+
+
+def test_a_round_whose_likelihood_is_not_finite_is_never_chosen(monkeypatch):
+    """A round whose likelihood cannot be evaluated (NaN) is not returned while a finite one
+    exists: rounds scored NaN, then 1, 2, ... return the second."""
+    import calib.forward as fwd
+
+    calls = []
+
+    def scored(prw, fit, T):
+        calls.append(1)
+        return float("nan") if len(calls) == 1 else float(len(calls))
+
+    monkeypatch.setattr(fwd, "round_nll", scored)
+    rig = simulate_payload_rig(10_501, poses=80, wrench=True, gauges=8)
+    M, tr, te, kn = _split(rig)
+    pr = Problem(rig.Z[tr], None, None, kn, M[tr][kn], magnitude=rig.magnitude)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        corr = fwd.fit_correlated(pr)[4]
+    assert corr["rounds"] > 2 and corr["chosen_round"] == 2, corr["chosen_round"]
