@@ -27,8 +27,9 @@ demo: $(STAMP)
 # Two xdist workers (one per core), one BLAS/OpenMP thread each so the two do not oversubscribe
 # the cores; beside them, the Ray tests in one process of their own (they share machine-wide
 # state, and a Ray head started from an xdist worker does not answer), their output held back and
-# printed after the others'; the 25 slowest tests listed (the suite aims at ten minutes). Mostly waiting on Ray's start-up, they cost the others little: 385 s
-# for both against 368 + 70 s one after the other. Fails if either part fails.
+# printed after the others'. Mostly waiting on Ray's start-up, they cost the others little: 385 s
+# for both against 368 + 70 s one after the other. Fails if either part fails. The 25 slowest
+# tests are listed (the suite aims at ten minutes on 2 cores).
 TEST_ENV := SDL_VIDEODRIVER=dummy MPLBACKEND=Agg OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 test: $(STAMP)
 	@log=$$(mktemp); \
