@@ -74,7 +74,9 @@ def _parser() -> argparse.ArgumentParser:
                    "(default: the lowest leave-one-pose-out error of the identifiable ones)")
     f.add_argument("--drift", choices=("none", "linear", "auto"), default=None,
                    help="least_squares and joint on static poses: a load drift linear in the "
-                   "row order, fitted and then dropped (default auto, as --model)")
+                   "row order, fitted and then dropped (default: auto, as --model, for "
+                   "least_squares; none for joint, whose few known poses cannot choose it "
+                   "reliably: docs/calib.md)")
     f.add_argument("--robust", action="store_true",
                    help="joint and least_squares on static poses: leave out rows more than 5 "
                    "robust standard deviations from their pose's median (spikes)")
@@ -307,7 +309,7 @@ def _fit(args) -> str:
                              known_sigma=args.known_sigma,
                              magnitude_sigma=args.magnitude_sigma, drop_nonfinite=drop,
                              known_samples=args.known_samples, cv=cv,
-                             model=args.model or "auto", drift=args.drift or "auto",
+                             model=args.model or "auto", drift=args.drift or "none",
                              robust=args.robust)
     elif args.bias:
 

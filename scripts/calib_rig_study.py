@@ -76,9 +76,9 @@ def one(job):
         for route in ROUTES:
             try:
                 if route.startswith("joint (rig"):
-                    # calib fit's defaults: model and drift chosen by leave-one-pose-out error
+                    # calib fit's defaults: the model chosen by leave-one-pose-out error, no drift
                     cal = fit_joint(Ztr, Zk, Mk, known_samples=len(tr) // 12, model="auto",
-                                    drift="auto")
+                                    drift="none")
                 elif route.startswith("joint (Sampson"):
                     cal = fit_joint(Ztr, Zk, Mk, known_samples=len(tr) // 12, poses=None)
                 else:
