@@ -33,3 +33,23 @@ def test_one_case_prints_its_row_only(load_script, capsys):
     rows = [line for line in out.splitlines() if line.startswith("| ") and "case" not in line]
     assert len(rows) == 1 and rows[0].startswith("| 8 gauges, 20 poses |")
     assert "in predicted 95 % interval" in out and "of 1)" in out
+
+
+def test_least_squares_offset_identified_only_where_the_directions_spread(load_script):
+    # the column that tells refusals the data explain from the rest: least squares with every
+    # load known identifies the offset of loads over the whole sphere, not of loads within a
+    # narrow cone (the offset and the mean load are then one direction)
+    import numpy as np
+
+    mod = load_script("calib_payload_study")
+    rng = np.random.default_rng(0)
+    A, o = rng.normal(size=(3, 6)), rng.normal(size=6) * 50
+    U = rng.normal(size=(60, 3))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    narrow = np.array([0.0, 0.0, 1.0]) + 0.1 * rng.normal(size=(60, 3))
+    narrow /= np.linalg.norm(narrow, axis=1, keepdims=True)
+    for M, expected in ((10 * U, True), (10 * narrow, False)):
+        Z = M @ A + o + 0.02 * rng.normal(size=(60, 6))
+        assert mod.ls_offset_identified(Z, M) is expected
+        # the units of the channels do not matter
+        assert mod.ls_offset_identified(Z * np.logspace(-3, 3, 6), M) is expected
