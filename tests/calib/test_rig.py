@@ -724,3 +724,20 @@ def test_cli_says_when_the_index_model_was_taken(tmp_path, capsys):
             in capsys.readouterr().out)
     idx = json.loads(out.read_text())["diagnostics"]["joint"]["index_model"]
     assert idx["used"] is True and idx["degree"] == 3 and len(idx["costs"]) == 3
+
+
+def test_the_rig_fits_affine_stage_is_the_forward_fit_of_its_pose_means():
+    # one estimator for every rig: the static-pose route's affine stage is calib.forward's
+    # maximum-likelihood fit of the pose means (within-pose scatter and counts in its noise
+    # model), not a fit of its own; the magnitude held at the one weighed mass
+    from calib.forward import Problem, fit_forward
+    from calib.rig import PoseData, rig_pose_loads
+
+    rig, tr, te, ls, Zk, Mk = rig_fits(3)
+    s1 = rig_pose_loads(rig.Z[tr], rig.pose[tr], Zk, Mk)
+    pd = PoseData(rig.Z[tr], rig.pose[tr], Zk, Mk, 3)
+    ff = fit_forward(Problem(pd.means, pd.counts, pd.sigma, pd.known_pose, pd.known_M,
+                             float(np.median(np.linalg.norm(Mk, axis=1)))))
+    assert np.allclose(s1["best"]["U"], ff["U"], atol=1e-9)
+    assert np.allclose(s1["v"], ff["v"], rtol=1e-9)
+    assert s1["fm"].fit_g is False and s1["best"]["g"] == ff["g"]
