@@ -783,14 +783,6 @@ def _index_refinement(pd: PoseData, final: dict, g: float):
     return diag, fits[chosen], model, W
 
 
-def _directions_from(cal_loads: np.ndarray) -> tuple[np.ndarray, float] | None:
-    L = np.asarray(cal_loads, float)
-    norms = np.linalg.norm(L, axis=1)
-    if not np.all(np.isfinite(L)) or np.any(norms <= 0):
-        return None
-    return L / norms[:, None], float(np.median(norms))
-
-
 def _known_consistency(pd: PoseData, final: dict, W, bend: bool = False) -> dict:
     """How far the known loads are from what the readings alone say: the forward model the fit
     chose (the index model when ``final`` is its fit; else ``bend``: with its per-channel bending
