@@ -12,12 +12,14 @@ from hypothesis import strategies as st
 from calib.forward import (
     SEARCH_POSES,
     Problem,
+    _trigamma_inverse,
     cost,
     curvature,
     dof_of_logs,
     fit_forward,
     gls_inverse,
     grid,
+    moderate_variances,
     predict_error,
     reweighting_dof,
     solve,
@@ -618,3 +620,63 @@ def test_the_variance_guard_leaves_p_equal_r_alone():
             assert np.array_equal(out, v)
         else:
             assert out[0] > 1e-6 and np.array_equal(out[1:], v[1:]), out
+
+
+def _log_chi2_draws(rng, var, d, reps):
+    return var * rng.chisquare(d, size=(reps, len(var))) / d
+
+
+def test_moderated_variances_pool_channels_whose_ratios_agree():
+    """When every channel's variance is the same multiple of its scale (scales 1e-4..1e4), the
+    moderated estimates are much closer to the truth than each channel's own (6 dof)."""
+    rng = np.random.default_rng(0)
+    k, d = 8, np.full(8, 6.0)
+    ref = 10.0 ** rng.uniform(-4, 4, k)
+    truth = 0.3 * ref
+    raw, mod = [], []
+    for u in _log_chi2_draws(rng, truth, d, 400):
+        um, d0 = moderate_variances(u, d, ref)
+        raw.append(np.mean(np.log(u / truth) ** 2))
+        mod.append(np.mean(np.log(um / truth) ** 2))
+    assert np.mean(mod) < 0.5 * np.mean(raw)
+
+
+def test_moderated_variances_keep_channels_that_differ_near_their_own():
+    """When the channels' ratios differ far beyond their sampling noise (a log-sd of 2), the
+    prior is weak (d0 small) and the moderated estimates are no worse than the channels' own."""
+    rng = np.random.default_rng(1)
+    k, d = 8, np.full(8, 6.0)
+    raw, mod, d0s = [], [], []
+    for _ in range(400):
+        ref = 10.0 ** rng.uniform(-4, 4, k)
+        truth = ref * np.exp(2.0 * rng.standard_normal(k))
+        u = _log_chi2_draws(rng, truth, d, 1)[0]
+        um, d0 = moderate_variances(u, d, ref)
+        raw.append(np.mean(np.log(u / truth) ** 2))
+        mod.append(np.mean(np.log(um / truth) ** 2))
+        d0s.append(d0)
+    assert np.median(d0s) < 2.0
+    assert np.mean(mod) <= 1.05 * np.mean(raw)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10**6), log_scale=st.lists(st.floats(-4, 4), min_size=6,
+                                                       max_size=6))
+def test_moderated_variances_are_equivariant_to_units_and_order(seed, log_scale):
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0.1, 10, 6)
+    d = rng.uniform(2, 10, 6)
+    ref = rng.uniform(0.1, 10, 6)
+    k2 = 10.0 ** (2 * np.asarray(log_scale))
+    perm = rng.permutation(6)
+    base, d0 = moderate_variances(u, d, ref)
+    got, d0b = moderate_variances((u * k2)[perm], d[perm], (ref * k2)[perm])
+    np.testing.assert_allclose(got, (base * k2)[perm], rtol=1e-9)
+    assert d0b == pytest.approx(d0, rel=1e-9) or (np.isinf(d0) and np.isinf(d0b))
+
+
+@pytest.mark.parametrize("y", [1e-3, 0.1, 0.5, 1.0, 3.0, 30.0, 1e4])
+def test_trigamma_inverse_inverts_trigamma(y):
+    from scipy.special import polygamma
+
+    assert _trigamma_inverse(float(polygamma(1, y))) == pytest.approx(y, rel=1e-6)
