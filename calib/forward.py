@@ -477,9 +477,9 @@ def moderate_variances(u, d, ref) -> tuple[np.ndarray, float]:
     Smyth (2004, "Linear models and empirical Bayes methods for assessing differential
     expression in microarray experiments", Stat. Appl. Genet. Mol. Biol. 3(1), section 6).
 
-    The true variances are taken as ``ref_c / s0^-2 chi2_d0 / d0`` (a scaled inverse chi-square
-    prior); ``d0`` and ``s0^2`` are estimated from the ``log(u_c / ref_c)`` by the moments of
-    the log chi-square (digamma, trigamma), and each channel's posterior is
+    The true variances are taken as ``1 / sigma_c^2 ~ chi2_d0 / (d0 ref_c s0^2)`` (a scaled
+    inverse chi-square prior); ``d0`` and ``s0^2`` are estimated from the ``log(u_c / ref_c)``
+    by the moments of the log chi-square (digamma, trigamma), and each channel's posterior is
     ``(d0 ref_c s0^2 + d_c u_c) / (d0 + d_c)``. Where the channels' ratios scatter no more than
     their sampling noise explains, ``d0`` is infinite (every channel at ``ref_c s0^2``); where
     they differ far more, ``d0`` is small and each channel keeps its own estimate. Nothing to

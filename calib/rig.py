@@ -425,7 +425,7 @@ RANDOM_STARTS = 12
 #: was :func:`calib.forward.fit_forward`; with 4, after the static rigs' variances were moderated
 #: across channels (:func:`calib.forward.moderate_variances`), it stopped at 7.7x there (1 of 80
 #: simulated rigs at 5 and 15 % nonlinearity, seeds 10-49); with 6 every one of the 80 reaches
-#: the cost of the true directions (the search 30 % slower on them: 0.7 s a rig).
+#: the cost of the true directions (with :data:`RANDOM_NFEV`, as fast as 4 were without it).
 RANDOM_REFINED = 6
 #: Levenberg-Marquardt iterations a random start of the bent model is refined for (the named
 #: starts get 400). Every converged refinement of the simulated target-case rigs took at most 22;
