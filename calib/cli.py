@@ -74,7 +74,8 @@ def _parser() -> argparse.ArgumentParser:
                    "(default: the lowest leave-one-pose-out error of the identifiable ones)")
     f.add_argument("--drift", choices=("none", "linear", "auto"), default=None,
                    help="least_squares and joint on static poses: a load drift linear in the "
-                   "row order, fitted and then dropped (default: auto, as --model, for "
+                   "row order (joint: each row at its pose's mean time, so creep within a pose "
+                   "is not drift), fitted and then dropped (default: auto, as --model, for "
                    "least_squares; none for joint, whose few known poses cannot choose it "
                    "reliably: docs/calib.md)")
     f.add_argument("--robust", action="store_true",
