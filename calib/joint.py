@@ -353,7 +353,9 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
         },
     }
     cal = Calibration(C=C, offset=offset, dof=dof, method="joint", diagnostics=diag)
-    add_uncertainty(cal, off_se, C_se, channel_span(Z))
+    add_uncertainty(cal, off_se, C_se, channel_span(Z),
+                    offset_cov=None if cov is None else T_inv @ cov[np.ix_(io, io)] @ T_inv.T,
+                    load_span=np.ptp(loads, axis=0))
     return cal
 
 
