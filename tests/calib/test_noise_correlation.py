@@ -233,6 +233,7 @@ def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
     rng = np.random.default_rng(0)
     ps = [_sphericity(np.cov(rng.normal(size=(36, 5)).T), 35) for _ in range(400)]
     assert 0.05 <= np.mean(np.array(ps) < 0.1) <= 0.15
+    missed = 0
     for seed in (518, 531, 534, 539):
         rig = simulate_payload_rig(10_000 + seed, poses=80, wrench=True, gauges=8)
         M, tr, _, kn = _split(rig)
@@ -240,8 +241,10 @@ def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
             warnings.simplefilter("ignore")
             pr = Problem(rig.Z[tr], None, None, kn, M[tr][kn], magnitude=rig.magnitude)
             corr = noise_correlation(pr, fit_forward(pr, random_starts=2))
-        assert corr["p_gamma"] > CORRELATION_ALPHA, corr  # the regression alone: not found
+        missed += corr["p_gamma"] > CORRELATION_ALPHA  # the regression alone: not found
         assert corr["p_complement"] < CORRELATION_ALPHA / 2 and corr["used"], corr
+    # since stop 60's start weights the regression finds 518's (p = 0.003); the other 3 it misses
+    assert missed >= 3
 
 
 def test_a_failing_shared_noise_or_attenuation_falls_back_instead_of_raising(monkeypatch):

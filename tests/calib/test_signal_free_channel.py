@@ -2,9 +2,10 @@
 
 Real sensors can have one: an unloaded gauge, or the torque about the tool axis of a commercial
 F/T sensor holding a gripper whose centre of mass lies on that axis (``T_z = r_x F_y - r_y F_x``
-is then 0 in every pose). Where a channel of noise alone is added, the fit can collapse onto it
-(the Heywood case): two known defects, kept as strict expected failures (docs/calib.md, "Known
-limit: a channel that reads no load"), so the suite says so the day a change fixes them.
+is then 0 in every pose). Until stop 60 the fit could collapse onto a channel of noise alone
+(its start weights, one spread a channel, made that channel's noise the largest residual the
+directions could take up: 17.8x and 106x least squares, written), and the offset rule refused
+one-reading fits over such a channel's span (docs/calib.md, "A channel that reads no load").
 """
 
 import warnings
@@ -22,10 +23,9 @@ def rms(a):
     return float(np.sqrt(np.mean(a**2)))
 
 
-@pytest.mark.xfail(strict=True, reason="static rig: a noise-only channel draws the pose "
-                                       "directions (17.8x least squares, written)")
-def test_static_rig_with_a_noise_only_channel_is_fitted_well_or_refused():
-    # the rig study's target case plus a ninth channel of noise alone (15x the others' noise)
+def test_static_rig_with_a_noise_only_channel_is_fitted_well():
+    # the rig study's target case plus a ninth channel of noise alone (15x the others' noise):
+    # 17.8x least squares, written, with one spread a channel as the start weights
     rig = simulate_rig(18, hysteresis=0, creep=0, wander=0, misalignment_deg=0, mass_error=0,
                        nonlinearity=0.01, drift=0.005)
     Z = np.c_[rig.Z, np.random.default_rng(18).normal(size=len(rig.Z)) * 3.0]
@@ -39,7 +39,7 @@ def test_static_rig_with_a_noise_only_channel_is_fitted_well_or_refused():
                         model="auto", drift="none")
     ls = fit_least_squares(Z[tr], M[tr], bias=True)
     ratio = rms(cal.apply(Z[te]) - M[te]) / rms(ls.apply(Z[te]) - M[te])
-    assert ratio < 3 or assess(cal, means[kn], rig.stated_loads[kn])
+    assert ratio < 1.5 and not assess(cal, means[kn], rig.stated_loads[kn])  # 1.12x, made
 
 
 def test_wrench_sensor_with_the_centre_of_mass_on_the_axis_is_not_refused():
@@ -94,12 +94,10 @@ def test_a_lost_fit_is_judged_by_every_channel_even_where_one_reads_no_load():
     assert d["offset_identified"] and d["offset_stderr_rel_span"][3] == pytest.approx(0.2)
 
 
-@pytest.mark.xfail(strict=True, reason="one reading per pose: the feasible-GLS rounds let a "
-                                       "noise-only channel be explained by the directions "
-                                       "(106x least squares, written)")
-def test_one_reading_rig_with_an_added_noise_only_channel_is_fitted_well_or_refused():
+def test_one_reading_rig_with_an_added_noise_only_channel_is_fitted_well():
     # the payload study's default case (8 gauges, 40 training poses), seed 5, plus a ninth
-    # channel of noise alone: the oracle itself measures 9.3x, the joint fit 106x, exit 0
+    # channel of noise alone: with one spread a channel as the start weights the oracle itself
+    # measured 9.3x, the joint fit 106x, exit 0
     rig = simulate_payload_rig(10_005, poses=80)
     rng = np.random.default_rng(10_012)
     Z = np.c_[rig.Z, rng.normal(size=len(rig.Z)) * rig.Z.std(axis=0).mean() * 0.01]
@@ -111,4 +109,4 @@ def test_one_reading_rig_with_an_added_noise_only_channel_is_fitted_well_or_refu
         cal = fit_joint(Z[tr], Z[tr][kn], M[tr][kn], 3, known_samples=1)
     ls = fit_least_squares(Z[tr], M[tr], bias=True)
     ratio = rms(cal.apply(Z[te]) - M[te]) / rms(ls.apply(Z[te]) - M[te])
-    assert ratio < 3 or assess(cal, Z[tr][kn], M[tr][kn])
+    assert ratio < 1.5 and not assess(cal, Z[tr][kn], M[tr][kn])  # 1.00x, made
