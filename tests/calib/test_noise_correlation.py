@@ -243,8 +243,10 @@ def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
             corr = noise_correlation(pr, fit_forward(pr, random_starts=2))
         missed += corr["p_gamma"] > CORRELATION_ALPHA  # the regression alone: not found
         assert corr["p_complement"] < CORRELATION_ALPHA / 2 and corr["used"], corr
-    # since stop 60's start weights the regression finds 518's (p = 0.003); the other 3 it misses
-    assert missed >= 3
+    # with the start weights of stops 60-61 the regression finds 518's and 539's (p = 0.0005,
+    # 0.003); it misses 531's and 534's (p = 0.20, 0.019), which the complement finds at 3e-8
+    # and 8e-8
+    assert missed >= 2
 
 
 def test_a_failing_shared_noise_or_attenuation_falls_back_instead_of_raising(monkeypatch):

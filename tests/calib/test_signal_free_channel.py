@@ -145,3 +145,58 @@ def test_one_reading_rig_with_an_added_noise_only_channel_is_fitted_well():
     Z = np.c_[rig.Z, rng.normal(size=len(rig.Z)) * rig.Z.std(axis=0).mean() * 0.01]
     cal, ratio, Zk, Mk = payload_fit(rig, Z)
     assert ratio < 1.5 and not assess(cal, Zk, Mk)  # 1.00x, made
+
+
+# A channel that repeats another: one gauge read twice, or a wrench logged beside the gauges
+# it was mixed from. Its noise is the other's, so regressed on every other channel (the start
+# weights of stop 60) both are predicted to the repeat's own noise (the Heywood case) and
+# take almost all the weight.
+
+
+def _factor_readings(rng, P=200, p=8, r=3):
+    """Readings of a random linear sensor (p channels of mixed units) of unit loads in r
+    dimensions, each channel with its own independent noise; returns (Y, noise sd, M)."""
+    U = rng.normal(size=(P, r))
+    M = U / np.linalg.norm(U, axis=1, keepdims=True)
+    scale = 10.0 ** rng.uniform(-2, 2, p)
+    A = rng.normal(size=(p, r)) * scale[:, None]
+    sd = scale * rng.uniform(0.002, 0.02, p)
+    return M @ A.T + rng.normal(size=(P, p)) * sd + rng.normal(size=p) * scale, sd, M
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_start_variances_are_about_each_channels_noise_even_where_a_channel_is_repeated(seed):
+    from calib.forward import Problem, start_variances
+
+    rng = np.random.default_rng(seed)
+    Y, sd, M = _factor_readings(rng)
+    P = len(Y)
+    # channel 8 repeats channel 1 (its own noise 1e-4 of channel 1's); channel 9 reads no load
+    Y = np.c_[Y, -3.0 * Y[:, 1] + 1e-4 * sd[1] * rng.normal(size=P),
+              5.0 + 0.7 * rng.normal(size=P)]
+    v = start_variances(Problem(Y, None, None, np.arange(4), M[:4]))
+    ratio = np.sqrt(v[:8]) / sd
+    # about each channel's noise, at or above it (Guttman: the variance left after regressing
+    # on the others bounds a channel's own from above; measured 0.9-15x)
+    assert np.all((ratio > 0.7) & (ratio < 30.0)), ratio
+    # the repeated pair too: regressed on every other channel (stop 60) it got the repeat's
+    # own noise, 1e-4 of its real noise
+    assert 0.7 < np.sqrt(v[8]) / (3.0 * sd[1]) < 30.0
+    assert np.sqrt(v[9]) == pytest.approx(Y[:, 9].std(), rel=0.05)  # its whole variance
+    # equivariant: units (factors 1e-4..1e4) and order
+    f = 10.0 ** rng.uniform(-4, 4, Y.shape[1])
+    perm = rng.permutation(Y.shape[1])
+    v2 = start_variances(Problem((Y * f)[:, perm], None, None, np.arange(4), M[:4]))
+    np.testing.assert_allclose(v2, (v * f**2)[perm], rtol=1e-6)
+
+
+def test_one_reading_rig_with_a_repeated_channel_is_fitted_well():
+    # the payload study's default case, seed 2, channel 1 repeated (x2, its own noise 1e-4 of
+    # its span): with stop 60's start weights 3.55x least squares, written outside its
+    # interval; 1.08x without the repeat
+    rig = simulate_payload_rig(10_002, poses=80)
+    tr, _ = rig.split("poses")
+    rng = np.random.default_rng(2)
+    Z = np.c_[rig.Z, 2 * rig.Z[:, 1] + 1e-4 * np.ptp(rig.Z[tr, 1]) * rng.normal(size=len(rig.Z))]
+    cal, ratio, Zk, Mk = payload_fit(rig, Z)
+    assert ratio < 2.0 and not assess(cal, Zk, Mk)  # 1.41x, made
