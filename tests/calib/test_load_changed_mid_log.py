@@ -1,0 +1,45 @@
+"""A load that changes during a one-reading log (open, stop 61).
+
+The forward fit assumes one load magnitude at every unknown pose. A payload that changes during
+the log breaks it: the gripper picks something up, a finger moves, a cable starts to pull. On
+the payload study's default case with the last quarter of the training log 5 % heavier (stated
+as before), least squares with every load known on the same readings measured 1.3-4.1x its
+error on clean readings, and the joint fit 1.3-58x that least squares; of 15 rigs 3 were
+written beyond 3x with exit 0 (3.5x, 5.6x, 18.5x; docs/calib.md, "A load that changes during
+the log"). Its own predicted error does not see it: the Monte Carlo draws least squares' error
+under the same misfit noise model, so their ratio stays small.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from calib import fit_joint, fit_least_squares
+from calib.joint import choose_known_poses
+from calib.reliability import assess
+from calib.simulate import simulate_payload_rig
+
+
+def rms(a):
+    return float(np.sqrt(np.mean(np.sum(a**2, axis=1))))
+
+
+@pytest.mark.xfail(strict=True, reason="open (stop 61): a load that changes during the log is "
+                   "fitted and written far beyond least squares; docs/calib.md")
+def test_a_load_that_changes_during_the_log_is_not_written_far_beyond_least_squares():
+    rig = simulate_payload_rig(10_010, poses=80)
+    tr, te = rig.split("poses")
+    M = rig.stated_loads[rig.pose]
+    Z = rig.Z[tr].copy()
+    q = len(Z) * 3 // 4
+    o = fit_least_squares(rig.Z[tr], M[tr], bias=True).offset
+    Z[q:] = o + 1.05 * (Z[q:] - o)  # the last quarter 5 % heavier, stated as before
+    kn = choose_known_poses(M[tr] / np.linalg.norm(M[tr], axis=1, keepdims=True), 4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = fit_joint(Z, Z[kn], M[tr][kn], 3, known_samples=1)
+    ls = fit_least_squares(Z, M[tr], bias=True)
+    ratio = rms(cal.apply(rig.Z[te]) - M[te]) / rms(ls.apply(rig.Z[te]) - M[te])
+    # 18.5x, written with exit 0
+    assert assess(cal, Z[kn], M[tr][kn]) or ratio <= 3.0
