@@ -594,9 +594,9 @@ def start_variances(pr: Problem):
     """Each channel's variance left after regressing it on the other channels over the poses
     (``1 / (S^-1)_cc``, ``S`` the readings' covariance): the classic starting uniquenesses of
     factor analysis (Joreskog 1967), for the start weights of :func:`fit_forward`; or left
-    after regressing it on all but one of them (below). A channel
-    the others predict (one that reads the load the others read) gets about its noise; a
-    channel that reads no load keeps its whole variance. None where there are no more poses
+    after regressing it on all but one of them (below). A channel the others predict (one that
+    reads the load the others read) gets about its noise; a channel that reads no load keeps
+    its whole variance. None where there are no more poses
     than channels, or channels repeat one another exactly (below).
 
     Why not each channel's spread: weights of one spread each make a channel of noise alone
@@ -610,8 +610,8 @@ def start_variances(pr: Problem):
     noise, and both then take almost all the weight (the Heywood case of factor analysis): the
     directions take up that channel's noise. So each channel's variance is also taken with any
     one other channel left out of the regression, and the largest of these kept, where
-    ``p >= r + 3`` (the others left then still
-    carry the load with one to spare). On the payload study's default case with channel 1
+    ``p >= r + 3`` (the others left then still carry the load with one to spare). On the
+    payload study's default case with channel 1
     repeated at 1e-4 of its span (seeds 10,000-10,005) the fits measured 1.10-3.55x least
     squares with every load known, the worst written outside its interval; with the channel
     left out 1.10-1.51x (without the repeat 0.85-1.10x: the repeat still counts that channel's
