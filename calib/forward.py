@@ -596,8 +596,8 @@ def start_variances(pr: Problem):
     factor analysis (Joreskog 1967), for the start weights of :func:`fit_forward`; or left
     after regressing it on all but one of them (below). A channel the others predict (one that
     reads the load the others read) gets about its noise; a channel that reads no load keeps
-    its whole variance. None where there are no more poses
-    than channels, or channels repeat one another exactly (below).
+    its whole variance. None where there are no more poses than channels, or channels repeat
+    one another exactly (below).
 
     Why not each channel's spread: weights of one spread each make a channel of noise alone
     count as much as a channel of signal, and its noise is then the largest residual the
@@ -611,13 +611,13 @@ def start_variances(pr: Problem):
     directions take up that channel's noise. So each channel's variance is also taken with any
     one other channel left out of the regression, and the largest of these kept, where
     ``p >= r + 3`` (the others left then still carry the load with one to spare). On the
-    payload study's default case with channel 1
-    repeated at 1e-4 of its span (seeds 10,000-10,005) the fits measured 1.10-3.55x least
-    squares with every load known, the worst written outside its interval; with the channel
-    left out 1.10-1.51x (without the repeat 0.85-1.10x: the repeat still counts that channel's
-    noise twice). A channel repeated twice or more is not covered. Regressions on channels
-    that repeat one another exactly (a correlation matrix with a condition number above 1e12)
-    are skipped, and where every one is, the spread is used."""
+    payload study's default case with channel 1 repeated at 1e-4 of its span (seeds
+    10,000-10,005) the fits measured 1.10-3.55x least squares with every load known, the worst
+    written outside its interval; with the channel left out 1.10-1.51x (without the repeat
+    0.85-1.10x: the repeat still counts that channel's noise twice). A channel repeated twice
+    or more is not covered. Regressions on channels that repeat one another exactly (a
+    correlation matrix with a condition number above 1e12) are skipped, and where every one
+    is, the spread is used."""
     Y = pr.Y
     if len(Y) - 1 <= pr.p:
         return None

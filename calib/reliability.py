@@ -107,7 +107,7 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
     if d.get("offset_identified") is False:
         rel = np.asarray(d.get("offset_stderr_rel_span", [np.inf]), float)
         use = np.asarray(d.get("offset_rule_channels", np.ones(rel.shape, bool)), bool)
-        if use.shape == rel.shape and use.any():  # channels that read no load left out
+        if use.shape == rel.shape and use.any():  # channels left out of the rule
             rel = np.where(use, rel, -np.inf)
         out.append(f"the offset is not identified: its standard error reaches "
                    f"{float(np.max(rel)):.1%} of the data's span on channel "
