@@ -1320,7 +1320,7 @@ def round_nll(prw: Problem, fit: dict, T) -> float:
 
 
 def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
-                   only: dict | None = None, v0: np.ndarray | None = None):
+                   only: dict | None = None):
     """:func:`fit_forward`, then, where :func:`noise_correlation` finds the channels' noise
     correlated, the same fit in whitened channels: the first time from the first fit's loads
     and the same starts, then, in rounds, from the last round's directions, each round
@@ -1328,7 +1328,6 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     :data:`MAX_CORRELATION_ROUNDS`; the count is ``correlation["rounds"]``). The round returned
     is the one whose model is likeliest (:func:`round_nll`, every round's in
     ``correlation["round_nll"]``, the chosen one ``correlation["chosen_round"]``, from 1).
-    ``v0``: the first fit's start variances (:func:`fit_forward`).
 
     Why the likeliest, not the last: the rounds are a fixed-point iteration with no guarantee
     of approaching the data. On simulated gauge-mixed rigs whose rounds settle slowly (the
@@ -1357,7 +1356,7 @@ def fit_correlated(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     ``(problem, fit, T, T_inv, correlation)``: the problem and fit in the channels fitted
     (``T`` the identity when not whitened); the calibration in the original channels is
     ``gls_inverse(A, v) @ T``, its offset ``T_inv @ o``."""
-    fit = fit_forward(pr, start_loads, seed=seed, only=only, v0=v0)
+    fit = fit_forward(pr, start_loads, seed=seed, only=only)
     correlation = noise_correlation(pr, fit)
     T = correlation.pop("T", None)
     T_inv = correlation.pop("T_inv", None)
