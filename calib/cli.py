@@ -414,15 +414,9 @@ def _predicted(d) -> str:
     if not isinstance(pe, dict):
         return ""
     lo, hi = pe["interval"]
-    hv = d["joint"].get("halves") or {}
-    from .halves import HALVES_P
-
-    word = "agree" if hv.get("checked") and hv["p"] >= HALVES_P else "disagree"
-    halves = (f"; the log's halves {word}, p = {hv['p']:.2g}" if hv.get("checked")
-              else f"; halves not compared: {hv['why']}" if hv.get("why") else "")
     return (f", predicted held-out error {pe['rms']:.4g} [{lo:.4g}, {hi:.4g}] "
             f"({pe['coverage']:.0%} interval; {pe['ratio']:.2f}x least squares with every load "
-            f"known{halves})")
+            "known)")
 
 
 def _fit_least_squares(args, channels, Z) -> str:

@@ -225,14 +225,27 @@ def _forward_step(n: int) -> int:
     return max(int(np.ceil(n / FORWARD_MAX_ROWS)), 1)
 
 
-def _log_problem(Z, Zk, Mk, g, known_samples):
-    """The forward problem of the one-reading log ``Z`` and its known readings: a known reading
-    that is a row of the log makes that row a known pose, any other is a pose of its own, the
-    mean of ``known_samples`` readings (default 1). Returns ``(problem, rows, extra, order)``:
-    the known readings matched to rows, those appended, and the known loads' order in the
-    problem (``Mk[order]``)."""
-    from .forward import Problem
+def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=None,
+                     motion=None, seed: int = 0, n_total: int | None = None,
+                     known_sigma: float | None = None):
+    """A log with no static poses (one reading per pose, or a continuous sweep): every reading
+    its own pose in the maximum-likelihood forward fit (:mod:`calib.forward`), the Sampson and
+    centered routes among its starts. A known reading that is a row of the log makes that row
+    a known pose; any other known reading is a pose of its own, the mean of ``known_samples``
+    readings (default 1). The calibration is the fit's ``C = (A^T V^-1 A)^-1 A^T V^-1`` with
+    ``V`` the estimated channel variances, the offset its ``o``. ``known_sigma`` (the stated
+    loads' own error per component, load units) widens the predicted held-out error: the known
+    loads' error moves the fit, and held-out loads are stated as accurately
+    (:func:`calib.forward.predict_error`); the fit's weights do not use it."""
+    from .forward import Problem, fit_correlated, gls_inverse, predict_error
+    from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor
 
+    Z = np.asarray(Z, float)
+    Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
+    Mk = np.atleast_2d(np.asarray(known_M, float))[:, :dof]
+    if known_sigma is not None and not known_sigma < np.median(np.linalg.norm(Mk, axis=1)):
+        raise CalibrationError(f"known_sigma {known_sigma:g} is as large as the known loads "
+                               "themselves: nothing to calibrate against")
     spread = np.maximum(Z.std(axis=0), 1e-300)
     rows, extra = [], []
     for k, zk in enumerate(Zk):
@@ -247,48 +260,23 @@ def _log_problem(Z, Zk, Mk, g, known_samples):
     counts = np.r_[np.ones(len(Z)), np.full(len(extra), n_known)]
     known = np.r_[np.asarray(rows, int), len(Z) + np.arange(len(extra))].astype(int)
     order = np.r_[[k for k in range(len(Zk)) if k not in extra], extra].astype(int)
-    # no pose repeats: each channel's variance is one reading's, a known reading stated as the
-    # mean of known_samples readings weighs that many times more (Problem.weights)
-    return Problem(Y, counts, None, known, Mk[order], magnitude=g), rows, extra, order
-
-
-def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=None,
-                     motion=None, seed: int = 0, n_total: int | None = None,
-                     known_sigma: float | None = None):
-    """A log with no static poses (one reading per pose, or a continuous sweep): every reading
-    its own pose in the maximum-likelihood forward fit (:mod:`calib.forward`), the Sampson and
-    centered routes among its starts. A known reading that is a row of the log makes that row
-    a known pose; any other known reading is a pose of its own, the mean of ``known_samples``
-    readings (default 1). The calibration is the fit's ``C = (A^T V^-1 A)^-1 A^T V^-1`` with
-    ``V`` the estimated channel variances, the offset its ``o``. ``known_sigma`` (the stated
-    loads' own error per component, load units) widens the predicted held-out error: the known
-    loads' error moves the fit, and held-out loads are stated as accurately
-    (:func:`calib.forward.predict_error`); the fit's weights do not use it."""
-    from . import halves
-    from .forward import fit_correlated, gls_inverse, predict_error
-    from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor
-
-    Z = np.asarray(Z, float)
-    Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
-    Mk = Mk0 = np.atleast_2d(np.asarray(known_M, float))[:, :dof]
-    if known_sigma is not None and not known_sigma < np.median(np.linalg.norm(Mk, axis=1)):
-        raise CalibrationError(f"known_sigma {known_sigma:g} is as large as the known loads "
-                               "themselves: nothing to calibrate against")
+    Mk = Mk[order]
     mags = np.linalg.norm(Mk, axis=1)
     from .rig import SAME_MAGNITUDE
 
     g = (float(magnitude) if magnitude is not None
          else float(np.median(mags)) if mags.max() <= (1 + SAME_MAGNITUDE) * mags.min()
          else None)
-    pr, rows, extra, order = _log_problem(Z, Zk, Mk, g, known_samples)
-    Mk = Mk[order]
+    # no pose repeats: each channel's variance is one reading's, a known reading stated as the
+    # mean of known_samples readings weighs that many times more (Problem.weights)
+    pr = Problem(Y, counts, None, known, Mk, magnitude=g)
     starts = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the starts' warnings: this fit reports its own
-        closed_form = _starts(Z, Zk[order], Mk, dof, magnitude, motion)
+        closed_form = _starts(Z, Zk[order], Mk, dof, magnitude, motion)  # Mk is in order
     for name, cal in closed_form.items():
         try:
-            starts[name] = cal.apply(pr.Y)
+            starts[name] = cal.apply(Y)
         except (CalibrationError, ValueError):
             continue
     # noise the channels share (a wrench mixed from gauges): refit in whitened channels; the
@@ -298,11 +286,6 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     offset = T_inv @ fit["o"]
     pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0,
                          whitened=bool(correlation.get("used")))
-    # one rig throughout? the log's halves fitted alone (calib.halves)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        consistency = halves.check(
-            Z, lambda r: _log_problem(Z[r], Zk, Mk0, g, known_samples)[0], seed=seed)
     from .forward import _global_cov
 
     cov = _global_cov(fit)
@@ -366,7 +349,6 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             "converged": bool(fit["converged"]),
             "nfev": int(fit["iterations"]),
             "predicted_error": pred,
-            "halves": consistency,
             "magnitude_rel_stderr": g_rel_se,
         },
     }

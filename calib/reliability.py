@@ -27,10 +27,6 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   computed as a reference by :func:`crosscheck`) by more than :data:`CROSSCHECK_FACTOR` times
   that fit's own pose-level residual (simulated rigs: fits within 2x of all-known least squares
   measure at most 5, fits beyond 10x at least 15);
-- **not one rig throughout** (one-reading logs, the forward fit): the log's halves fitted alone
-  disagree on the loads, or on a channel's noise, beyond what their own uncertainty allows
-  (:mod:`calib.halves`, p below :data:`calib.halves.HALVES_P`): a load, gain or offset that
-  changed while the log was recorded;
 - **held-out check failed**: the leave-one-pose-out error (``--cv poses``) exceeds
   ``holdout_factor`` times the fit's in-sample pose-level residual, or half the load magnitude.
 """
@@ -41,7 +37,6 @@ import numpy as np
 
 # rig fits: known loads inconsistent with the readings, and one weighed mass (defined beside the
 # fit, which also uses them)
-from .halves import HALVES_P
 from .result import OFFSET_STDERR_MAX_FRACTION
 from .rig import KNOWN_INCONSISTENT, SAME_MAGNITUDE
 
@@ -132,16 +127,6 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                    f"interval reaches {pe['interval'][1]:.4g})")
     elif joint_d.get("route") == "forward" and pe is None:
         out.append("the fit's covariance does not exist: nothing is identified")
-    hv = joint_d.get("halves")
-    if isinstance(hv, dict) and hv.get("checked") and hv["p"] < HALVES_P:
-        ratio = np.asarray(hv["noise_sd_ratio"], float)
-        c = int(np.argmax(np.abs(np.log(ratio))))
-        out.append(f"the log is not one rig throughout: its halves fitted alone give loads "
-                   f"differing by rms {hv['disagreement_rms']:.4g} (without a change: "
-                   f"{hv['disagreement_null_median']:.4g}, p = {hv['p_disagreement']:.2g}) "
-                   f"and channel {c}'s noise {ratio[c]:.3g}x in the second (p = "
-                   f"{hv['p_noise']:.2g}; limit p {HALVES_P:g}); did the load, a gain or an "
-                   "offset change while it was recorded?")
     if known_Z is None or known_M is None:
         return out
     r = cal.C.shape[0]

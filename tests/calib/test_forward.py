@@ -680,3 +680,21 @@ def test_trigamma_inverse_inverts_trigamma(y):
     from scipy.special import polygamma
 
     assert _trigamma_inverse(float(polygamma(1, y))) == pytest.approx(y, rel=1e-6)
+
+
+def test_the_known_pairs_order_does_not_matter_where_some_are_rows_of_the_log():
+    # a known reading that is not a row of the log, given first, the others rows of it: the
+    # problem puts the rows' first; the closed-form starts take the pairs in that order too
+    rig = simulate_payload_rig(10_040, poses=80)
+    tr, te = rig.split("poses")
+    M = rig.stated_loads[rig.pose]
+    Z, Mt = rig.Z[tr], M[tr]
+    kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
+    j = te[0]
+    Zk, Mk = np.vstack([rig.Z[j], Z[kn[:3]]]), np.vstack([M[j], Mt[kn[:3]]])
+    perm = [1, 2, 3, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = fit_joint(Z, Zk, Mk, 3, known_samples=1)
+        b = fit_joint(Z, Zk[perm], Mk[perm], 3, known_samples=1)
+    np.testing.assert_allclose(a.apply(rig.Z[te]), b.apply(rig.Z[te]), rtol=1e-6, atol=1e-9)
