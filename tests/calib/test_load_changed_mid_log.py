@@ -43,3 +43,21 @@ def test_a_load_that_changes_during_the_log_is_not_written_far_beyond_least_squa
     ratio = rms(cal.apply(rig.Z[te]) - M[te]) / rms(ls.apply(rig.Z[te]) - M[te])
     # 18.5x, written with exit 0
     assert assess(cal, Z[kn], M[tr][kn]) or ratio <= 3.0
+
+
+@pytest.mark.xfail(strict=True, reason="open (stop 62): offsets drifting 2 % over a 20-reading "
+                   "log are written at 3.1-4.0x least squares on the same readings; docs/calib.md")
+def test_offsets_drifting_over_a_short_log_are_not_written_far_beyond_least_squares():
+    # the payload study's 20-pose case (seed 10,002): every channel's offset drifts 2 % of its
+    # span over the training log; one-reading logs have no drift term. 3.97x, written
+    rig = simulate_payload_rig(10_002, poses=40)
+    tr, te = rig.split("poses")
+    M = rig.stated_loads[rig.pose]
+    Z = rig.Z[tr] + np.linspace(0, 1, len(tr))[:, None] * 0.02 * np.ptp(rig.Z[tr], axis=0)
+    kn = choose_known_poses(M[tr] / np.linalg.norm(M[tr], axis=1, keepdims=True), 4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = fit_joint(Z, Z[kn], M[tr][kn], 3, known_samples=1)
+    ls = fit_least_squares(Z, M[tr], bias=True)
+    ratio = rms(cal.apply(rig.Z[te]) - M[te]) / rms(ls.apply(rig.Z[te]) - M[te])
+    assert assess(cal, Z[kn], M[tr][kn]) or ratio <= 3.0
