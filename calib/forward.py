@@ -1537,8 +1537,9 @@ def serial_correlation(pr: Problem, fit: dict, n: int, reps: int = REWEIGHT_REPS
       under the AR noise than under independent noise (in the fit's covariance metric; at least
       1); ``ls_factor`` the same of least squares with every load known (fitted to the same
       correlated readings);
-    - ``variance_bias``: per channel, the AR refits' variance estimates over the independent
-      ones' (geometric mean, at most 1): slow noise taken up by the fit leaves the variances low;
+    - ``variance_bias``: per channel found correlated, the AR refits' variance estimates over
+      the independent ones' (geometric mean, at most 1; 1 elsewhere): slow noise taken up by
+      the fit leaves the variances low;
     - ``rho``, ``correlated`` (the channels found so), ``simulated_rho``.
 
     :func:`predict_error` takes these (``serial``) for the printed error and interval.
@@ -1587,7 +1588,8 @@ def serial_correlation(pr: Problem, fit: dict, n: int, reps: int = REWEIGHT_REPS
     # slow noise is taken up by the fitted directions and offsets beyond what the leverage
     # correction allows for independent noise: the variances come out low, by as much on the
     # refits (their mean log ratio under the AR noise over that under independent noise)
-    bias = np.minimum(np.exp(red["logs"].mean(axis=0) - white["logs"].mean(axis=0)), 1.0)
+    bias = np.where(hot, np.minimum(np.exp(red["logs"].mean(axis=0)
+                                           - white["logs"].mean(axis=0)), 1.0), 1.0)
     return {"rho": rho, "correlated": hot, "simulated_rho": sim, "dof": dof_of_logs(red["logs"]),
             "white_dof": dof_of_logs(white["logs"]),
             "variance_bias": bias,
