@@ -391,6 +391,7 @@ def _summary(args, cal, status) -> str:
         + (", the channels' noise correlated (p {}): fitted in whitened channels".format(
             _p_text(d["joint"]["noise_correlation"]["p_value"]))
            if d.get("joint", {}).get("noise_correlation", {}).get("used") else "")
+        + _serial(d)
         + _predicted(d)
         + (f" (each channel a degree-{d['joint']['index_model']['degree']} polynomial of its own "
            "signal)" if d.get("joint", {}).get("index_model", {}).get("used") else "")
@@ -406,6 +407,18 @@ def _summary(args, cal, status) -> str:
 def _p_text(p: float) -> str:
     """``= 3e-05``, or ``< 1e-300`` where the chi-square tail underflowed to 0."""
     return f"= {p:.1g}" if p > 0 else "< 1e-300"
+
+
+def _serial(d) -> str:
+    """The summary's note where the readings' noise is correlated along the log (forward fits:
+    :func:`calib.forward.serial_correlation`), which widens the predicted error's interval."""
+    sc = (d.get("joint") or {}).get("serial_correlation")
+    if not isinstance(sc, dict):
+        return ""
+    rho = np.asarray(sc["rho"], float)[np.asarray(sc["correlated"], bool)]
+    return (f", the readings' noise correlated along the log (lag-1 autocorrelation up to "
+            f"{rho.max():.2f} on {len(rho)} channel(s)): fewer independent readings, the "
+            "interval widened")
 
 
 def _predicted(d) -> str:

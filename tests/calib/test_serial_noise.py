@@ -8,11 +8,13 @@ squares' parameter errors are and how far low the variances come out; the predic
 both (docs/calib.md, "Noise correlated in time")."""
 
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from calib import fit_joint
+from calib.cli import _summary
 from calib.joint import choose_known_poses
 from calib.simulate import simulate_payload_rig
 
@@ -39,6 +41,9 @@ def _sweep(s, rho, poses=2000):
     return clean[tr] + train[tr], M[tr], clean[te] + test[te], M[te]
 
 
+_ARGS = SimpleNamespace(out="CAL.json", bootstrap=0)
+
+
 def _fit(Z, M):
     kn = choose_known_poses(M / np.linalg.norm(M, axis=1, keepdims=True), 4)
     with warnings.catch_warnings():
@@ -57,6 +62,7 @@ def test_independent_readings_are_not_taken_as_correlated_in_time():
         tr, _ = rig.split("poses")
         cal = _fit(rig.Z[tr], rig.stated_loads[rig.pose][tr])
         assert cal.diagnostics["joint"]["serial_correlation"] is None
+        assert "correlated along the log" not in _summary(_ARGS, cal, "reliable")
     Z, M, _, _ = _sweep(2, 0.0, poses=800)
     assert _fit(Z, M).diagnostics["joint"]["serial_correlation"] is None
 
@@ -76,6 +82,8 @@ def test_a_sweep_whose_noise_is_correlated_in_time_is_inside_its_interval():
     pe = cal.diagnostics["joint"]["predicted_error"]
     lo, hi = pe["interval"]
     assert lo <= _rms(cal, Zt, Mt) <= hi
+    # the summary says why the interval is wide
+    assert "noise correlated along the log" in _summary(_ARGS, cal, "reliable")
     scale = np.ones(Z.shape[1])
     scale[0] = 1e3
     sc2 = _fit(Z * scale, M).diagnostics["joint"]["serial_correlation"]
