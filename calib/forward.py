@@ -846,9 +846,10 @@ def _refits(pr: Problem, fit: dict, reps: int, seed: int, rho=None, n: int = 0,
                                         c * (r + 1):(c + 1) * (r + 1)]) for c in range(p)]
         except np.linalg.LinAlgError:
             blocks = None
-    X = np.column_stack([fit["M"], np.ones(pr.P)])
-    W2 = pr.weights(v) ** 2
-    H = np.einsum("jc,jd,je->cde", W2, X, X)  # least squares' information per channel
+    if spreads:  # least squares' information per channel
+        X = np.column_stack([fit["M"], np.ones(pr.P)])
+        W2 = pr.weights(v) ** 2
+        H = np.einsum("jc,jd,je->cde", W2, X, X)
     mine = orig < n if rho is not None else np.zeros(pr.P, bool)
     logs, spread, spread_ls, lag1 = [], [], [], []
     for _ in range(reps):
@@ -876,8 +877,8 @@ def _refits(pr: Problem, fit: dict, reps: int, seed: int, rho=None, n: int = 0,
         logs.append(np.log(vb / v))
         if mine.sum() > 2:
             lag1.append(_lag1(Y[mine] - fb["M"][mine] @ fb["A"].T - fb["o"]))
-        d = np.column_stack([fb["A"] - A, fb["o"] - o])
         if blocks is not None:
+            d = np.column_stack([fb["A"] - A, fb["o"] - o])
             spread.append([d[c] @ blocks[c] @ d[c] for c in range(p)])
         if spreads:
             th = np.linalg.solve(H, np.einsum("jc,jd,jc->cd", W2, X, Y)[..., None])[..., 0]
