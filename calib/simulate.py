@@ -436,6 +436,7 @@ def simulate_payload_rig(
     mass_error: float = 0.0,
     wrench: bool = False,
     gauges: int = 0,
+    nonlinearity: float = 0.0,
 ) -> RigData:
     """A robot wrist holding a gripper on a 6-axis force/torque sensor: the load is the gripper's
     weight in the sensor frame, known from the robot's kinematics.
@@ -461,6 +462,11 @@ def simulate_payload_rig(
       reading its own pose).
     - ``misalignment_deg`` (kinematic error of the stated direction, std) and ``mass_error``
       (relative std of the weighed mass) make the stated loads differ from the applied ones.
+    - ``nonlinearity``: every channel also reads a smooth function of the load that no affine
+      map holds (a gauge's nonlinearity, cross-talk): ``nonlinearity`` times its spread times
+      ``u^T Q_c u``, ``u`` the applied load's direction and ``Q_c`` a random symmetric matrix
+      scaled to a largest absolute eigenvalue of 1 (so at most that fraction of the spread). Its
+      draws come after every other draw: a rig without it is the same rig.
 
     Returns :class:`RigData`; ``S`` is the (3, p) map from the force to the readings,
     ``stated_loads`` the kinematic loads per pose. Seeded, deterministic.
@@ -475,6 +481,10 @@ def simulate_payload_rig(
         a, b = (float(t) for t in pair)
         if not (np.isfinite(a) and np.isfinite(b) and 0 < a <= b):
             raise CalibrationError(f"{name} must be a range 0 < low <= high, got {pair}")
+    nl = float(nonlinearity)
+    if not (np.isfinite(nl) and 0 <= nl < 1):
+        raise CalibrationError(f"nonlinearity must be a fraction 0 <= x < 1 of each channel's "
+                               f"spread, got {nonlinearity!r}")
     lo, hi = (float(t) for t in tilt_deg)
     if not 0 <= lo < hi <= 180:
         raise CalibrationError(f"tilt_deg must be 0 <= low < high <= 180, got {tilt_deg}")
@@ -531,5 +541,11 @@ def simulate_payload_rig(
     else:
         Z = z0 + lin + rng.normal(size=lin.shape) * levels
         cov = np.diag(levels**2)
+    if nl > 0:  # (drawn last: the rest of the rig is the one drawn without it)
+        Q = rng.normal(size=(Z.shape[1], 3, 3))
+        Q = Q + Q.transpose(0, 2, 1)
+        Q /= np.abs(np.linalg.eigvalsh(Q)).max(axis=1)[:, None, None]
+        u = true_U[pose]
+        Z = Z + nl * spread * np.einsum("ja,cab,jb->jc", u, Q, u)
     return RigData(Z=Z, pose=pose, stated_loads=weight * U, true_loads=F, directions=U, S=S,
                    offset=z0, magnitude=float(weight), noise_cov=cov)

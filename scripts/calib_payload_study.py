@@ -4,8 +4,11 @@ Rigs from :func:`calib.simulate.simulate_payload_rig`: a gripper (0.3-3 kg, cent
 off the sensor) on a 6-axis force/torque sensor read through raw gauges that mix forces and
 torques, each channel with its own scale (1e-2..1e2) and noise (0.2-2 % of its spread); the
 wrist holds it in orientations 30-90 degrees from vertical, one reading per pose unless the case
-says otherwise. Every other pose trains, the others test (new directions); the test target is
-the stated (kinematic) load. 4 known loads on the training poses ``choose_known_poses``
+says otherwise (the nonlinear case: every channel also reads a smooth function of the load's
+direction no affine map holds, up to 2 % of its spread, on training and test readings alike:
+least squares with every load known is affine too, and the oracle's model is the joint's).
+Every other pose trains, the others test (new directions); the test target is the stated
+(kinematic) load. 4 known loads on the training poses ``choose_known_poses``
 recommends, their readings the log's own rows (``known_samples=1``; where the kinematics are
 off, their accuracy stated instead: ``known_sigma``, the per-component error a direction error
 of that many degrees gives, ``|m| theta sqrt(2/9)``). Routes:
@@ -73,6 +76,7 @@ CASES = {
     "kinematics 0.5 deg, mass 0.5 %": {"poses": 80, "misalignment_deg": 0.5,
                                        "mass_error": 0.005},
     "sweep, 2,000 readings": {"poses": 2000, "sweep": True},
+    "gauges 2 % nonlinear": {"poses": 80, "nonlinearity": 0.02},
     "train within 34 deg, test beyond": {"poses": 80, "tilt_deg": (0.0, 90.0), "narrow": 34.0},
 }
 

@@ -510,10 +510,33 @@ def test_known_readings_stated_as_means_weigh_more():
 
 @pytest.mark.parametrize("kw", [{"noise": (-1, 2)}, {"scales": (0, 1)}, {"mass_kg": (3, 1)},
                                 {"com_m": (float("nan"), 1)}, {"tilt_deg": (90, 30)},
-                                {"poses": 1}, {"readings": 0}])
+                                {"poses": 1}, {"readings": 0}, {"nonlinearity": -0.01},
+                                {"nonlinearity": float("nan")}, {"nonlinearity": 1.0}])
 def test_payload_simulator_refuses_bad_settings(kw):
     with pytest.raises(CalibrationError):
         simulate_payload_rig(0, **kw)
+
+
+@pytest.mark.parametrize("kw", [{}, {"wrench": True}, {"wrench": True, "gauges": 8},
+                                {"sweep": True}])
+def test_payload_simulator_nonlinearity_is_bounded_and_leaves_the_rest_of_the_rig(kw):
+    """The gauges' nonlinearity is drawn after everything else (the same seed without it is
+    the same rig), reads on every channel at most its fraction of the channel's spread, and is
+    not affine in the load: least squares with every load known fits worse with it."""
+    plain = simulate_payload_rig(3, poses=60, **kw)
+    bent = simulate_payload_rig(3, poses=60, nonlinearity=0.03, **kw)
+    assert np.array_equal(plain.Z, simulate_payload_rig(3, poses=60, nonlinearity=0.0, **kw).Z)
+    for name in ("pose", "stated_loads", "true_loads", "S", "offset"):
+        assert np.array_equal(getattr(plain, name), getattr(bent, name)), name
+    spread = plain.magnitude * np.linalg.norm(plain.S, axis=0)
+    added = np.abs(bent.Z - plain.Z).max(axis=0) / spread
+    assert np.all(added <= 0.03 + 1e-12) and np.all(added > 0.003)
+
+    def misfit(d):
+        X = np.column_stack([d.true_loads, np.ones(len(d.Z))])
+        return np.linalg.lstsq(X, d.Z, rcond=None)[1] / np.sum((d.Z - d.Z.mean(0)) ** 2, axis=0)
+
+    assert np.all(misfit(bent) > misfit(plain))
 
 
 def test_the_variance_rounds_settle_and_bring_the_quietest_channel_closer(monkeypatch):
