@@ -237,8 +237,15 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     loads' own error per component, load units) widens the predicted held-out error: the known
     loads' error moves the fit, and held-out loads are stated as accurately
     (:func:`calib.forward.predict_error`); the fit's weights do not use it."""
-    from .forward import Problem, fit_correlated, gls_inverse, predict_error, serial_correlation
-    from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor
+    from .forward import (
+        DIRECTION_ALPHA,
+        Problem,
+        fit_correlated,
+        gls_inverse,
+        predict_error,
+        serial_correlation,
+    )
+    from .result import Calibration, channel_span, coverage_diagnostics, excitation_is_poor, warn
 
     Z = np.asarray(Z, float)
     Zk, _ = check_matrix(np.atleast_2d(known_Z), "known readings")
@@ -282,11 +289,24 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     # noise the channels share (a wrench mixed from gauges): refit in whitened channels; the
     # problem and fit below are in the channels fitted, the calibration mapped back
     pr, fit, T, T_inv, correlation = fit_correlated(pr, starts, seed=seed)
+    misfit = correlation.pop("direction_misfit", None)
     C = gls_inverse(fit["A"], fit["v"]) @ T
     offset = T_inv @ fit["o"]
     # noise correlated in time (a sweep read faster than its noise changes): the log's readings
     # are worth fewer independent ones, measured on refits (serial_correlation)
     serial = serial_correlation(pr, fit, len(Z), seed=seed)
+    # a misfit that depends on the load's direction (a sensor not linear in the load): told, not
+    # refused (the fit is at its model's optimum; its predicted error takes the misfit for
+    # noise). Not where the noise is correlated in time: slow noise along a path that returns
+    # to its directions defeats the test's null (an AR(0.99) sweep was found nonlinear)
+    if isinstance(misfit, dict):
+        misfit["tested"] = serial is None
+        if serial is None and misfit["p_value"] < DIRECTION_ALPHA:
+            warn(f"the residuals of nearby load directions agree (neighbour correlation "
+                 f"{misfit['rho']:.2f}, p = {misfit['p_value']:.2g}): the sensor is not linear "
+                 "in the load, and the predicted error and its ratio to least squares take that "
+                 "misfit for noise, so both can be low (docs/calib.md, 'Gauges that are not "
+                 "linear')")
     pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0,
                          whitened=bool(correlation.get("used")), serial=serial)
     if pred is not None and serial is not None:
@@ -364,6 +384,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             "nfev": int(fit["iterations"]),
             "predicted_error": pred,
             "serial_correlation": serial,
+            "direction_misfit": misfit,
             "magnitude_rel_stderr": g_rel_se,
         },
     }

@@ -5,7 +5,7 @@ import pytest
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--cases", "gauges"], "names 5 cases, not one"),
+    (["--cases", "gauges"], "names 6 cases, not one"),
     (["--cases", "no such case"], "names 0 cases, not one"),
     (["--cases", "default,"], "names 0 cases, not one"),
     (["--cases", "default", "--write", "{doc}"], "--write replaces the whole table"),
