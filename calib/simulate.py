@@ -468,8 +468,9 @@ def simulate_payload_rig(
       scaled to a largest absolute eigenvalue of 1 (so at most that fraction of the spread). Its
       draws come after every other draw: a rig without it is the same rig.
 
-    Returns :class:`RigData`; ``S`` is the (3, p) map from the force to the readings,
-    ``stated_loads`` the kinematic loads per pose. Seeded, deterministic.
+    Returns :class:`RigData`; ``S`` is the (3, p) map from the force to the readings (its
+    linear part, with ``nonlinearity``), ``stated_loads`` the kinematic loads per pose. Seeded,
+    deterministic.
     """
     rng = np.random.default_rng(rng)
     if poses < 2 or readings < 1 or p < 3:
@@ -481,7 +482,10 @@ def simulate_payload_rig(
         a, b = (float(t) for t in pair)
         if not (np.isfinite(a) and np.isfinite(b) and 0 < a <= b):
             raise CalibrationError(f"{name} must be a range 0 < low <= high, got {pair}")
-    nl = float(nonlinearity)
+    try:
+        nl = float(nonlinearity)
+    except (TypeError, ValueError):
+        nl = float("nan")
     if not (np.isfinite(nl) and 0 <= nl < 1):
         raise CalibrationError(f"nonlinearity must be a fraction 0 <= x < 1 of each channel's "
                                f"spread, got {nonlinearity!r}")

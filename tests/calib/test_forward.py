@@ -511,7 +511,8 @@ def test_known_readings_stated_as_means_weigh_more():
 @pytest.mark.parametrize("kw", [{"noise": (-1, 2)}, {"scales": (0, 1)}, {"mass_kg": (3, 1)},
                                 {"com_m": (float("nan"), 1)}, {"tilt_deg": (90, 30)},
                                 {"poses": 1}, {"readings": 0}, {"nonlinearity": -0.01},
-                                {"nonlinearity": float("nan")}, {"nonlinearity": 1.0}])
+                                {"nonlinearity": float("nan")}, {"nonlinearity": 1.0},
+                                {"nonlinearity": "some"}])
 def test_payload_simulator_refuses_bad_settings(kw):
     with pytest.raises(CalibrationError):
         simulate_payload_rig(0, **kw)
