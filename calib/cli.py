@@ -352,6 +352,7 @@ def _fit(args) -> str:
 def _reliability(args, cal, known_Z, known_M) -> str:
     """Assess the fit (calib.reliability), record it in its diagnostics; raise Unreliable
     unless --allow-unreliable. Returns the summary's reliability words."""
+    from .forward import DIRECTION_ALPHA
     from .reliability import HOLDOUT_FACTOR, assess
     from .result import warn
 
@@ -363,7 +364,15 @@ def _reliability(args, cal, known_Z, known_M) -> str:
                          "it anyway)")
     for p in problems:
         warn(f"unreliable: {p}")
-    return "UNRELIABLE (written: --allow-unreliable)" if problems else "reliable"
+    if problems:
+        return "UNRELIABLE (written: --allow-unreliable)"
+    dm = (cal.diagnostics.get("joint") or {}).get("direction_misfit")
+    if isinstance(dm, dict) and dm.get("tested") and dm["p_value"] < DIRECTION_ALPHA:
+        # the verdict's ratio takes the misfit for noise (docs/calib.md, "Gauges that are not
+        # linear"): the word says how far it goes, as the warning does
+        return ("reliable only as far as an affine sensor goes: this one reads as not linear in "
+                "the load, so the predicted error can be low")
+    return "reliable"
 
 
 def _summary(args, cal, status) -> str:

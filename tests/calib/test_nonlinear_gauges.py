@@ -145,3 +145,22 @@ def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
     assert (tmp_path / "cal.json").is_file()
     lines = [x for x in err.splitlines() if "nearby load directions agree" in x]
     assert len(lines) == 1 and lines[0].startswith("calib: warning:")
+    # the summary's word says as much, not a plain "reliable"
+    assert out.rstrip().endswith("reliable only as far as an affine sensor goes: this one reads "
+                                 "as not linear in the load, so the predicted error can be low")
+
+
+def test_a_linear_sensors_summary_says_plainly_reliable(tmp_path, capsys):
+    rig = simulate_payload_rig(10_003, poses=80)
+    tr, _ = rig.split("poses")
+    Z, Mt = rig.Z[tr], rig.stated_loads[rig.pose][tr]
+    kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
+    ch = [f"g{i}" for i in range(Z.shape[1])]
+    write_csv(tmp_path / "log.csv", ch, Z)
+    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
+    code = main(["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint",
+                 "--known", str(tmp_path / "known.csv"), "--known-samples", "1",
+                 "--out", str(tmp_path / "cal.json")])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert out.rstrip().endswith("; reliable") and "nearby load directions" not in err
