@@ -242,6 +242,23 @@ def test_partial_coverage_warns_on_one_line(tmp_path, capsys):
     assert all(line.startswith("calib: warning:") for line in err.strip().splitlines())
 
 
+def test_the_paper_route_under_poor_excitation_is_refused_and_says_why(tmp_path, capsys):
+    """The paper route on a 90 degree cap: its warning calls the offset unreliable, so the
+    verdict does too (exit 3, one line, nothing written); written only on request, and then
+    the summary says UNRELIABLE, as the warning does."""
+    d = paper_trial(2, rng=0, cap_half_angle_deg=90)
+    write_csv(tmp_path / "cap.csv", CH, d.Z)
+    args = ["fit", tmp_path / "cap.csv", "--dof", 3, "--bias", "--method", "paper", "--out",
+            tmp_path / "c.json"]
+    code, out, err = run(args, capsys)
+    assert code == 3 and not (tmp_path / "c.json").exists()
+    assert err.count("\n") == 1 and "paper route's offset is not identified" in err
+    assert "use --method centered or joint" in err
+    code, out, err = run(args + ["--allow-unreliable"], capsys)
+    assert code == 0 and "UNRELIABLE" in out and (tmp_path / "c.json").exists()
+    assert "poor excitation" in err and "the offset is unreliable" in err
+
+
 def test_trials_command_small(tmp_path, capsys):
     code, out, err = run(["trials", "--out", tmp_path / "tr", "--seeds", 4, "--quiet"], capsys)
     assert code == 0, err
