@@ -89,9 +89,19 @@ def fit_bias(
         isotropy prior of the centered route then speaks of the raw channels (on the paper's
         own near-isotropic sensor, Trial 3 at a 60 degree cap, 20 seeds: offset error median
         7.4 counts raw, 17.1 whitened; at 90 degrees 1.6 and 2.4; full sphere equal).
+
+    A channel that is an exact affine copy of another (logged twice) is left out of the fit
+    and given a column of zeros in C (:mod:`calib.copies`).
     """
     if method not in METHODS:
         raise CalibrationError(f"method must be one of {METHODS}, got {method!r}")
+    from .copies import fit_without_copies
+
+    # a channel logged twice (an exact affine copy): fitted without it (calib.copies)
+    out = fit_without_copies(Z, known_Z, lambda Zs, Zk: fit_bias(
+        Zs, dof, method, Zk, known_M, magnitude, drop_nonfinite, whiten, **kwargs), dof)
+    if out is not None:
+        return out
     route = fit_centered if method == "centered" else fit_paper
     if not whiten:
         return route(Z, dof, known_Z, known_M, magnitude, drop_nonfinite, **kwargs)

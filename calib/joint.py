@@ -90,11 +90,22 @@ def fit_joint(
         readings of the log's kind (a static pose averaged), so its accuracy is
         ``magnitude_sigma / sqrt(known_samples)``; 1 for single readings
 
+    A channel that is an exact affine copy of another (logged twice) is left out of the fit
+    and given a column of zeros in C (:mod:`calib.copies`).
+
     Returns a Calibration with ``method="joint"``; diagnostics as the centered route's plus
     ``joint`` (sigmas, fitted magnitude, residual rms of both kinds, solver status) and standard
     errors from the weighted Jacobian.
     """
 
+    from .copies import fit_without_copies
+
+    # a channel logged twice (an exact affine copy): fitted without it (calib.copies)
+    out = fit_without_copies(Z, known_Z, lambda Zs, Zk: fit_joint(
+        Zs, Zk, known_M, dof, magnitude, known_sigma, magnitude_sigma, drop_nonfinite,
+        known_samples, poses, cv, model, drift, robust), dof)
+    if out is not None:
+        return out
     # the Sampson fit's own warnings reach the user only when it is the fit returned; as a
     # start of the forward or rig fit, those fits report their own
     with warnings.catch_warnings(record=True) as motion_warnings:
