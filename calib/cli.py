@@ -175,6 +175,23 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _named(message, args) -> str:
+    """A fit's message with each ``channel N`` (an index into the fitted log's channels) given
+    its name from the CSV header: ``channel 2 (g3)``."""
+    import re
+
+    names = getattr(args, "channel_names", None)
+    text = str(message)
+    if not names:
+        return text
+
+    def name(m):
+        i = int(m.group(1))
+        return f"{m.group(0)} ({names[i]})" if 0 <= i < len(names) else m.group(0)
+
+    return re.sub(r"\bchannel (\d+)\b", name, text)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``calib`` console script; returns the exit status."""
     try:
@@ -193,14 +210,14 @@ def main(argv=None) -> int:
                 msg = _trials(args)
         for w in caught:
             if issubclass(w.category, CalibrationWarning):
-                print(f"calib: warning: {w.message}", file=sys.stderr)
+                print(f"calib: warning: {_named(w.message, args)}", file=sys.stderr)
         print(msg)
         return 0
     except UsageError as e:
         print(f"calib: error: {e.prog}: {one_line(e)}", file=sys.stderr)
         return 2
     except Unreliable as e:
-        print(f"calib: unreliable: {one_line(e)}", file=sys.stderr)
+        print(f"calib: unreliable: {_named(one_line(e), args)}", file=sys.stderr)
         return 3
     except (CalibrationError, ValueError) as e:
         print(f"calib: error: {one_line(e)}", file=sys.stderr)
@@ -279,6 +296,7 @@ def _fit(args) -> str:
     known_Z = known_M = None
     if args.method == "least_squares":
         return _fit_least_squares(args, channels, Z)
+    args.channel_names = list(channels)  # messages name the channels (_named)
     if args.known:
         kh, kd = read_csv(args.known)
         known_Z, known_M = split_known(kh, kd, channels, args.dof)

@@ -259,6 +259,24 @@ def test_the_paper_route_under_poor_excitation_is_refused_and_says_why(tmp_path,
     assert "poor excitation" in err and "the offset is unreliable" in err
 
 
+def test_a_copied_channel_is_named_by_its_header_and_left_out(tmp_path, capsys, raw3):
+    """A column logged twice (in other units): one warning naming both columns by their
+    header names, the fit written, the copy's column of C 0."""
+    Z = np.column_stack([raw3.Z, 1e3 * raw3.Z[:, 2] - 40.0])
+    write_csv(tmp_path / "dup.csv", CH + ["g3_mV"], Z)
+    F = np.eye(3) * 9.0
+    Zk = F @ raw3.S + raw3.offset
+    write_csv(tmp_path / "dupk.csv", CH + ["g3_mV", "Fx", "Fy", "Fz"],
+              np.hstack([Zk, 1e3 * Zk[:, 2:3] - 40.0, F]))
+    code, out, err = run(["fit", tmp_path / "dup.csv", "--dof", 3, "--bias", "--method",
+                          "centered", "--known", tmp_path / "dupk.csv", "--out",
+                          tmp_path / "c.json"], capsys)
+    assert code == 0, err
+    assert "calib: warning: channel 8 (g3_mV) is an exact copy of channel 2 (g3)" in err
+    cal = json.loads((tmp_path / "c.json").read_text())
+    assert np.all(np.array(cal["C"])[:, 8] == 0) and cal["channels"][8] == "g3_mV"
+
+
 def test_trials_command_small(tmp_path, capsys):
     code, out, err = run(["trials", "--out", tmp_path / "tr", "--seeds", 4, "--quiet"], capsys)
     assert code == 0, err
