@@ -389,7 +389,8 @@ def _reliability(args, cal, known_Z, known_M) -> str:
         # the verdict's ratio takes the misfit for noise (docs/calib.md, "Gauges that are not
         # linear"): the word says how far it goes, as the warning does
         return ("reliable only as far as an affine sensor goes: this one reads as not linear in "
-                "the load, so the predicted error can be low")
+                "the load, so the predicted error can be low (calib evaluate on known loads left "
+                "out of the fit measures it)")
     return "reliable"
 
 

@@ -316,8 +316,8 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             warn(f"the residuals of nearby load directions agree (neighbour correlation "
                  f"{misfit['rho']:.2f}, p = {misfit['p_value']:.2g}): the sensor is not linear "
                  "in the load, and the predicted error and its ratio to least squares take that "
-                 "misfit for noise, so both can be low (docs/calib.md, 'Gauges that are not "
-                 "linear')")
+                 "misfit for noise, so both can be low; measure the error on known loads left "
+                 "out of the fit (calib evaluate; docs/calib.md, 'Gauges that are not linear')")
     pred = predict_error(pr, fit, seed=seed, load_sd=known_sigma or 0.0,
                          whitened=bool(correlation.get("used")), serial=serial)
     if pred is not None and serial is not None:

@@ -147,7 +147,10 @@ def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("calib: warning:")
     # the summary's word says as much, not a plain "reliable"
     assert out.rstrip().endswith("reliable only as far as an affine sensor goes: this one reads "
-                                 "as not linear in the load, so the predicted error can be low")
+                                 "as not linear in the load, so the predicted error can be low "
+                                 "(calib evaluate on known loads left out of the fit measures "
+                                 "it)")
+    assert "calib evaluate" in lines[0]
 
 
 def test_a_linear_sensors_summary_says_plainly_reliable(tmp_path, capsys):
