@@ -29,6 +29,11 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   measure at most 5, fits beyond 10x at least 15);
 - **held-out check failed**: the leave-one-pose-out error (``--cv poses``) exceeds
   ``holdout_factor`` times the fit's in-sample pose-level residual, or half the load magnitude;
+- **no rank-r structure** (the shape-from-motion routes: sfm, centered, paper): the rank gap
+  ``s_r / s_(r+1)`` of the readings the route factors is below
+  :data:`calib.sfm.MIN_RANK_GAP` (the paper's noisiest trial has 9, pure noise about 1). The
+  route's own warning says the calibration is unreliable there; before stop 65 a log of pure
+  noise was written as a "reliable" sfm calibration beside that warning;
 - **the paper route under poor excitation**: a ``method="paper"`` fit whose directions cover
   too little of the sphere (:func:`calib.result.excitation_is_poor`, the "poor excitation"
   warning). Its standard errors hold the rank-(r+1) subspace the plane and cylinder are fitted
@@ -49,6 +54,7 @@ import numpy as np
 # fit, which also uses them)
 from .result import OFFSET_STDERR_MAX_FRACTION
 from .rig import KNOWN_INCONSISTENT, SAME_MAGNITUDE
+from .sfm import MIN_RANK_GAP
 
 #: Chi-square tail probability below which known residuals are implausible.
 CHI2_PROBABILITY = 1e-6
@@ -123,6 +129,12 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                    f"{float(np.max(rel)):.1%} of the data's span on channel "
                    f"{int(np.argmax(rel))} (limit {OFFSET_STDERR_MAX_FRACTION:.0%}); loads "
                    "away from the directions seen would be wrong")
+    gap = d.get("rank_gap")
+    if (getattr(cal, "method", None) in ("sfm", "centered", "paper") and gap is not None
+            and np.isfinite(gap) and gap < MIN_RANK_GAP):
+        out.append(f"the readings show no rank-{int(d.get('rank', cal.dof))} structure: rank gap "
+                   f"{float(gap):.3g} < {MIN_RANK_GAP:g} (the weakest load axis is lost in the "
+                   "noise, or the channels do not read one load)")
     if getattr(cal, "method", None) == "paper" and d.get("excitation_poor"):
         cov = d.get("coverage") or {}
         out.append(f"the paper route's offset is not identified at this coverage (isotropy "

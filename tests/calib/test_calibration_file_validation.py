@@ -78,10 +78,18 @@ def test_fewer_samples_than_channels_is_refused(tmp_path, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
-def test_pure_noise_warns_that_there_is_no_structure(tmp_path, capsys):
+def test_pure_noise_is_refused_as_its_warning_says(tmp_path, capsys):
+    """A log of pure noise: the route's warning says the calibration is unreliable, so the
+    verdict does (exit 3, one line, nothing written; before stop 65 it was written as
+    "reliable" beside that warning); written only on request, then called UNRELIABLE."""
     raw = tmp_path / "raw.csv"
     np.savetxt(raw, np.random.default_rng(0).normal(size=(200, 8)), delimiter=",",
                header=",".join(f"c{i}" for i in range(8)), comments="")
-    code = main(["fit", str(raw), "--dof", "3", "--magnitude", "9",
-                 "--out", str(tmp_path / "c.json")])
-    assert code == 0 and "no rank-3 structure" in capsys.readouterr().err
+    args = ["fit", str(raw), "--dof", "3", "--magnitude", "9", "--out", str(tmp_path / "c.json")]
+    code = main(args)
+    err = capsys.readouterr().err
+    assert code == 3 and not (tmp_path / "c.json").exists()
+    assert err.count("\n") == 1 and "no rank-3 structure" in err
+    code = main(args + ["--allow-unreliable"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "UNRELIABLE" in out and "no rank-3 structure" in err
