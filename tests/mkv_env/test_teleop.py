@@ -71,8 +71,16 @@ def test_the_arrows_reach_all_nine_actions_and_no_key_is_off():
 def test_gymnasium_play_drives_the_robot_with_the_envs_own_mapping(monkeypatch):
     """play() finds get_keys_to_action itself (no MissingKeysToAction) and steps the env with
     the arrows held; with no key held it sends the noop."""
+    import matplotlib
+
+    backend = matplotlib.get_backend()
     from gymnasium.utils import play as play_module
 
+    # gymnasium's play module selects matplotlib's TkAgg backend when it is imported (for its
+    # PlayPlot): every later figure in this process then needs a display, and the plotting
+    # tests that ran after this one on the same worker failed headless (stop 65's CI). Give
+    # the process its backend back.
+    matplotlib.use(backend)
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     env = gym.make("MKV-v0", render_mode="rgb_array", max_episode_steps=50)
     # one list of events per frame; play() steps once per frame after the first
