@@ -128,9 +128,9 @@ def test_the_direction_test_is_unit_free_and_order_free():
     assert abs(a["rho"] - b["rho"]) < 1e-6 and a["p_value"] == b["p_value"]
 
 
-def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
-    """The command line: one warning line, exit 0, the file written."""
-    rig = simulate_payload_rig(10_000, poses=80, nonlinearity=0.05)
+def _calib_fit(tmp_path, capsys, rig):
+    """``calib fit --method joint`` on the rig's training log, 4 known poses as `calib plan`
+    picks them: (exit code, stdout, stderr)."""
     tr, _ = rig.split("poses")
     Z, Mt = rig.Z[tr], rig.stated_loads[rig.pose][tr]
     kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
@@ -141,6 +141,13 @@ def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
                  "--known", str(tmp_path / "known.csv"), "--known-samples", "1",
                  "--out", str(tmp_path / "cal.json")])
     out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
+    """The command line: one warning line, exit 0, the file written."""
+    code, out, err = _calib_fit(tmp_path, capsys,
+                                simulate_payload_rig(10_000, poses=80, nonlinearity=0.05))
     assert code == 0, err
     assert (tmp_path / "cal.json").is_file()
     lines = [x for x in err.splitlines() if "nearby load directions agree" in x]
@@ -154,16 +161,6 @@ def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
 
 
 def test_a_linear_sensors_summary_says_plainly_reliable(tmp_path, capsys):
-    rig = simulate_payload_rig(10_003, poses=80)
-    tr, _ = rig.split("poses")
-    Z, Mt = rig.Z[tr], rig.stated_loads[rig.pose][tr]
-    kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
-    ch = [f"g{i}" for i in range(Z.shape[1])]
-    write_csv(tmp_path / "log.csv", ch, Z)
-    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
-    code = main(["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint",
-                 "--known", str(tmp_path / "known.csv"), "--known-samples", "1",
-                 "--out", str(tmp_path / "cal.json")])
-    out, err = capsys.readouterr()
+    code, out, err = _calib_fit(tmp_path, capsys, simulate_payload_rig(10_003, poses=80))
     assert code == 0, err
     assert out.rstrip().endswith("; reliable") and "nearby load directions" not in err
