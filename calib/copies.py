@@ -9,7 +9,10 @@ copied as ``2 z_0 + 5``), the held-out error over least squares with every load 
 route; least squares (every load known) does not change. So :func:`calib.joint.fit_joint` and
 :func:`calib.bias.fit_bias` fit the log without its copies and give each copy a column of zeros
 in ``C`` (:func:`expand`): the loads are then those of the log without the copy, and the copy's
-offset is its original's, mapped by the same affine relation.
+offset is its original's, mapped by the same affine relation. So does
+:func:`calib.least_squares.fit_least_squares` with a bias (in-memory arrays), for a reason of
+its own: its centred columns then differ only by the rounding of the copy's shift, which its
+solve's cut-off keeps (a copy shifted by 843 standard deviations put 1e6 into ``C``, stop 66).
 
 "Exact": the affine regression of a channel on an earlier channel leaves at most
 :data:`COPY_TOLERANCE` of its variance. Distinct channels leave far more: at least 3.7e-4 over

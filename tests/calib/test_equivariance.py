@@ -148,6 +148,10 @@ def test_the_whitened_forward_fit_is_equivariant(log_scale, shift, perm_seed):
           phases=[Phase.explicit, Phase.reuse, Phase.generate])
 @given(seed=st.integers(0, 10_000), of=st.integers(0, P - 1), at=st.integers(0, P),
        log_scale=st.floats(-4, 4), shift=st.floats(-1e3, 1e3))
+# found on a fresh machine (stop 66): least squares with a copy in the same units shifted by 843
+# standard deviations put 1e6 into C and the loads 14 units off (the centred columns differ only
+# by the shift's rounding, which the solve's cut-off kept); least squares now leaves copies out
+@example(seed=906, of=4, at=4, log_scale=0.0, shift=843.2231708223719)
 def test_an_exact_copy_of_a_channel_leaves_the_loads_as_they_were(route, seed, of, at,
                                                                    log_scale, shift):
     """A channel logged twice (an affine copy of channel ``of``, in other units, inserted at
@@ -175,18 +179,17 @@ def test_an_exact_copy_of_a_channel_leaves_the_loads_as_they_were(route, seed, o
     a = _fit(route, Z, F, Zk, Mk)
     b = _fit(route, add(Z), F, add(Zk), Mk)
     assert np.max(np.abs(a.apply(Zt) - b.apply(add(Zt)))) < tol * g
-    if route != "least squares":  # (least squares needs no help: its loads do not move)
-        orig = of if of < at else of + 1  # the copied channel's index in the new log
-        first, second = sorted((at, orig))  # the later of the two is the one left out
-        assert np.all(b.C[:, second] == 0), b.C[:, second]
-        assert b.diagnostics["channel_copies"] == [
-            {"channel": second, "copy_of": first, "scale": pytest.approx(
-                scale if second == at else 1 / scale, rel=1e-6),
-             "shift": pytest.approx(b.diagnostics["channel_copies"][0]["shift"])}]
-        # the copy's offset is its original's, mapped as the copy is
-        c = b.diagnostics["channel_copies"][0]
-        assert b.offset[second] == pytest.approx(c["scale"] * b.offset[first] + c["shift"],
-                                                 rel=1e-9, abs=1e-9 * abs(c["shift"]) + 1e-300)
+    orig = of if of < at else of + 1  # the copied channel's index in the new log
+    first, second = sorted((at, orig))  # the later of the two is the one left out
+    assert np.all(b.C[:, second] == 0), b.C[:, second]
+    assert b.diagnostics["channel_copies"] == [
+        {"channel": second, "copy_of": first, "scale": pytest.approx(
+            scale if second == at else 1 / scale, rel=1e-6),
+         "shift": pytest.approx(b.diagnostics["channel_copies"][0]["shift"])}]
+    # the copy's offset is its original's, mapped as the copy is
+    c = b.diagnostics["channel_copies"][0]
+    assert b.offset[second] == pytest.approx(c["scale"] * b.offset[first] + c["shift"],
+                                             rel=1e-9, abs=1e-9 * abs(c["shift"]) + 1e-300)
 
 
 def test_a_copy_is_named_in_one_warning_and_its_column_is_zero():
