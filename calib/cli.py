@@ -389,8 +389,8 @@ def _reliability(args, cal, known_Z, known_M) -> str:
         # the verdict's ratio takes the misfit for noise (docs/calib.md, "Gauges that are not
         # linear"): the word says how far it goes, as the warning does
         return ("reliable only as far as an affine sensor goes: this one reads as not linear in "
-                "the load, so the predicted error can be low (calib evaluate on known loads left "
-                "out of the fit measures it)")
+                "the load, so its error has no stated upper end (calib evaluate on known loads "
+                "left out of the fit measures it)")
     return "reliable"
 
 
@@ -455,6 +455,12 @@ def _predicted(d) -> str:
     if not isinstance(pe, dict):
         return ""
     lo, hi = pe["interval"]
+    if pe.get("upper_bounded") is False:  # calib.joint.one_sided
+        lo, hi = pe["interval_if_linear"]
+        return (f", predicted held-out error at least {lo:.4g} (no upper end: the sensor reads "
+                f"as not linear in the load; were it linear, {pe['rms']:.4g} [{lo:.4g}, "
+                f"{hi:.4g}], {pe['coverage']:.0%} interval, {pe['ratio']:.2f}x least squares "
+                "with every load known)")
     return (f", predicted held-out error {pe['rms']:.4g} [{lo:.4g}, {hi:.4g}] "
             f"({pe['coverage']:.0%} interval; {pe['ratio']:.2f}x least squares with every load "
             "known)")

@@ -1947,5 +1947,6 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
                                              (1 + ratio_coverage) / 2)),
             "ratio_coverage": ratio_coverage,
             "interval_ratio": float(hi) / med_ls if med_ls > 0 else float("inf"),
+            "upper_bounded": True,  # (calib.joint.one_sided: not where the sensor reads nonlinear)
             "test_readings": int(P),
             "range_level": None if level is None else {"c": level[0], "dof": level[1]}}

@@ -152,7 +152,7 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                    f"with every load known) could reach {pe['upper_ratio']:.3g}x least squares "
                    f"on the same noise (limit {PREDICTED_RATIO_MAX:g}x at the ratio's "
                    f"{50 * (1 + pe.get('ratio_coverage', 0.9)):.3g}th percentile; the error's "
-                   f"interval reaches {pe['interval'][1]:.4g})")
+                   f"interval reaches {pe.get('interval_if_linear', pe['interval'])[1]:.4g})")
     elif joint_d.get("route") == "forward" and pe is None:
         out.append("the fit's covariance does not exist: nothing is identified")
     if known_Z is None or known_M is None:

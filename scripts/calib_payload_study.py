@@ -29,7 +29,9 @@ rule, the oracle or not; in brackets those of them whose offset least squares wi
 known identifies: its own standard error, from the same forward regression ``z = A m + o``, within
 ``calib.result.OFFSET_STDERR_MAX_FRACTION`` of every channel's span, so only those are refusals
 the data do not explain), the share of fits whose held-out error lies in the predicted
-interval (the printed one, ``calib.forward.INTERVAL_COVERAGE``: 95 %), and the share in which
+interval (the printed one, ``calib.forward.INTERVAL_COVERAGE``: 95 %; where the sensor reads
+as not linear the fit states no upper end, ``calib.joint.one_sided``, and the count of such fits
+follows in brackets, "no upper end"), and the share in which
 the channels' noise was found correlated (whitened fit).
 
     python scripts/calib_payload_study.py [--rigs 100] [--workers 2] [--write docs/calib_study.md]
@@ -125,9 +127,10 @@ def one(job):
             pe = cal.diagnostics["joint"].get("predicted_error") or {}
             lo, hi = pe.get("interval", (np.nan, np.nan))
             out["joint"] = (e / ls, bool(assess(cal, Z[kn], M[tr][kn])), bool(lo <= e <= hi),
-                            bool(cal.diagnostics["joint"].get("noise_correlation", {}).get("used")))
+                            bool(cal.diagnostics["joint"].get("noise_correlation", {}).get("used")),
+                            pe.get("upper_bounded") is False)
         except CalibrationError:
-            out["joint"] = (np.nan, True, False, False)
+            out["joint"] = (np.nan, True, False, False, False)
         try:
             sam = fit_joint(Z, Z[kn], M[tr][kn], 3, poses=None, **accuracy)
             out["sampson"] = err(sam.C, sam.offset) / ls
@@ -154,6 +157,7 @@ def table(results, cases=None):
         j = np.array([r["joint"][0] for r in rows])
         refused = np.array([r["joint"][1] for r in rows])
         inside = np.array([r["joint"][2] for r in rows])
+        one_sided = np.array([r["joint"][4] for r in rows])
         orc = np.array([r["oracle"] for r in rows])
         bad = int(np.sum(~refused & ~(j <= 3)))
         lost = refused & (orc <= 1.5)  # fits the oracle makes well, refused
@@ -164,7 +168,8 @@ def table(results, cases=None):
         lines.append(
             f"| {case} | {fmt(j)} ({100 * refused.mean():.0f} %) | {fmt(j / orc)} | {fmt(orc)} "
             f"| {fmt([r['sampson'] for r in rows])} | {bad} | {lost} ({lost_id}) | "
-            + (f"{100 * inside[ok].mean():.0f} % ({inside[ok].sum()} of {ok.sum()})"
+            + (f"{100 * inside[ok].mean():.0f} % ({inside[ok].sum()} of {ok.sum()}"
+               + (f"; {one_sided[ok].sum()} no upper end" if one_sided[ok].any() else "") + ")"
                if ok.any() else "n/a")
             + f" | {100 * np.mean([r['joint'][3] for r in rows]):.0f} % |")
     return "\n".join(lines)

@@ -10,9 +10,11 @@ least squares, at 8 % six (3.0-3.7x), where the oracle is as far (a refusal woul
 
 What the fit does about it (stop 64): it tells. :func:`calib.forward.direction_misfit` tests
 whether the residuals of nearby load directions agree (a misfit of the direction) beyond noise;
-where they do, ``fit_joint`` warns that the predicted error and ratio can be low.
+where they do, ``fit_joint`` warns that the predicted error and ratio can be low, and (stop 66,
+:func:`calib.joint.one_sided`) states no upper end of the error: the lower end holds.
 """
 
+import json
 import warnings
 
 import numpy as np
@@ -67,7 +69,8 @@ def test_nonlinear_gauges_are_fitted_to_the_models_optimum(seed):
 
 
 @pytest.mark.xfail(strict=True, reason="open (stop 64): under 5 % gauge nonlinearity a fit at "
-                   "3.73x least squares is written; the verdict takes the misfit for noise")
+                   "3.73x least squares is written (since stop 66 with no upper end of its error "
+                   "stated); the verdict's ratio takes the misfit for noise")
 def test_a_strongly_nonlinear_sensor_is_not_written_beyond_3x_least_squares():
     joint, oracle, written = _fit(10_019, 0.05)  # 3.73x (oracle 3.74x), written
     assert not written or joint <= 3.0
@@ -154,9 +157,15 @@ def test_calib_fit_prints_the_warning_and_still_writes(tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("calib: warning:")
     # the summary's word says as much, not a plain "reliable"
     assert out.rstrip().endswith("reliable only as far as an affine sensor goes: this one reads "
-                                 "as not linear in the load, so the predicted error can be low "
-                                 "(calib evaluate on known loads left out of the fit measures "
-                                 "it)")
+                                 "as not linear in the load, so its error has no stated upper "
+                                 "end (calib evaluate on known loads left out of the fit "
+                                 "measures it)")
+    # and the predicted error is stated as what it is: a lower end only
+    assert "predicted held-out error at least " in out and "no upper end" in out
+    saved = json.loads((tmp_path / "cal.json").read_text())
+    pe = saved["diagnostics"]["joint"]["predicted_error"]
+    assert pe["upper_bounded"] is False and pe["interval"][1] is None
+    assert pe["interval"][0] == pe["interval_if_linear"][0] < pe["interval_if_linear"][1]
     assert "calib evaluate" in lines[0]
 
 
@@ -164,3 +173,41 @@ def test_a_linear_sensors_summary_says_plainly_reliable(tmp_path, capsys):
     code, out, err = _calib_fit(tmp_path, capsys, simulate_payload_rig(10_003, poses=80))
     assert code == 0, err
     assert out.rstrip().endswith("; reliable") and "nearby load directions" not in err
+    assert "predicted held-out error at least" not in out
+    pe = json.loads((tmp_path / "cal.json").read_text())["diagnostics"]["joint"]["predicted_error"]
+    assert pe["upper_bounded"] is True and pe["interval"][0] < pe["rms"] < pe["interval"][1]
+
+
+@pytest.fixture(scope="module")
+def strongly_nonlinear_fits():
+    """12 payload rigs 5 % nonlinear (seeds 14,000 on: not used while the one-sided interval was
+    built): (measured held-out error, predicted_error) per rig."""
+    out = []
+    for seed in range(14_000, 14_012):
+        rig = simulate_payload_rig(seed, poses=80, nonlinearity=0.05)
+        tr, te = rig.split("poses")
+        M = rig.stated_loads[rig.pose]
+        Mt = M[tr]
+        kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cal = fit_joint(rig.Z[tr], rig.Z[tr][kn], Mt[kn], 3, known_samples=1)
+        out.append((rms(cal.apply(rig.Z[te]) - M[te]), cal.diagnostics["joint"]["predicted_error"]))
+    return out
+
+
+def test_the_stated_interval_holds_where_the_sensor_is_not_linear(strongly_nonlinear_fits):
+    """Where the direction test finds the sensor not linear, no upper end is stated, and the
+    lower end holds: every miss of the affine interval lies above it (seeds 20,000-20,029: 12 of
+    30 at 5 %, 5 of 30 at 2 %, none below). So the interval as stated covers the measured error
+    on at least 11 of 12 rigs; the affine interval, still in the diagnostics, misses at least 2
+    (it would be stated otherwise: this test fails without :func:`calib.joint.one_sided`)."""
+    res = strongly_nonlinear_fits
+    inside = sum(pe["interval"][0] <= e <= pe["interval"][1] for e, pe in res)
+    assert inside >= 11, [(e, pe["interval"]) for e, pe in res]
+    one_sided = [(e, pe) for e, pe in res if pe["upper_bounded"] is False]
+    assert len(one_sided) >= 10  # found on 30 of 30 at 5 %
+    assert all(e >= pe["interval"][0] for e, pe in one_sided)
+    affine = sum(pe["interval_if_linear"][0] <= e <= pe["interval_if_linear"][1]
+                 for e, pe in one_sided)
+    assert affine <= len(one_sided) - 2, (affine, len(one_sided))
