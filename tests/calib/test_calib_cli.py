@@ -277,6 +277,25 @@ def test_a_copied_channel_is_named_by_its_header_and_left_out(tmp_path, capsys, 
     assert np.all(np.array(cal["C"])[:, 8] == 0) and cal["channels"][8] == "g3_mV"
 
 
+def test_a_sum_channel_is_named_by_its_headers_and_left_out(tmp_path, capsys, raw3):
+    """A column that is the sum of two others (logged after them): one warning naming the
+    three by their header names, the fit written, its column of C 0."""
+    Z = np.column_stack([raw3.Z, raw3.Z[:, 1] + 2.0 * raw3.Z[:, 4]])
+    write_csv(tmp_path / "sum.csv", CH + ["g2+g5"], Z)
+    F = np.eye(3) * 9.0
+    Zk = F @ raw3.S + raw3.offset
+    write_csv(tmp_path / "sumk.csv", CH + ["g2+g5", "Fx", "Fy", "Fz"],
+              np.hstack([Zk, Zk[:, 1:2] + 2.0 * Zk[:, 4:5], F]))
+    code, out, err = run(["fit", tmp_path / "sum.csv", "--dof", 3, "--bias", "--method",
+                          "centered", "--known", tmp_path / "sumk.csv", "--out",
+                          tmp_path / "c.json"], capsys)
+    assert code == 0, err
+    assert ("calib: warning: channel 8 (g2+g5) is an exact combination of channel 1 (g2) and "
+            "channel 4 (g5) (1 x channel 1 (g2) + 2 x channel 4 (g5)") in err, err
+    cal = json.loads((tmp_path / "c.json").read_text())
+    assert np.all(np.array(cal["C"])[:, 8] == 0) and cal["channels"][8] == "g2+g5"
+
+
 def test_trials_command_small(tmp_path, capsys):
     code, out, err = run(["trials", "--out", tmp_path / "tr", "--seeds", 4, "--quiet"], capsys)
     assert code == 0, err
