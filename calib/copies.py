@@ -302,6 +302,6 @@ def fit_without_copies(Z, known_Z, fit, dof: int):
         if Zk.shape[1] == p:
             Zk = Zk[:, keep]
     warn("; ".join(_said(*c, Za) for c in copies)
-         + ": fitted without it (it adds nothing about the load, and its noise, its channels' "
-           "own counted twice, would weigh them twice); its column of C is 0")
+         + ": fitted without it (it adds nothing about the load, and its noise, which is its "
+           "channels' own, would be counted twice); its column of C is 0")
     return expand(fit(Za[:, keep], Zk), p, copies, Za)

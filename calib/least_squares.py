@@ -36,10 +36,11 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
     from .stream import scan as scan_source
 
     if bias and not (is_streamed(Z) or is_streamed(M)):
-        # a channel logged twice (an exact affine copy, calib.copies): fitted without it. Its
-        # centred column equals its original's but for the rounding of its shift, which the
-        # solve's cut-off (relative eps) keeps: a copy shifted by 800 standard deviations gave
-        # C entries of 1e6 and loads 14 units off (found by tests/calib/test_equivariance.py)
+        # a channel logged twice or a sum channel (an exact affine copy or combination,
+        # calib.copies): fitted without it. A copy's centred column equals its original's but
+        # for the rounding of its shift, which the solve's cut-off (relative eps) keeps: a copy
+        # shifted by 843 standard deviations gave C entries of 1e6 and loads 14 units off
+        # (found by tests/calib/test_equivariance.py)
         from .copies import fit_without_copies
 
         try:
