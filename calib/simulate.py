@@ -437,6 +437,7 @@ def simulate_payload_rig(
     wrench: bool = False,
     gauges: int = 0,
     nonlinearity: float = 0.0,
+    nonlinearity_kind: str = "direction",
 ) -> RigData:
     """A robot wrist holding a gripper on a 6-axis force/torque sensor: the load is the gripper's
     weight in the sensor frame, known from the robot's kinematics.
@@ -466,7 +467,12 @@ def simulate_payload_rig(
       map holds (a gauge's nonlinearity, cross-talk): ``nonlinearity`` times its spread times
       ``u^T Q_c u``, ``u`` the applied load's direction and ``Q_c`` a random symmetric matrix
       scaled to a largest absolute eigenvalue of 1 (so at most that fraction of the spread). Its
-      draws come after every other draw: a rig without it is the same rig.
+      draws come after every other draw: a rig without it is the same rig. With
+      ``nonlinearity_kind="signal"`` each channel's own linear signal is bent instead (a gauge
+      or amplifier that is not linear in its strain, :func:`simulate_rig`'s kind): it adds
+      ``spread (a x^2 + b x^3)``, ``x`` its linear signal over its spread and ``a, b`` uniform
+      in +-``nonlinearity``. A misfit of this kind is one the direction test finds less often
+      (docs/calib.md, "Gauges that are not linear").
 
     Returns :class:`RigData`; ``S`` is the (3, p) map from the force to the readings (its
     linear part, with ``nonlinearity``), ``stated_loads`` the kinematic loads per pose. Seeded,
@@ -489,6 +495,9 @@ def simulate_payload_rig(
     if not (np.isfinite(nl) and 0 <= nl < 1):
         raise CalibrationError(f"nonlinearity must be a fraction 0 <= x < 1 of each channel's "
                                f"spread, got {nonlinearity!r}")
+    if nonlinearity_kind not in ("direction", "signal"):
+        raise CalibrationError(f"nonlinearity_kind must be 'direction' or 'signal', got "
+                               f"{nonlinearity_kind!r}")
     lo, hi = (float(t) for t in tilt_deg)
     if not 0 <= lo < hi <= 180:
         raise CalibrationError(f"tilt_deg must be 0 <= low < high <= 180, got {tilt_deg}")
@@ -545,7 +554,11 @@ def simulate_payload_rig(
     else:
         Z = z0 + lin + rng.normal(size=lin.shape) * levels
         cov = np.diag(levels**2)
-    if nl > 0:  # (drawn last: the rest of the rig is the one drawn without it)
+    if nl > 0 and nonlinearity_kind == "signal":  # (drawn last, as below)
+        a, b = rng.uniform(-1, 1, (2, Z.shape[1])) * nl
+        x = lin / spread
+        Z = Z + spread * (a * x**2 + b * x**3)
+    elif nl > 0:  # (drawn last: the rest of the rig is the one drawn without it)
         Q = rng.normal(size=(Z.shape[1], 3, 3))
         Q = Q + Q.transpose(0, 2, 1)
         Q /= np.abs(np.linalg.eigvalsh(Q)).max(axis=1)[:, None, None]

@@ -6,7 +6,8 @@ torques, each channel with its own scale (1e-2..1e2) and noise (0.2-2 % of its s
 wrist holds it in orientations 30-90 degrees from vertical, one reading per pose unless the case
 says otherwise (the nonlinear case: every channel also reads a smooth function of the load's
 direction no affine map holds, up to 2 % of its spread, on training and test readings alike:
-least squares with every load known is affine too, and the oracle's model is the joint's).
+least squares with every load known is affine too, and the oracle's model is the joint's; the
+"own signal" case bends each channel's linear signal instead, ``a x^2 + b x^3``).
 Every other pose trains, the others test (new directions); the test target is the stated
 (kinematic) load. 4 known loads on the training poses ``choose_known_poses``
 recommends, their readings the log's own rows (``known_samples=1``; where the kinematics are
@@ -79,6 +80,8 @@ CASES = {
                                        "mass_error": 0.005},
     "sweep, 2,000 readings": {"poses": 2000, "sweep": True},
     "gauges 2 % nonlinear": {"poses": 80, "nonlinearity": 0.02},
+    "each channel's own signal bent 2 %": {"poses": 80, "nonlinearity": 0.02,
+                                           "nonlinearity_kind": "signal"},
     "train within 34 deg, test beyond": {"poses": 80, "tilt_deg": (0.0, 90.0), "narrow": 34.0},
 }
 

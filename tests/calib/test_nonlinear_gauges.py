@@ -33,6 +33,7 @@ from calib.forward import (
 from calib.io import write_csv
 from calib.joint import choose_known_poses
 from calib.reliability import assess
+from calib.result import CalibrationError
 from calib.simulate import simulate_payload_rig
 
 
@@ -211,3 +212,27 @@ def test_the_stated_interval_holds_where_the_sensor_is_not_linear(strongly_nonli
     affine = sum(pe["interval_if_linear"][0] <= e <= pe["interval_if_linear"][1]
                  for e, pe in one_sided)
     assert affine <= len(one_sided) - 2, (affine, len(one_sided))
+
+
+def test_a_channels_own_signal_bent_is_the_same_rig_plus_its_bend():
+    """``nonlinearity_kind="signal"``: each channel reads its linear signal bent, ``spread (a x^2
+    + b x^3)`` with ``|a|, |b| <= nonlinearity``; every other draw is the linear rig's."""
+    lin = simulate_payload_rig(10_001, poses=80)
+    bent = simulate_payload_rig(10_001, poses=80, nonlinearity=0.05, nonlinearity_kind="signal")
+    spread = lin.magnitude * np.linalg.norm(lin.S, axis=0)
+    x = (lin.true_loads @ lin.S) / spread
+    extra = (bent.Z - lin.Z) / spread
+    assert np.all(np.abs(extra) <= 0.1 * np.max(x**2, axis=0) + 1e-12)
+    # a quadratic plus a cubic of the channel's own signal, to rounding
+    for c in range(x.shape[1]):
+        coef = np.linalg.lstsq(np.column_stack([x[:, c] ** 2, x[:, c] ** 3]), extra[:, c],
+                               rcond=None)[0]
+        assert np.all(np.abs(coef) <= 0.05 + 1e-12)
+        assert np.allclose(np.column_stack([x[:, c] ** 2, x[:, c] ** 3]) @ coef, extra[:, c],
+                           atol=1e-12)
+
+
+def test_an_unknown_nonlinearity_kind_is_a_one_line_error():
+    with pytest.raises(CalibrationError, match="nonlinearity_kind must be 'direction' or "
+                       "'signal', got 'cubic'"):
+        simulate_payload_rig(1, nonlinearity=0.02, nonlinearity_kind="cubic")
