@@ -446,7 +446,9 @@ def _serial(d) -> str:
     rho = np.asarray(sc["rho"], float)[np.asarray(sc["correlated"], bool)]
     return (f", the readings' noise correlated along the log (lag-1 autocorrelation up to "
             f"{rho.max():.2f} on {len(rho)} channel(s)): fewer independent readings, the "
-            "interval widened")
+            "interval widened (a sensor not linear in the load reads the same way along a "
+            "sweep's path, and then its error can lie above the interval: calib evaluate on "
+            "known loads left out of the fit measures it)")
 
 
 def _predicted(d) -> str:

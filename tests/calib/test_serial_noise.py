@@ -83,7 +83,11 @@ def test_a_sweep_whose_noise_is_correlated_in_time_is_inside_its_interval():
     lo, hi = pe["interval"]
     assert lo <= _rms(cal, Zt, Mt) <= hi
     # the summary says why the interval is wide
-    assert "noise correlated along the log" in _summary(_ARGS, cal, "reliable")
+    summary = _summary(_ARGS, cal, "reliable")
+    assert "noise correlated along the log" in summary
+    # what the same residuals mean where the sensor is not linear (docs/calib.md, "Gauges that
+    # are not linear": a nonlinear sweep's interval held 5 of 20)
+    assert "a sensor not linear in the load reads the same way" in summary
     scale = np.ones(Z.shape[1])
     scale[0] = 1e3
     sc2 = _fit(Z * scale, M).diagnostics["joint"]["serial_correlation"]
