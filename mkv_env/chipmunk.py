@@ -30,6 +30,7 @@ widen ``pymunk`` in pyproject.toml.
 
 from __future__ import annotations
 
+import gc
 import warnings
 import weakref
 
@@ -246,33 +247,76 @@ def addresses(*names) -> list[int]:
 
 
 # ---------------------------------------------------------------- wrappers of objects made in C
+def _collect(each, owner, func) -> list:
+    """Every object ``each(owner, func, handle)`` reports, robust to a Ctrl-C: Python raises a
+    pending ``KeyboardInterrupt`` at the first bytecode it runs, which can be inside pymunk's
+    iterator callback, where cffi prints and drops it and the object is not reported. Freeing
+    the space then would leave that object pointing into freed memory (a crash later, found
+    with a Ctrl-C during a reset: tests/sfm_learn/cli/test_interrupts.py). So the caller removes
+    what one pass reports and asks again, until two passes in a row report nothing."""
+    found: list = []
+    h = ffi.new_handle(found)
+    each(owner, func, h)
+    return found
+
+
+def _drain(each, owner, func, remove) -> None:
+    """``remove`` every object ``each`` reports of ``owner``, asking again until two passes in a
+    row report nothing (:func:`_collect`: a pass can miss one)."""
+    empty = 0
+    while empty < 2:
+        objs = _collect(each, owner, func)
+        empty = 0 if objs else empty + 1
+        for obj in objs:
+            remove(obj)
+
+
+def _no_gc(free):
+    """``free`` with the cyclic collector off while it runs: the iterations lock the space, and a
+    collection run from inside their callbacks (an allocation) would free other objects of the
+    same space there, which Chipmunk aborts on ("This operation cannot be done safely during a
+    call to cpSpaceStep() or during a query")."""
+
+    def run(cp_obj) -> None:
+        was = gc.isenabled()
+        gc.disable()
+        try:
+            free(cp_obj)
+        finally:
+            if was:
+                gc.enable()
+
+    run.__doc__ = free.__doc__
+    return run
+
+
+@_no_gc
 def _free_space(cp_space) -> None:
-    """pymunk.Space's own finaliser (``spacefree`` in pymunk/space.py), for a space made in C."""
+    """pymunk.Space's own finaliser (``spacefree`` in pymunk/space.py), for a space made in C;
+    each kind of object removed in passes until two in a row find none (:func:`_collect`)."""
     lib = cp
-    shapes: list = []
-    h = ffi.new_handle(shapes)
-    lib.cpSpaceEachShape(cp_space, lib.ext_cpSpaceShapeIteratorFunc, h)
-    for cp_shape in shapes:
+
+    def remove_shape(cp_shape):
         lib.cpSpaceRemoveShape(lib.cpShapeGetSpace(cp_shape), cp_shape)
         lib.cpShapeSetBody(cp_shape, ffi.NULL)
-    constraints: list = []
-    h = ffi.new_handle(constraints)
-    lib.cpSpaceEachConstraint(cp_space, lib.ext_cpSpaceConstraintIteratorFunc, h)
-    for c in constraints:
-        lib.cpSpaceRemoveConstraint(lib.cpConstraintGetSpace(c), c)
-    bodies: list = []
-    h = ffi.new_handle(bodies)
-    lib.cpSpaceEachBody(cp_space, lib.ext_cpSpaceBodyIteratorFunc, h)
-    for cp_body in bodies:
-        lib.cpSpaceRemoveBody(lib.cpBodyGetSpace(cp_body), cp_body)
+
+    _drain(lib.cpSpaceEachShape, cp_space, lib.ext_cpSpaceShapeIteratorFunc, remove_shape)
+    _drain(lib.cpSpaceEachConstraint, cp_space, lib.ext_cpSpaceConstraintIteratorFunc,
+          lambda c: lib.cpSpaceRemoveConstraint(lib.cpConstraintGetSpace(c), c))
+    _drain(lib.cpSpaceEachBody, cp_space, lib.ext_cpSpaceBodyIteratorFunc,
+          lambda b: lib.cpSpaceRemoveBody(lib.cpBodyGetSpace(b), b))
     lib.cpSpaceFree(cp_space)
 
 
+@_no_gc
 def _free_body(cp_body) -> None:
-    """pymunk.Body's own finaliser (``freebody`` in pymunk/body.py), for a body made in C."""
+    """pymunk.Body's own finaliser (``freebody`` in pymunk/body.py), for a body made in C. Its
+    iterator callbacks detach each shape and constraint; a Ctrl-C dropped inside one skips it
+    (:func:`_collect`), and detaching is idempotent, so each iteration runs twice."""
     lib = cp
-    lib.cpBodyEachShape(cp_body, lib.ext_cpBodyShapeIteratorFunc, ffi.NULL)
-    lib.cpBodyEachConstraint(cp_body, lib.ext_cpBodyConstraintIteratorFunc, ffi.NULL)
+    for _ in range(2):
+        lib.cpBodyEachShape(cp_body, lib.ext_cpBodyShapeIteratorFunc, ffi.NULL)
+        lib.cpBodyEachConstraint(cp_body, lib.ext_cpBodyConstraintIteratorFunc, ffi.NULL)
     cp_space = lib.cpBodyGetSpace(cp_body)
     if cp_space != ffi.NULL:
         lib.cpSpaceRemoveBody(cp_space, cp_body)
