@@ -84,6 +84,23 @@ def _holds(Z: np.ndarray, fin, d: int, cs, bs, tol: float) -> bool:
         return bool(np.var(left) <= tol * np.var(zd))
 
 
+def _search(Z: np.ndarray):
+    """``(fin, mu, Sc, ss, full)`` of the search rows (:func:`_search_rows`): their mean, the
+    rows centred, each channel's sum of squares, and whether they are every finite row; None
+    for fewer than 3 rows or values too large to square in double precision (the fit's own
+    checks refuse those)."""
+    S, fin = _search_rows(Z)
+    if len(S) < 3:
+        return None
+    with np.errstate(all="ignore"):
+        mu = S.mean(axis=0)
+        Sc = S - mu
+        ss = np.einsum("ij,ij->j", Sc, Sc)
+    if not np.all(np.isfinite(ss)):
+        return None
+    return fin, mu, Sc, ss, len(S) == (len(Z) if fin is None else int(fin.sum()))
+
+
 def find_copies(Z) -> list[tuple[int, int, float, float]]:
     """``(copy, original, scale, shift)`` for every channel of ``Z`` (n, p) that is an exact
     affine copy of an earlier channel, ``z_copy = scale z_original + shift`` over the rows
@@ -94,16 +111,14 @@ def find_copies(Z) -> list[tuple[int, int, float, float]]:
     Z = np.asarray(Z, float)
     if Z.ndim != 2 or Z.shape[1] < 2:
         return []
-    S, fin = _search_rows(Z)
-    if len(S) < 3:
+    return _copies(Z, _search(Z))
+
+
+def _copies(Z: np.ndarray, search) -> list[tuple[int, int, float, float]]:
+    """:func:`find_copies` on the rows :func:`_search` gave."""
+    if search is None:
         return []
-    with np.errstate(all="ignore"):
-        mu = S.mean(axis=0)
-        Sc = S - mu
-        ss = np.einsum("ij,ij->j", Sc, Sc)
-    if not np.all(np.isfinite(ss)):
-        return []  # values beyond what double precision squares: the fit's checks refuse them
-    full = len(S) == len(Z) if fin is None else len(S) == int(fin.sum())
+    fin, mu, Sc, ss, full = search
     found, copied = [], set()
     for d in range(Z.shape[1]):
         if not ss[d] > 0:
@@ -136,24 +151,18 @@ def find_combinations(Z) -> list[tuple[int, tuple[int, ...], tuple[float, ...], 
     Z = np.asarray(Z, float)
     if Z.ndim != 2 or Z.shape[1] < 2:
         return []
-    copies = {d: (d, (c,), (b,), sh) for d, c, b, sh in find_copies(Z)}
-    S, fin = _search_rows(Z)
-    if len(S) < 3:
+    search = _search(Z)
+    if search is None:
         return []
-    with np.errstate(all="ignore"):
-        mu = S.mean(axis=0)
-        Sc = S - mu
-        ss = np.einsum("ij,ij->j", Sc, Sc)
-    if not np.all(np.isfinite(ss)):
-        return []
-    full = len(S) == len(Z) if fin is None else len(S) == int(fin.sum())
+    fin, mu, Sc, ss, full = search
+    copies = {d: (d, (c,), (b,), sh) for d, c, b, sh in _copies(Z, search)}
     found, kept = [], []
     for d in range(Z.shape[1]):
         if d in copies:
             found.append(copies[d])
             continue
         on = [c for c in kept if ss[c] > 0]  # (a constant channel: the fit refuses it)
-        if len(on) >= 2 and ss[d] > 0 and len(S) - len(on) - 1 >= COMBINATION_MIN_DOF:
+        if len(on) >= 2 and ss[d] > 0 and len(Sc) - len(on) - 1 >= COMBINATION_MIN_DOF:
             X = Sc[:, on] / np.sqrt(ss[on])  # equilibrated: units do not matter
             try:
                 with np.errstate(all="ignore"):
@@ -247,16 +256,21 @@ def expand(cal: Calibration, p: int, copies, Z=None) -> Calibration:
                 if len(cs) > 1:
                     rel[d] = diag["offset_stderr"][d] / max(float(diag["span"][d]), 1e-300)
             diag["offset_stderr_rel_span"] = rel
-    diag["channel_copies"] = [
-        {"channel": int(d), "copy_of": int(cs[0]), "scale": float(bs[0]), "shift": float(sh)}
-        if len(cs) == 1 else
-        {"channel": int(d), "combination_of": [int(c) for c, _ in _participants(cs, bs, Z)],
-         "coefficients": [float(b) for _, b in _participants(cs, bs, Z)], "shift": float(sh)}
-        for d, cs, bs, sh in copies]
+    diag["channel_copies"] = [_entry(d, cs, bs, sh, Z) for d, cs, bs, sh in copies]
     diag["channels_fitted"] = [int(c) for c in keep]
     out = Calibration(C=columns(cal.C), offset=offset, dof=cal.dof, method=cal.method,
                       diagnostics=diag, **quad)
     return out
+
+
+def _entry(d, cs, bs, sh, Z) -> dict:
+    """One copy or combination as ``diagnostics["channel_copies"]`` lists it."""
+    if len(cs) == 1:
+        return {"channel": int(d), "copy_of": int(cs[0]), "scale": float(bs[0]),
+                "shift": float(sh)}
+    terms = _participants(cs, bs, Z)
+    return {"channel": int(d), "combination_of": [int(c) for c, _ in terms],
+            "coefficients": [float(b) for _, b in terms], "shift": float(sh)}
 
 
 def _said(d, cs, bs, sh, Z) -> str:

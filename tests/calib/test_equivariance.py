@@ -68,6 +68,18 @@ def _fit(route, Z, F, Zk, Mk):
 ROUTES = ["least squares", "paper", "centered", "joint"]
 
 
+def _log(route, seed):
+    """The log a route fits, for the redundant-channel tests: ``(Z, F, Zt, Zk, Mk, g, tol)``,
+    the readings, their loads (None on a static-pose rig), held-out readings, the known
+    readings and loads, the load magnitude and the test's tolerance (the rig fit's its own)."""
+    if route == "rig":
+        rig, Zk, Mk = _rig(seed % 50)
+        return (rig.Z, None, rig.pose_means(np.arange(len(rig.Z)))[0], Zk, Mk, rig.magnitude,
+                TOL_RIG)
+    Z, F, Zt, _, g = _motion(seed)
+    return Z, F, Zt, Z[:4], F[:4], g, TOL
+
+
 def _transform(log_scale, perm_seed, shift, Z):
     s = 10.0 ** np.asarray(log_scale)
     perm = np.random.default_rng(perm_seed).permutation(P)
@@ -160,15 +172,7 @@ def test_an_exact_copy_of_a_channel_leaves_the_loads_as_they_were(route, seed, o
     fit to its 1e-4), the copy's column of C is 0 and the copy is named (calib.copies). Before
     stop 65 the copy cost the joint fit up to 1.7x and the centered route up to 5x on payload
     rigs: its noise was counted twice."""
-    if route == "rig":
-        rig, Zk, Mk = _rig(seed % 50)
-        Z, F = rig.Z, None
-        Zt = rig.pose_means(np.arange(len(Z)))[0]
-        g, tol = rig.magnitude, TOL_RIG
-    else:
-        Z, F, Zt, _, g = _motion(seed)
-        Zk, Mk = Z[:4], F[:4]
-        tol = TOL
+    Z, F, Zt, Zk, Mk, g, tol = _log(route, seed)
     scale = (10.0 ** log_scale) * (-1 if seed % 2 else 1)
     if route == "paper":  # (not offset-equivariant with noise: the module docstring)
         shift = 0.0
@@ -209,15 +213,7 @@ def test_an_exact_combination_of_channels_leaves_the_loads_as_they_were(route, s
     without it (1e-6 of the load; the rig fit 1e-4), its column of C is 0, and it is named by
     the channels it combines (calib.copies.find_combinations). Before stop 66 such a channel
     cost the joint fit up to 1.5x and the centered route up to 4.3x on payload rigs."""
-    if route == "rig":
-        rig, Zk, Mk = _rig(seed % 50)
-        Z, F = rig.Z, None
-        Zt = rig.pose_means(np.arange(len(Z)))[0]
-        g, tol = rig.magnitude, TOL_RIG
-    else:
-        Z, F, Zt, _, g = _motion(seed)
-        Zk, Mk = Z[:4], F[:4]
-        tol = TOL
+    Z, F, Zt, Zk, Mk, g, tol = _log(route, seed)
     rng = np.random.default_rng(seed)
     b = (10.0 ** np.asarray(log_scale[: len(of)]) * rng.choice([-1, 1], len(of))
          / Z[:, of].std(axis=0))
