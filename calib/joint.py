@@ -310,9 +310,11 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     # refused (the fit is at its model's optimum; its predicted error takes the misfit for
     # noise). Not where the noise is correlated in time: slow noise along a path that returns
     # to its directions defeats the test's null (an AR(0.99) sweep was found nonlinear)
+    nonlinear = False
     if isinstance(misfit, dict):
         misfit["tested"] = serial is None
-        if serial is None and misfit["p_value"] < DIRECTION_ALPHA:
+        nonlinear = serial is None and misfit["p_value"] < DIRECTION_ALPHA
+        if nonlinear:
             warn(f"the residuals of nearby load directions agree (neighbour correlation "
                  f"{misfit['rho']:.2f}, p = {misfit['p_value']:.2g}): the sensor is not linear "
                  "in the load, and the predicted error and its ratio to least squares take that "
@@ -332,8 +334,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
                               whitened=bool(correlation.get("used")), dof=serial["white_dof"])
         if white is not None:
             pred = {**pred, "ratio": white["ratio"], "upper_ratio": white["upper_ratio"]}
-    if pred is not None and isinstance(misfit, dict) and misfit["tested"] and (
-            misfit["p_value"] < DIRECTION_ALPHA):
+    if pred is not None and nonlinear:
         pred = one_sided(pred)
     from .forward import _global_cov
 
