@@ -4,9 +4,11 @@ A console script imports its ``main`` before calling it, and the command package
 tenths of a second to import (numpy, scipy, gymnasium): a Ctrl-C in that window used to end in
 a ``KeyboardInterrupt`` traceback from inside scipy's import. These launchers import the command
 package while a Ctrl-C is already answered the commands' way (one line, exit 130, nothing
-written: nothing has started). They live outside the packages because importing any module of
-``calib`` or ``sfm_learn`` runs that package's heavy ``__init__`` first; they import only the
-standard library themselves.
+written: nothing has started), including one that an extension module's initialisation turns into
+``ImportError("initialization failed")`` (scipy's pybind11 modules do: stop 66's CI, ``mkv demo``).
+They live outside the packages because importing any module of ``calib`` or ``sfm_learn`` runs
+that package's heavy ``__init__`` first; they import only the standard library and
+``sfm_common.cli`` (itself the standard library only).
 """
 
 from __future__ import annotations
@@ -14,12 +16,19 @@ from __future__ import annotations
 import importlib
 import sys
 
+from sfm_common.cli import caused_by_interrupt  # the standard library only: ~4 ms
+
 EXIT_INTERRUPTED = 130
 
 
 def _launch(module: str, prog: str) -> int:
     try:
         main = importlib.import_module(module).main
+    except Exception as e:  # a Ctrl-C inside an extension module's initialisation
+        if not caused_by_interrupt(e):  # arrives as ImportError("initialization failed") from it
+            raise
+        print(f"{prog}: interrupted; no output written", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except KeyboardInterrupt:
         print(f"{prog}: interrupted; no output written", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -228,7 +228,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("calib: interrupted", file=sys.stderr)
         return 130
-    except RuntimeError as e:  # a Ctrl-C that a hook wrapped (caused_by_interrupt)
+    except Exception as e:  # a Ctrl-C that Python wrapped: a hook, an extension's import
         if not caused_by_interrupt(e):
             raise
         print("calib: interrupted", file=sys.stderr)

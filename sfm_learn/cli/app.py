@@ -113,8 +113,8 @@ def main(argv=None, *, nested: bool = False) -> int:
         with _held_warnings(), interrupts_not_lost():
             try:
                 return int(args._run(args) or 0)
-            except RuntimeError as e:  # a Ctrl-C that a hook wrapped: still a Ctrl-C
-                if caused_by_interrupt(e):
+            except Exception as e:  # a Ctrl-C that Python wrapped (a hook, an extension's
+                if caused_by_interrupt(e):  # import): still a Ctrl-C
                     raise KeyboardInterrupt from e
                 raise
     except KeyboardInterrupt:

@@ -57,6 +57,7 @@ from collections.abc import Callable, Sequence
 from concurrent import futures
 from dataclasses import dataclass
 
+from sfm_common.cli import caused_by_interrupt
 from sfm_common.files import atomic_write_text
 
 KINDS = ("sfm", "bc", "dagger", "ppo")
@@ -477,6 +478,8 @@ def run_job(spec: dict, job: Job, out_dir: str) -> list[dict]:
     except KeyboardInterrupt:
         raise
     except Exception as e:  # noqa: BLE001 - a job's failure is data, not a crash of the sweep
+        if caused_by_interrupt(e):  # a Ctrl-C Python wrapped (an extension's import): no row
+            raise KeyboardInterrupt from e
         msg = (str(e).strip().splitlines() or [type(e).__name__])[0]
         rows = [{**base_row, "budget": b, "status": "error",
                  "error": f"{type(e).__name__}: {msg}",

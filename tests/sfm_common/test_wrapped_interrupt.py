@@ -73,3 +73,62 @@ def test_other_runtime_errors_still_propagate(monkeypatch):
     monkeypatch.setattr(calib.cli, "_plan", plan)
     with pytest.raises(RuntimeError, match="a bug"):
         calib.cli.main(["plan", "poses.csv"])
+
+
+def _import_interrupted() -> ImportError:
+    """What a Ctrl-C inside a pybind11 extension's initialisation raises (scipy.spatial's
+    ``_distance_pybind`` during ``mkv demo``'s lazy ``import scipy.stats``: stop 66's CI)."""
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ki:
+            raise ImportError("initialization failed") from ki
+    except ImportError as e:
+        return e
+
+
+def test_an_interrupted_extension_import_is_one_line_in_both_commands(monkeypatch, capsys):
+    err = _import_interrupted()
+
+    def run(args):
+        raise err
+
+    class Parser:
+        def parse_args(self, argv):
+            return argparse.Namespace(_prog="mkv fit", _run=run)
+
+    monkeypatch.setattr(app, "build_parser", Parser)
+    assert app.main([]) == app.EXIT_INTERRUPTED
+    with pytest.raises(KeyboardInterrupt):  # a stage of mkv demo: the outer command reports it
+        app.main([], nested=True)
+    monkeypatch.setattr(calib.cli, "_plan", run)
+    assert calib.cli.main(["plan", "poses.csv"]) == 130
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert err_lines == ["mkv fit: interrupted; no output written", "calib: interrupted"]
+
+
+def test_the_launcher_reports_an_interrupted_extension_import(monkeypatch, capsys):
+    import mkv_sfm_launch
+
+    def imp(name):
+        raise _import_interrupted()
+
+    monkeypatch.setattr(mkv_sfm_launch.importlib, "import_module", imp)
+    assert mkv_sfm_launch.mkv() == mkv_sfm_launch.EXIT_INTERRUPTED
+    assert capsys.readouterr().err.strip() == "mkv: interrupted; no output written"
+
+    def broken(name):
+        raise ImportError("a real missing module")
+
+    monkeypatch.setattr(mkv_sfm_launch.importlib, "import_module", broken)
+    with pytest.raises(ImportError, match="a real missing module"):
+        mkv_sfm_launch.calib()
+
+
+def test_other_import_errors_still_propagate(monkeypatch):
+    def plan(args):
+        raise ImportError("no module named x")
+
+    monkeypatch.setattr(calib.cli, "_plan", plan)
+    with pytest.raises(ImportError, match="no module named x"):
+        calib.cli.main(["plan", "poses.csv"])

@@ -97,6 +97,27 @@ def test_failing_job_is_reported_and_the_others_finish(tmp_path, capsys, monkeyp
     assert "4 jobs: 2 already done, 0 ran, 2 failed" in capsys.readouterr().out
 
 
+def test_a_ctrl_c_python_wrapped_is_not_a_failed_job(tmp_path, capsys, monkeypatch):
+    """A Ctrl-C inside an extension's initialisation arrives as ImportError("initialization
+    failed") whose cause is the KeyboardInterrupt: the sweep stops (exit 130), it does not write
+    the job as failed (which a rerun would then retry as an error, not resume)."""
+    from sfm_learn.baselines import dagger
+
+    def interrupted(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ki:
+            raise ImportError("initialization failed") from ki
+
+    monkeypatch.setattr(dagger, "train", interrupted)
+    spec = dict(SPEC, learners={"dagger": {"rounds": 1}}, budgets={"dagger": [50]})
+    d = tmp_path / "out"
+    assert main(["sweep", write_spec(tmp_path, spec), "--out", str(d), "--quiet"]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "mkv sweep: interrupted; no output written"]
+    assert sweep.read_rows(str(d)) == []
+
+
 def test_local_pool_of_two_workers_writes_the_same_rows(full, tmp_path):
     d = tmp_path / "pool"
     sweep.run_sweep(sweep.check_spec(SPEC), str(d), workers=2)
