@@ -34,6 +34,13 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   :data:`calib.sfm.MIN_RANK_GAP` (the paper's noisiest trial has 9, pure noise about 1). The
   route's own warning says the calibration is unreliable there; before stop 65 a log of pure
   noise was written as a "reliable" sfm calibration beside that warning;
+- **a known reading far from the model** (forward fits of one-reading logs): the reading of a
+  known load lies far from the fitted model (:func:`calib.forward.outlying_readings`: a spike,
+  or the load stated for another reading). A known reading pins the fit's rotation, so it
+  moves the whole fit: on payload rigs with a 30-standard-deviation spike on one of the 4 known
+  readings the fit measured up to 8.8x least squares (4 of 20 beyond 3x, every one written
+  before); the test flagged 19 of 20 such readings, and no reading of 130 clean, gauge-mixed or
+  2-5 % nonlinear rigs. ``robust=True`` leaves it out while enough known loads remain;
 - **the paper route under poor excitation**: a ``method="paper"`` fit whose directions cover
   too little of the sphere (:func:`calib.result.excitation_is_poor`, the "poor excitation"
   warning). Its standard errors hold the rank-(r+1) subspace the plane and cylinder are fitted
@@ -146,6 +153,17 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
     if se_g is not None and np.isfinite(se_g) and se_g > OFFSET_STDERR_MAX_FRACTION:
         out.append(f"the scale is not identified: the fitted load magnitude's standard error is "
                    f"{se_g:.1%} of it (limit {OFFSET_STDERR_MAX_FRACTION:.0%})")
+    outl = joint_d.get("outlying_readings")
+    if isinstance(outl, dict) and len(outl.get("known", [])):
+        from .joint import KNOWN_INFLUENCE_MAX
+
+        infl = outl.get("known_influence")
+        if infl is None or not infl <= KNOWN_INFLUENCE_MAX:
+            ks = ", ".join(str(int(k)) for k in outl["known"])
+            moved = ("" if infl is None else f" by {infl:.2g}x its predicted error (limit "
+                     f"{KNOWN_INFLUENCE_MAX:g}x)")
+            out.append(f"the reading of known load(s) {ks} lies far from the fitted model (a "
+                       f"spike, or the load stated for another reading) and moves the fit{moved}")
     pe = joint_d.get("predicted_error")
     if isinstance(pe, dict) and not (pe.get("upper_ratio", np.inf) <= PREDICTED_RATIO_MAX):
         out.append(f"predicted held-out error {pe['rms']:.4g} ({pe['ratio']:.3g}x least squares "

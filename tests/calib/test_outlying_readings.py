@@ -1,0 +1,173 @@
+"""Readings far from the fitted model in a log of single readings (stop 67): a spike, a glitch,
+a known load stated for another reading.
+
+Found on payload rigs with one reading of all channels 30 noise standard deviations off: on one
+of the 4 known readings the fit measured up to 8.8x least squares on the same readings (4 of 20
+beyond 3x, each written with exit 0 and the direction test's "not linear" warning, the wrong
+cause); on an unknown reading up to 1.9x, with no warning. :func:`calib.forward.outlying_readings`
+flags such readings (a robust chi-square test, Bonferroni over the log); ``fit_joint`` names
+them, refuses the fit where a flagged known reading moves it by more than its own predicted
+error (``calib.joint.KNOWN_INFLUENCE_MAX``), and with ``robust=True`` leaves them out.
+"""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from calib import fit_joint, fit_least_squares
+from calib.cli import main
+from calib.io import write_csv
+from calib.joint import choose_known_poses
+from calib.reliability import assess
+from calib.simulate import simulate_payload_rig
+
+
+def rms(a):
+    return float(np.sqrt(np.mean(np.sum(a**2, axis=1))))
+
+
+def _rig(seed, where=None, amp=30.0, **kw):
+    """The payload study's default protocol with one reading of all channels ``amp`` noise
+    standard deviations off (``where``: "known", "unknown" or None): (training readings, their
+    stated loads, known rows, test rows' readings and loads, the spiked row, the rig)."""
+    rig = simulate_payload_rig(seed, poses=80, **kw)
+    tr, te = rig.split("poses")
+    Z, Mt = rig.Z[tr].copy(), rig.stated_loads[rig.pose][tr]
+    kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
+    rng = np.random.default_rng(seed + 1)
+    row = None
+    if where is not None:
+        pool = kn if where == "known" else np.setdiff1d(np.arange(len(Z)), kn)
+        row = int(rng.choice(pool))
+        Z[row] += amp * np.sqrt(np.diag(rig.noise_cov)) * rng.choice([-1, 1], size=Z.shape[1])
+    return Z, Mt, kn, rig.Z[te], rig.stated_loads[rig.pose][te], row
+
+
+def _fit(Z, Mt, kn, **kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cal = fit_joint(Z, Z[kn], Mt[kn], 3, known_samples=1, **kw)
+    return cal, [str(w.message) for w in caught]
+
+
+@pytest.mark.parametrize("kw", [{}, {"wrench": True, "gauges": 8}, {"nonlinearity": 0.05},
+                                {"poses": 2000, "sweep": True}])
+def test_no_reading_of_a_clean_log_is_flagged(kw):
+    """Independent or gauge-mixed noise, a 5 % nonlinear sensor, a sweep: nothing flagged, no
+    warning of it (measured on 185 rigs of these and other cases: none)."""
+    kw = {"poses": 80, **kw}
+    for seed in (33_000, 33_001):
+        rig = simulate_payload_rig(seed, **kw)
+        tr, _ = rig.split("poses")
+        Mt = rig.stated_loads[rig.pose][tr]
+        kn = choose_known_poses(Mt / np.linalg.norm(Mt, axis=1, keepdims=True), 4)
+        cal, said = _fit(rig.Z[tr], Mt, kn)
+        o = cal.diagnostics["joint"]["outlying_readings"]
+        assert o is not None and len(o["log_rows"]) == 0 and len(o["known"]) == 0, (seed, o)
+        assert not any("far from the fitted model" in s for s in said)
+
+
+def test_a_spike_on_a_known_reading_is_never_written_far_beyond_least_squares():
+    """Six new rigs, a 30-sd spike on one known reading: every fit is refused or within 3x least
+    squares on the same readings (before: up to 8.8x, written). The reading is flagged and named
+    on at least 4 (measured 4 here: the two it missed, the fit took up the spike at 2.0x; 19 of
+    20 on the development rigs); where it is, ``robust=True`` leaves it out and the fit is
+    within 1.5x of least squares (measured 0.85-1.32x)."""
+    named = 0
+    for seed in range(33_010, 33_016):
+        Z, Mt, kn, Zte, Mte, row = _rig(seed, "known")
+        cal, said = _fit(Z, Mt, kn)
+        ls = fit_least_squares(Z, Mt, bias=True)
+        ratio = rms(cal.apply(Zte) - Mte) / rms(ls.apply(Zte) - Mte)
+        o = cal.diagnostics["joint"]["outlying_readings"]
+        k = int(np.flatnonzero(kn == row)[0])
+        if list(o["known"]) == [k]:
+            named += 1
+            assert any(f"known load(s) {k} (counted from 0)" in s for s in said)
+        assert assess(cal, Z[kn], Mt[kn]) or ratio <= 3.0, (seed, ratio)
+        if list(o["known"]) == [k]:
+            rob, _ = _fit(Z, Mt, kn, robust=True)
+            assert rms(rob.apply(Zte) - Mte) <= 1.5 * rms(ls.apply(Zte) - Mte), seed
+            assert rob.diagnostics["joint"]["outlier_known_rejected"] == [k]
+            assert rob.diagnostics["joint"]["n_known"] == 3
+    assert named >= 4
+
+
+def test_a_known_reading_that_barely_moves_the_fit_is_told_not_refused(monkeypatch):
+    """A flagged known reading whose removal moves the loads by less than the fit's predicted
+    error (heavy-tailed noise's tail draws measured 0.4-0.8x) is told and the fit kept: here the
+    limit is raised past the measured influence, and the same fit passes."""
+    import calib.joint as joint
+
+    Z, Mt, kn, *_ = _rig(33_010, "known")
+    cal, _ = _fit(Z, Mt, kn)
+    infl = cal.diagnostics["joint"]["outlying_readings"]["known_influence"]
+    assert infl > joint.KNOWN_INFLUENCE_MAX
+    assert any("known load" in r for r in assess(cal, Z[kn], Mt[kn]))
+    monkeypatch.setattr(joint, "KNOWN_INFLUENCE_MAX", 2 * infl)
+    assert not any("known load" in r for r in assess(cal, Z[kn], Mt[kn]))
+
+
+def test_a_spike_on_an_unknown_reading_is_named_by_its_row_and_left_out_when_asked():
+    Z, Mt, kn, Zte, Mte, row = _rig(33_020, "unknown")
+    cal, said = _fit(Z, Mt, kn)
+    o = cal.diagnostics["joint"]["outlying_readings"]
+    assert list(o["rows"]) == [row] and len(o["known"]) == 0
+    assert any(f"row(s) {row}, counted from 0" in s for s in said)
+    assert not assess(cal, Z[kn], Mt[kn])  # told, not refused: an unknown reading moves it less
+    rob, _ = _fit(Z, Mt, kn, robust=True)
+    assert rob.diagnostics["joint"]["outlier_rows_rejected"] == [row]
+    clean, _ = _fit(np.delete(Z, row, axis=0), Mt[np.setdiff1d(np.arange(len(Z)), row)],
+                    kn - (kn > row))
+    np.testing.assert_allclose(rob.apply(Zte), clean.apply(Zte), rtol=1e-6, atol=1e-9)
+
+
+def test_the_flag_is_unit_free_order_free_and_offset_free():
+    Z, Mt, kn, _, _, row = _rig(33_021, "unknown")
+    rng = np.random.default_rng(5)
+    scale = 10.0 ** rng.uniform(-4, 4, Z.shape[1])
+    perm = rng.permutation(Z.shape[1])
+    shift = rng.normal(size=Z.shape[1]) * 1e3 * scale
+    for Zx in (Z, (Z * scale + shift)[:, perm]):
+        cal, _ = _fit(Zx, Mt, kn)
+        o = cal.diagnostics["joint"]["outlying_readings"]
+        assert list(o["rows"]) == [row], o
+
+
+def test_rows_are_the_logs_own_where_a_long_log_is_strided(monkeypatch):
+    """A log longer than the forward fit's rows is fitted on strided rows: the row named is the
+    user's row, not the strided subset's index (the limit lowered to 2,000 rows here)."""
+    import calib.joint as joint
+
+    monkeypatch.setattr(joint, "FORWARD_MAX_ROWS", 2_000)
+    rig = simulate_payload_rig(33_030, poses=6_000, sweep=True)
+    Z = rig.Z.copy()
+    M = rig.stated_loads[rig.pose]
+    kn = choose_known_poses(M / np.linalg.norm(M, axis=1, keepdims=True), 4)
+    step = joint._forward_step(len(Z))
+    assert step > 1
+    row = step * 1_001  # a row the strided fit sees, not a known one
+    assert row not in kn
+    Z[row] += 30 * np.sqrt(np.diag(rig.noise_cov))
+    cal, said = _fit(Z, M, kn)
+    assert row in list(cal.diagnostics["joint"]["outlying_readings"]["rows"])
+    assert any(f"{row}" in s and "far from the fitted model" in s for s in said)
+
+
+def test_calib_fit_refuses_with_the_known_reading_named(tmp_path, capsys):
+    Z, Mt, kn, *_ = _rig(33_010, "known")
+    ch = [f"g{i}" for i in range(Z.shape[1])]
+    write_csv(tmp_path / "log.csv", ch, Z)
+    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
+    argv = ["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint", "--known",
+            str(tmp_path / "known.csv"), "--known-samples", "1", "--out",
+            str(tmp_path / "cal.json")]
+    assert main(argv) == 3
+    err = capsys.readouterr().err
+    assert "calib: unreliable:" in err and "lies far from the fitted model" in err
+    assert not (tmp_path / "cal.json").exists()
+    assert main(argv + ["--robust"]) == 0, capsys.readouterr().err
+    saved = json.loads((tmp_path / "cal.json").read_text())
+    assert len(saved["diagnostics"]["joint"]["outlier_known_rejected"]) == 1
