@@ -80,7 +80,8 @@ def _parser() -> argparse.ArgumentParser:
                    "reliably: docs/calib.md)")
     f.add_argument("--robust", action="store_true",
                    help="joint and least_squares on static poses: leave out rows more than 5 "
-                   "robust standard deviations from their pose's median (spikes)")
+                   "robust standard deviations from their pose's median (spikes); joint on "
+                   "logs without static poses: leave out readings far from the fitted model")
     f.add_argument("--allow-unreliable", action="store_true",
                    help="write a fit that the reliability checks reject (exit 0, warnings)")
     f.add_argument("--holdout-factor", type=positive_float, metavar="F", default=None,
