@@ -56,7 +56,7 @@ def _fit(Z, Mt, kn, **kw):
                                 {"poses": 2000, "sweep": True}])
 def test_no_reading_of_a_clean_log_is_flagged(kw):
     """Independent or gauge-mixed noise, a 5 % nonlinear sensor, a sweep: nothing flagged, no
-    warning of it (measured on 185 rigs of these and other cases: none)."""
+    warning of it (measured on 180 rigs of these and other cases: none)."""
     kw = {"poses": 80, **kw}
     for seed in (33_000, 33_001):
         rig = simulate_payload_rig(seed, **kw)
@@ -72,7 +72,7 @@ def test_no_reading_of_a_clean_log_is_flagged(kw):
 def test_a_spike_on_a_known_reading_is_never_written_far_beyond_least_squares():
     """Six new rigs, a 30-sd spike on one known reading: every fit is refused or within 3x least
     squares on the same readings (before: up to 8.8x, written). The reading is flagged and named
-    on at least 4 (measured 4 here: the two it missed, the fit took up the spike at 2.0x; 19 of
+    on at least 5 (measured 5 here: the one it missed, the fit took up the spike at 1.96x; 20 of
     20 on the development rigs); where it is, ``robust=True`` leaves it out and the fit is
     within 1.5x of least squares (measured 0.85-1.32x)."""
     named = 0
@@ -92,7 +92,7 @@ def test_a_spike_on_a_known_reading_is_never_written_far_beyond_least_squares():
             assert rms(rob.apply(Zte) - Mte) <= 1.5 * rms(ls.apply(Zte) - Mte), seed
             assert rob.diagnostics["joint"]["outlier_known_rejected"] == [k]
             assert rob.diagnostics["joint"]["n_known"] == 3
-    assert named >= 4
+    assert named >= 5
 
 
 def test_a_known_reading_that_barely_moves_the_fit_is_told_not_refused(monkeypatch):
