@@ -1540,13 +1540,14 @@ def outlying_readings(pr: Problem, fit: dict, alpha: float = OUTLIER_ALPHA) -> d
     known reading's is taken as the same: the few known readings pin the fit's rotation, so the
     fit takes up as much of theirs (measured on clean payload rigs, the mean ``d`` at the known
     readings: 6.17 with 8 channels, 8.99 with 12; at the unknown ones 5.86 and 9.73, of 6 and 10
-    degrees of freedom; with ``p`` degrees of freedom a known reading's test missed more). A spike inflates the fitted noise it
-    is scaled by, so ``d`` is first divided by the unknown poses' median of it over the
-    chi-square's median (a robust scale, 1 under the model). A reading is flagged where its
-    tail probability is below ``alpha / P``. Units, channel order and offsets do not change it.
-    Returns ``{"poses", "p_values", "scale", "known"}`` (the flagged poses' indices into
-    ``pr.Y``, their tail probabilities, the robust scale, and which of them are known poses),
-    or None with fewer than 10 unknown poses."""
+    degrees of freedom; with ``p`` degrees of freedom a known reading's test missed more). A
+    spike inflates the fitted noise it is scaled by, so ``d`` is first divided by the unknown
+    poses' median of it over the chi-square's median (a robust scale, 1 under the model). A
+    reading is flagged where its tail probability is below ``alpha / P``. Units, channel order
+    and offsets do not change it. Returns ``{"poses", "p_values", "scale", "known",
+    "min_p_value"}`` (the flagged poses' indices into ``pr.Y``, their tail probabilities, the
+    robust scale, which of them are known poses, and the smallest tail probability of all), or
+    None with fewer than 10 unknown poses."""
     from scipy.stats import chi2
 
     un = pr.unknown

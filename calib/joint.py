@@ -482,7 +482,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
 #: log's loads by more than this multiple of the fit's predicted held-out error makes the fit
 #: unreliable: the error it states does not hold. 1 is the fit's own unit, not tuned (measured
 #: on payload rigs: a 30-standard-deviation spike on a known reading 1.4-5.4, a 10 sd one
-#: 0.8-1.6 (before the known readings' degrees of freedom were matched); the known readings heavy-tailed (t3) noise flagged 0.4-0.8).
+#: 0.8-1.6; the known readings that heavy-tailed (t3) noise's tail draws flagged 0.4-0.8).
 KNOWN_INFLUENCE_MAX = 1.0
 
 
