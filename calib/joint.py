@@ -344,8 +344,8 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
         if len(outliers["rows"]):
             warn(f"{len(outliers['rows'])} reading(s) lie far from the fitted model (row(s) "
                  f"{named}{more}, counted from 0 among the data rows; chi-square tail below "
-                 f"{outliers['alpha']:.2g}): a spike or glitch moves the fit; --robust "
-                 "(robust=True) leaves them out")
+                 f"{outliers['alpha']:.2g}): a spike or glitch moves the fit, and the predicted "
+                 "error does not count them; --robust (robust=True) leaves them out")
     C = gls_inverse(fit["A"], fit["v"]) @ T
     offset = T_inv @ fit["o"]
     # noise correlated in time (a sweep read faster than its noise changes): the log's readings
