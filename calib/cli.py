@@ -392,6 +392,10 @@ def _reliability(args, cal, known_Z, known_M) -> str:
         return ("reliable only as far as an affine sensor goes: this one reads as not linear in "
                 "the load, so its error has no stated upper end (calib evaluate on known loads "
                 "left out of the fit measures it)")
+    pe = (cal.diagnostics.get("joint") or {}).get("predicted_error")
+    if isinstance(pe, dict) and pe.get("no_upper_end_because") == "readings far from the model":
+        return ("reliable as far as the readings named in the warning are noise: its error has "
+                "no stated upper end (--robust leaves them out)")
     return "reliable"
 
 
@@ -460,10 +464,13 @@ def _predicted(d) -> str:
     lo, hi = pe["interval"]
     if pe.get("upper_bounded") is False:  # calib.joint.one_sided
         lo, hi = pe["interval_if_linear"]
-        return (f", predicted held-out error at least {lo:.4g} (no upper end: the sensor reads "
-                f"as not linear in the load; were it linear, {pe['rms']:.4g} [{lo:.4g}, "
-                f"{hi:.4g}], {pe['coverage']:.0%} interval, {pe['ratio']:.2f}x least squares "
-                "with every load known)")
+        why, were = (("some readings lie far from the fitted model (named above; --robust "
+                      "leaves them out)", "were they noise")
+                     if pe.get("no_upper_end_because") == "readings far from the model" else
+                     ("the sensor reads as not linear in the load", "were it linear"))
+        return (f", predicted held-out error at least {lo:.4g} (no upper end: {why}; {were}, "
+                f"{pe['rms']:.4g} [{lo:.4g}, {hi:.4g}], {pe['coverage']:.0%} interval, "
+                f"{pe['ratio']:.2f}x least squares with every load known)")
     return (f", predicted held-out error {pe['rms']:.4g} [{lo:.4g}, {hi:.4g}] "
             f"({pe['coverage']:.0%} interval; {pe['ratio']:.2f}x least squares with every load "
             "known)")

@@ -381,6 +381,11 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             pred = {**pred, "ratio": white["ratio"], "upper_ratio": white["upper_ratio"]}
     if pred is not None and nonlinear:
         pred = one_sided(pred)
+    elif pred is not None and flagged and len(outliers["rows"]):
+        # readings the noise model does not hold (spikes) move the fit by more than its Monte
+        # Carlo draws: on spiked sweeps the interval held 1 of 4 (docs/calib.md, "Readings far
+        # from the model"); the lower end stays
+        pred = one_sided(pred, because="readings far from the model")
     if flagged and len(outliers["known"]):
         # how far the flagged known reading(s) move the fit: the log's loads with and without
         # them, over the fit's own predicted held-out error. Beyond 1 the stated error does not
@@ -505,7 +510,7 @@ def _told_outliers(found, n, rows_of, known, order) -> dict | None:
             "scale": found["scale"], "min_p_value": found["min_p_value"], "alpha": OUTLIER_ALPHA}
 
 
-def one_sided(pred: dict) -> dict:
+def one_sided(pred: dict, because: str = "not linear") -> dict:
     """The predicted error of a fit whose sensor reads as not linear in the load
     (:func:`calib.forward.direction_misfit` found): no upper end is stated.
 
@@ -519,9 +524,13 @@ def one_sided(pred: dict) -> dict:
     error of an affine sensor is the least this one's can be). The affine model's interval is
     kept as ``interval_if_linear``. The verdict's ratio (``ratio``, ``upper_ratio``) stays the
     affine model's: the fit is at its model's optimum, and refusing every fit found would
-    refuse those the oracle makes within 1.5x least squares."""
+    refuse those the oracle makes within 1.5x least squares. ``because`` (stored as
+    ``no_upper_end_because``): "not linear", or "readings far from the model" where
+    :func:`calib.forward.outlying_readings` flagged unknown readings (spikes the noise model
+    does not hold; ``robust=True`` leaves them out)."""
     lo, hi = pred["interval"]
     return {**pred, "interval": [lo, float("inf")], "upper_bounded": False,
+            "no_upper_end_because": because,
             "interval_if_linear": [lo, hi], "interval_ratio": float("inf"),
             "interval_ratio_if_linear": pred["interval_ratio"]}
 

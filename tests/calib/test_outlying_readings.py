@@ -198,3 +198,33 @@ def test_a_sweep_with_spikes_is_fitted_as_a_sweep_and_its_spikes_named():
     assert sorted(rob.diagnostics["joint"]["outlier_rows_rejected"]) == sorted(rows)
     ls = fit_least_squares(Z, M[tr], bias=True)
     assert rms(rob.apply(rig.Z[te]) - M[te]) < rms(ls.apply(rig.Z[te]) - M[te])
+
+
+def test_where_readings_are_flagged_the_error_has_no_stated_upper_end(tmp_path, capsys):
+    """The predicted error counts noise, not spikes: where unknown readings are flagged its upper
+    end is withdrawn (the interval held 1 of 4 spiked sweeps) and the lower end kept, and
+    ``calib fit`` says why; with ``--robust`` the interval is stated again."""
+    Z, Mt, kn, Zte, Mte, row = _rig(33_020, "unknown")
+    cal, _ = _fit(Z, Mt, kn)
+    pe = cal.diagnostics["joint"]["predicted_error"]
+    assert pe["upper_bounded"] is False and pe["interval"][1] == np.inf
+    assert pe["no_upper_end_because"] == "readings far from the model"
+    assert rms(cal.apply(Zte) - Mte) >= pe["interval"][0]
+    ch = [f"g{i}" for i in range(Z.shape[1])]
+    write_csv(tmp_path / "log.csv", ch, Z)
+    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
+    argv = ["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint", "--known",
+            str(tmp_path / "known.csv"), "--known-samples", "1", "--out",
+            str(tmp_path / "cal.json")]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert f"row(s) {row}, counted from 0" in err
+    assert "no upper end: some readings lie far from the fitted model" in out
+    assert out.rstrip().endswith("reliable as far as the readings named in the warning are "
+                                 "noise: its error has no stated upper end (--robust leaves "
+                                 "them out)")
+    assert main(argv + ["--robust"]) == 0
+    out = capsys.readouterr().out
+    assert "no upper end" not in out and out.rstrip().endswith("; reliable")
+    pe = json.loads((tmp_path / "cal.json").read_text())["diagnostics"]["joint"]["predicted_error"]
+    assert pe["upper_bounded"] is True
