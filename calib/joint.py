@@ -319,8 +319,12 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
     outliers = _told_outliers(outlying_readings(pr, fit), len(Z), rows_of, known, order)
     flagged = outliers is not None and len(outliers["rows"]) + len(outliers["known"]) > 0
     without = None  # the fit without the flagged readings
-    if flagged and (robust or len(outliers["known"])):
+    drop_known = []
+    if flagged:
         drop_known = outliers["known"] if len(Zk) - len(outliers["known"]) >= dof else []
+    # refitted: with robust where anything can be left out; else to weigh a flagged known
+    # reading, which needs it left out (each refit has fewer known loads: the depth is bounded)
+    if flagged and (len(drop_known) or (robust and len(outliers["log_rows"]))):
         keep = np.setdiff1d(np.arange(len(Z)), outliers["log_rows"])
         keep_k = np.setdiff1d(np.arange(len(Zk)), drop_known)
         with warnings.catch_warnings(record=True) as refit_warnings:
@@ -336,8 +340,6 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
             for m in refit_warnings:
                 warnings.warn_explicit(m.message, m.category, m.filename, m.lineno)
             return without
-        if len(drop_known) == 0:  # too few known loads would remain: nothing to compare with
-            without = None
     if flagged:
         named = ", ".join(str(int(r)) for r in outliers["rows"][:10])
         more = f" and {len(outliers['rows']) - 10} more" if len(outliers["rows"]) > 10 else ""

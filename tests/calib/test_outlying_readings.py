@@ -228,3 +228,17 @@ def test_where_readings_are_flagged_the_error_has_no_stated_upper_end(tmp_path, 
     assert "no upper end" not in out and out.rstrip().endswith("; reliable")
     pe = json.loads((tmp_path / "cal.json").read_text())["diagnostics"]["joint"]["predicted_error"]
     assert pe["upper_bounded"] is True
+
+
+def test_a_flagged_known_reading_with_no_known_load_to_spare_refuses(tmp_path):
+    """3 known loads, one of them spiked: it cannot be left out (the fit needs 3), so there is
+    nothing to weigh it against: refused, with robust or not, and no endless refitting."""
+    Z, Mt, kn4, *_ = _rig(33_010, "known")
+    cal4, _ = _fit(Z, Mt, kn4)
+    k = int(cal4.diagnostics["joint"]["outlying_readings"]["known"][0])
+    kn = np.r_[kn4[k], np.delete(kn4, k)[:2]]  # the spiked one and two others
+    for robust in (False, True):
+        cal, said = _fit(Z, Mt, kn, robust=robust)
+        o = cal.diagnostics["joint"]["outlying_readings"]
+        assert list(o["known"]) == [0] and o["known_influence"] is None, robust
+        assert any("lies far from the fitted model" in r for r in assess(cal, Z[kn], Mt[kn]))
