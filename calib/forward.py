@@ -1544,10 +1544,9 @@ def outlying_readings(pr: Problem, fit: dict, alpha: float = OUTLIER_ALPHA) -> d
     spike inflates the fitted noise it is scaled by, so ``d`` is first divided by the unknown
     poses' median of it over the chi-square's median (a robust scale, 1 under the model). A
     reading is flagged where its tail probability is below ``alpha / P``. Units, channel order
-    and offsets do not change it. Returns ``{"poses", "p_values", "scale", "known",
-    "min_p_value"}`` (the flagged poses' indices into ``pr.Y``, their tail probabilities, the
-    robust scale, which of them are known poses, and the smallest tail probability of all), or
-    None with fewer than 10 unknown poses."""
+    and offsets do not change it. Returns ``{"poses", "p_values", "scale", "min_p_value"}``
+    (the flagged poses' indices into ``pr.Y``, their tail probabilities, the robust scale, and
+    the smallest tail probability of all), or None with fewer than 10 unknown poses."""
     from scipy.stats import chi2
 
     un = pr.unknown
@@ -1564,9 +1563,7 @@ def outlying_readings(pr: Problem, fit: dict, alpha: float = OUTLIER_ALPHA) -> d
         return None
     pv = chi2.sf(d / scale, df)
     out = np.flatnonzero(pv < alpha / pr.P)
-    return {"poses": out, "p_values": pv[out], "scale": scale,
-            "known": np.isin(out, pr.known), "min_p_value": float(pv.min())}
-
+    return {"poses": out, "p_values": pv[out], "scale": scale, "min_p_value": float(pv.min())}
 
 
 def direction_misfit(pr: Problem, fit: dict, permutations: int = DIRECTION_PERMUTATIONS,

@@ -257,7 +257,9 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
 
     Readings far from the fitted model (:func:`calib.forward.outlying_readings`: a spike, a
     glitch) are told, by their row (``row_index``: each row's index in the user's log; default
-    ``0..n-1``); one among the known readings makes the verdict refuse the fit
+    ``0..n-1``), and the predicted error then states no upper end. A known reading among them
+    whose removal moves the loads by more than the predicted error
+    (:data:`KNOWN_INFLUENCE_MAX`) makes the verdict refuse the fit
     (:func:`calib.reliability.assess`). ``robust=True`` leaves them out and fits once more
     (known readings too, while at least ``dof`` known loads remain); their rows are in
     ``diagnostics["joint"]["outlier_rows_rejected"]``."""
@@ -395,8 +397,7 @@ def fit_forward_rows(Z, known_Z, known_M, dof, magnitude=None, known_samples=Non
         # docstring of calib.reliability)
         influence = None
         if without is not None and pred is not None:
-            d = ((Z - T_inv @ fit["o"]) @ (gls_inverse(fit["A"], fit["v"]) @ T).T
-                 - without.apply(Z))
+            d = (Z - offset) @ C.T - without.apply(Z)
             influence = float(np.sqrt(np.mean(np.sum(d**2, axis=1))) / pred["rms"])
         outliers["known_influence"] = influence
         ks = ", ".join(str(int(k)) for k in outliers["known"])
@@ -506,7 +507,8 @@ def _told_outliers(found, n, rows_of, known, order) -> dict | None:
 
     poses = np.asarray(found["poses"], int)
     log_rows = poses[poses < n]
-    flagged_known = sorted(int(order[i]) for i, pose in enumerate(known) if pose in set(poses))
+    hit = set(poses.tolist())
+    flagged_known = sorted(int(order[i]) for i, pose in enumerate(known) if pose in hit)
     return {"rows": rows_of[np.setdiff1d(log_rows, known)], "log_rows": log_rows,
             "known": np.asarray(flagged_known, int), "p_values": np.asarray(found["p_values"]),
             "scale": found["scale"], "min_p_value": found["min_p_value"], "alpha": OUTLIER_ALPHA}

@@ -34,9 +34,10 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   :data:`calib.sfm.MIN_RANK_GAP` (the paper's noisiest trial has 9, pure noise about 1). The
   route's own warning says the calibration is unreliable there; before stop 65 a log of pure
   noise was written as a "reliable" sfm calibration beside that warning;
-- **a known reading far from the model** (forward fits of one-reading logs): the reading of a
-  known load lies far from the fitted model (:func:`calib.forward.outlying_readings`: a spike,
-  or the load stated for another reading) and leaving it out moves the log's loads by more than
+- **a known reading far from the model** (forward fits of one-reading logs and sweeps): the
+  reading of a known load lies far from the fitted model
+  (:func:`calib.forward.outlying_readings`: a spike, or the load stated for another reading),
+  and leaving it out moves the log's loads by more than
   the fit's own predicted error (``calib.joint.KNOWN_INFLUENCE_MAX``, 1). A known reading pins
   the fit's rotation, so it moves the whole fit: on payload rigs with a 30-standard-deviation
   spike on one of the 4 known readings the fit measured up to 8.8x least squares (4 of 20

@@ -52,6 +52,16 @@ def _fit(Z, Mt, kn, **kw):
     return cal, [str(w.message) for w in caught]
 
 
+def _fit_argv(tmp_path, Z, Mt, kn):
+    """``calib fit --method joint`` on ``Z`` written as a CSV, the rows ``kn`` its known loads."""
+    ch = [f"g{i}" for i in range(Z.shape[1])]
+    write_csv(tmp_path / "log.csv", ch, Z)
+    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
+    return ["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint", "--known",
+            str(tmp_path / "known.csv"), "--known-samples", "1", "--out",
+            str(tmp_path / "cal.json")]
+
+
 @pytest.mark.parametrize("kw", [{}, {"wrench": True, "gauges": 8}, {"nonlinearity": 0.05},
                                 {"poses": 2000, "sweep": True}])
 def test_no_reading_of_a_clean_log_is_flagged(kw):
@@ -158,12 +168,7 @@ def test_rows_are_the_logs_own_where_a_long_log_is_strided(monkeypatch):
 
 def test_calib_fit_refuses_with_the_known_reading_named(tmp_path, capsys):
     Z, Mt, kn, *_ = _rig(33_010, "known")
-    ch = [f"g{i}" for i in range(Z.shape[1])]
-    write_csv(tmp_path / "log.csv", ch, Z)
-    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
-    argv = ["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint", "--known",
-            str(tmp_path / "known.csv"), "--known-samples", "1", "--out",
-            str(tmp_path / "cal.json")]
+    argv = _fit_argv(tmp_path, Z, Mt, kn)
     assert main(argv) == 3
     err = capsys.readouterr().err
     assert "calib: unreliable:" in err and "lies far from the fitted model" in err
@@ -210,12 +215,7 @@ def test_where_readings_are_flagged_the_error_has_no_stated_upper_end(tmp_path, 
     assert pe["upper_bounded"] is False and pe["interval"][1] == np.inf
     assert pe["no_upper_end_because"] == "readings far from the model"
     assert rms(cal.apply(Zte) - Mte) >= pe["interval"][0]
-    ch = [f"g{i}" for i in range(Z.shape[1])]
-    write_csv(tmp_path / "log.csv", ch, Z)
-    write_csv(tmp_path / "known.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([Z[kn], Mt[kn]]))
-    argv = ["fit", str(tmp_path / "log.csv"), "--dof", "3", "--method", "joint", "--known",
-            str(tmp_path / "known.csv"), "--known-samples", "1", "--out",
-            str(tmp_path / "cal.json")]
+    argv = _fit_argv(tmp_path, Z, Mt, kn)
     assert main(argv) == 0
     out, err = capsys.readouterr()
     assert f"row(s) {row}, counted from 0" in err

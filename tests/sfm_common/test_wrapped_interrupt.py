@@ -39,17 +39,21 @@ def test_a_wrapped_interrupt_is_recognised_and_others_are_not():
         assert not caused_by_interrupt(e)
 
 
-def test_mkv_reports_a_wrapped_interrupt_in_one_line(monkeypatch, capsys):
-    err = _wrapped_interrupt()
-
+def _mkv_raises(monkeypatch, err, prog):
+    """``mkv`` whose command (named ``prog``) raises ``err``; returns that command's function."""
     def run(args):
         raise err
 
     class Parser:
         def parse_args(self, argv):
-            return argparse.Namespace(_prog="mkv train-ppo", _run=run)
+            return argparse.Namespace(_prog=prog, _run=run)
 
     monkeypatch.setattr(app, "build_parser", Parser)
+    return run
+
+
+def test_mkv_reports_a_wrapped_interrupt_in_one_line(monkeypatch, capsys):
+    _mkv_raises(monkeypatch, _wrapped_interrupt(), "mkv train-ppo")
     assert app.main([]) == app.EXIT_INTERRUPTED
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines == ["mkv train-ppo: interrupted; no output written"]
@@ -66,12 +70,14 @@ def test_calib_reports_a_wrapped_interrupt_in_one_line(monkeypatch, capsys):
     assert capsys.readouterr().err.strip().splitlines() == ["calib: interrupted"]
 
 
-def test_other_runtime_errors_still_propagate(monkeypatch):
+@pytest.mark.parametrize("err", [RuntimeError("a bug"), ImportError("no module named x")])
+def test_other_errors_still_propagate(monkeypatch, err):
+    """Errors no Ctrl-C caused (a RuntimeError, an ImportError) are not taken for one."""
     def plan(args):
-        raise RuntimeError("a bug")
+        raise err
 
     monkeypatch.setattr(calib.cli, "_plan", plan)
-    with pytest.raises(RuntimeError, match="a bug"):
+    with pytest.raises(type(err), match=str(err)):
         calib.cli.main(["plan", "poses.csv"])
 
 
@@ -88,16 +94,7 @@ def _import_interrupted() -> ImportError:
 
 
 def test_an_interrupted_extension_import_is_one_line_in_both_commands(monkeypatch, capsys):
-    err = _import_interrupted()
-
-    def run(args):
-        raise err
-
-    class Parser:
-        def parse_args(self, argv):
-            return argparse.Namespace(_prog="mkv fit", _run=run)
-
-    monkeypatch.setattr(app, "build_parser", Parser)
+    run = _mkv_raises(monkeypatch, _import_interrupted(), "mkv fit")
     assert app.main([]) == app.EXIT_INTERRUPTED
     with pytest.raises(KeyboardInterrupt):  # a stage of mkv demo: the outer command reports it
         app.main([], nested=True)
@@ -123,12 +120,3 @@ def test_the_launcher_reports_an_interrupted_extension_import(monkeypatch, capsy
     monkeypatch.setattr(mkv_sfm_launch.importlib, "import_module", broken)
     with pytest.raises(ImportError, match="a real missing module"):
         mkv_sfm_launch.calib()
-
-
-def test_other_import_errors_still_propagate(monkeypatch):
-    def plan(args):
-        raise ImportError("no module named x")
-
-    monkeypatch.setattr(calib.cli, "_plan", plan)
-    with pytest.raises(ImportError, match="no module named x"):
-        calib.cli.main(["plan", "poses.csv"])
