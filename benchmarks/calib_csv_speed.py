@@ -1,9 +1,10 @@
-"""``calib.io.read_csv`` against its peer ``np.loadtxt`` on the same file, in the same run.
+"""``calib.data.io.read_csv`` against its peer ``np.loadtxt`` on the same file, in the same run.
 
     python benchmarks/calib_csv_speed.py [--rows 2000000] [--cols 8] [--rounds 3] [--with-old]
 
 Each reader runs in a fresh subprocess (so its peak RSS is its own), alternating with the peer,
-``--rounds`` times; the medians are reported. Peak RSS includes the imports: ``calib.io`` imports
+``--rounds`` times; the medians are reported. Peak RSS includes the imports: ``calib.data.io``
+imports
 the calib package (scipy), about 50 MB more than numpy alone, so the "read" column (peak minus the
 RSS after the imports) is the cost of reading itself. Target: within 1.5x of the peer's time and
 peak memory. ``--with-old`` also runs the row-by-row reader ``read_csv`` replaced (csv.reader and
@@ -24,12 +25,12 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-OURS, PEER = "calib.io.read_csv", "np.loadtxt (peer)"
+OURS, PEER = "calib.data.io.read_csv", "np.loadtxt (peer)"
 CODE = {
-    OURS: ("from calib.io import read_csv", "h, d = read_csv(PATH)"),
+    OURS: ("from calib.data.io import read_csv", "h, d = read_csv(PATH)"),
     PEER: ("import numpy as np", "d = np.loadtxt(PATH, delimiter=',', skiprows=1)"),
 }
-# The reader calib.io.read_csv had before the numpy fast path (git 762913c^), for --with-old.
+# The reader calib.data.io.read_csv had before the numpy fast path (git 762913c^), for --with-old.
 OLD_READER = '''
 import csv
 import numpy as np
@@ -48,7 +49,7 @@ def old_read_csv(path):
 EXTRA = {
     "row-by-row (old)": (OLD_READER, "h, d = old_read_csv(PATH)"),
     "read_csv, bad last row": (
-        "from calib.io import read_csv\nfrom calib.result import CalibrationError",
+        "from calib.data.io import read_csv\nfrom calib.data.result import CalibrationError",
         "try:\n    read_csv(PATH_BAD)\nexcept CalibrationError as e:\n    d = e",
     ),
 }

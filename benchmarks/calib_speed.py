@@ -1,6 +1,7 @@
 """Benchmark: shape from motion with bias on 1,000,000 x 8 samples.
 
-Reports the wall time of ``calib.bias.fit_bias`` (centered route: Gram-matrix PCA, chunked
+Reports the wall time of ``calib.estimators.bias.fit_bias`` (centered route: Gram-matrix PCA,
+chunked
 ellipsoid fit) against numpy's own thin SVD of the same matrix measured in the same run, and the
 peak extra memory (tracemalloc, which sees numpy's allocations) relative to the input array.
 
@@ -19,9 +20,9 @@ import warnings
 
 import numpy as np
 
-from calib.bias import fit_bias
-from calib.result import CalibrationWarning
-from calib.simulate import paper_trial
+from calib.data.result import CalibrationWarning
+from calib.estimators.bias import fit_bias
+from calib.simulation.simulate import paper_trial
 
 
 def make_data(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """Benchmark: a 1e8 x 8 log, larger than memory, calibrated by streaming (centered route).
 
 The rows come chunk by chunk from a seeded simulator (the paper's Trial 3 sensor and noise): a
-:class:`calib.stream.ChunkSource` whose block k is simulated from seed (seed, k) every time a
+:class:`calib.data.stream.ChunkSource` whose block k is simulated from seed (seed, k) every time a
 pass asks for it, so the 6.4 GB of readings never exist in memory at once. ``fit_bias`` streams
 over it (scan, centred Gram, strided subsamples, full-data Gauss-Newton passes, diagnostics).
 
@@ -34,8 +34,8 @@ def rss_mb() -> float:
 
 
 def simulated_source(n: int, seed: int):
-    from calib.simulate import paper_trial
-    from calib.stream import CHUNK_ROWS, ChunkSource
+    from calib.data.stream import CHUNK_ROWS, ChunkSource
+    from calib.simulation.simulate import paper_trial
 
     class SimulatedSource(ChunkSource):
         """n rows of Trial 3 readings, block k simulated from seed (seed, k) on every pass."""
@@ -59,9 +59,9 @@ def simulated_source(n: int, seed: int):
 
 
 def child(kind: str, n: int, seed: int) -> dict:
-    from calib.bias import fit_bias
-    from calib.result import CalibrationWarning
-    from calib.simulate import paper_trial
+    from calib.data.result import CalibrationWarning
+    from calib.estimators.bias import fit_bias
+    from calib.simulation.simulate import paper_trial
 
     warnings.simplefilter("ignore", CalibrationWarning)
     base = rss_mb()

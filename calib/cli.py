@@ -4,8 +4,8 @@ section 6).
 Bad input ends the command with exit status 2 and one line on stderr, ``calib: error: ...``.
 Calibration warnings (poor excitation, hyperboloid, mirror ambiguity) are printed as one line
 each, ``calib: warning: ...``, and do not change the exit status. A fit that
-:func:`calib.reliability.assess` finds unreliable (not converged, implausible magnitude or known
-residuals, failed held-out check) ends with exit status 3 and one line, ``calib: unreliable:
+:func:`calib.verdict.reliability.assess` finds unreliable (not converged, implausible magnitude or
+known residuals, failed held-out check) ends with exit status 3 and one line, ``calib: unreliable:
 ...``, and writes nothing, unless ``--allow-unreliable`` (then it is written, the reasons are
 warnings and in ``diagnostics["reliability"]``).
 """
@@ -18,6 +18,7 @@ import warnings
 
 import numpy as np
 
+from calib.data.result import CalibrationError, CalibrationWarning
 from sfm_common.cli import (
     OneLineParser,
     UsageError,
@@ -28,8 +29,6 @@ from sfm_common.cli import (
     positive_float,
 )
 from sfm_common.files import check_distinct, check_writable_target
-
-from .result import CalibrationError, CalibrationWarning
 
 
 class Unreliable(Exception):
@@ -246,10 +245,10 @@ def _check_outputs(inputs, out) -> None:
 
 
 def _fit(args) -> str:
-    from .bias import fit_bias
-    from .ft6 import fit_ft6
-    from .io import read_csv, save_calibration, split_known
-    from .sfm import fit_sfm
+    from calib.data.io import read_csv, save_calibration, split_known
+    from calib.estimators.bias import fit_bias
+    from calib.estimators.ft6 import fit_ft6
+    from calib.estimators.sfm import fit_sfm
 
     _check_outputs([args.raw, args.known], args.out)
     # the default route: the maximum-likelihood joint fit wherever it applies;
@@ -276,7 +275,7 @@ def _fit(args) -> str:
             raise CalibrationError("--chunk-rows is not supported with --bootstrap")
         if args.cv:
             raise CalibrationError("--chunk-rows is not supported with --cv")
-        from .io import CSVSource
+        from calib.data.io import CSVSource
 
         # each pass of the fit reads the file again (a bar per pass on a terminal)
         Z = CSVSource(args.raw, args.chunk_rows, progress=not args.quiet)
@@ -319,7 +318,7 @@ def _fit(args) -> str:
             return fit_ft6(Z, known_Z, known_M, bias=args.bias, method=args.method,
                            drop_nonfinite=drop)
     elif args.method == "joint":
-        from .joint import fit_joint
+        from calib.routes.joint import fit_joint
 
         if known_Z is None:
             raise CalibrationError("--method joint needs --known with at least 2 known loads")
@@ -343,10 +342,9 @@ def _fit(args) -> str:
                            magnitude=args.magnitude, drop_nonfinite=drop)
     cal = fit(Z, cv=args.cv == "poses")
     if args.bootstrap:
+        from calib.data.validate import check_matrix
+        from calib.verdict.bootstrap import bootstrap_intervals
         from sfm_common.progress import progress as progress_bar
-
-        from ._validate import check_matrix
-        from .bootstrap import bootstrap_intervals
 
         Zc, _ = check_matrix(Z, args.raw, args.drop_nonfinite)
         with progress_bar(args.bootstrap, "bootstrap", unit="fit",
@@ -356,8 +354,8 @@ def _fit(args) -> str:
                 align=known_Z is None, progress=bar)
     if known_Z is not None and args.dof != 6 and cal.diagnostics.get("joint", {}).get(
             "route") != "poses" and not args.chunk_rows:
-        from ._validate import check_matrix
-        from .reliability import crosscheck
+        from calib.data.validate import check_matrix
+        from calib.routes.crosscheck import crosscheck
 
         cc = crosscheck(cal, check_matrix(Z, args.raw, args.drop_nonfinite)[0], known_Z,
                         known_M)
@@ -369,11 +367,11 @@ def _fit(args) -> str:
 
 
 def _reliability(args, cal, known_Z, known_M) -> str:
-    """Assess the fit (calib.reliability), record it in its diagnostics; raise Unreliable
+    """Assess the fit (calib.verdict.reliability), record it in its diagnostics; raise Unreliable
     unless --allow-unreliable. Returns the summary's reliability words."""
-    from .forward import DIRECTION_ALPHA
-    from .reliability import HOLDOUT_FACTOR, assess
-    from .result import warn
+    from calib.data.result import warn
+    from calib.estimators.forward.misfit import DIRECTION_ALPHA
+    from calib.verdict.reliability import HOLDOUT_FACTOR, assess
 
     problems = assess(cal, known_Z, known_M, args.known_sigma,
                       holdout_factor=args.holdout_factor or HOLDOUT_FACTOR)
@@ -444,7 +442,8 @@ def _p_text(p: float) -> str:
 
 def _serial(d) -> str:
     """The summary's note where the readings' noise is correlated along the log (forward fits:
-    :func:`calib.forward.serial_correlation`), which widens the predicted error's interval."""
+    :func:`calib.verdict.serial.serial_correlation`), which widens the predicted error's
+    interval."""
     sc = (d.get("joint") or {}).get("serial_correlation")
     if not isinstance(sc, dict):
         return ""
@@ -462,7 +461,7 @@ def _predicted(d) -> str:
     if not isinstance(pe, dict):
         return ""
     lo, hi = pe["interval"]
-    if pe.get("upper_bounded") is False:  # calib.joint.one_sided
+    if pe.get("upper_bounded") is False:  # calib.verdict.predicted_error.one_sided
         lo, hi = pe["interval_if_linear"]
         why, were = (("some readings lie far from the fitted model (named above; --robust "
                       "leaves them out)", "were they noise")
@@ -477,10 +476,10 @@ def _predicted(d) -> str:
 
 
 def _fit_least_squares(args, channels, Z) -> str:
-    from ._validate import check_matrix
-    from .io import LOAD_COLUMNS, load_columns, save_calibration
-    from .models import choose, fit_model, leave_one_pose_out_ls
-    from .rig import find_poses
+    from calib.data.io import LOAD_COLUMNS, load_columns, save_calibration
+    from calib.data.validate import check_matrix
+    from calib.estimators.models import choose, fit_model, leave_one_pose_out_ls
+    from calib.estimators.rig.poses import find_poses
 
     cols = load_columns(args.dof)
     missing = [c for c in cols if c not in channels]
@@ -496,7 +495,7 @@ def _fit_least_squares(args, channels, Z) -> str:
         if labels is None:
             raise CalibrationError(f"--robust: {args.raw} is not a static-pose log (no poses "
                                    "found)")
-        from .rig import reject_outliers
+        from calib.estimators.rig.poses import reject_outliers
 
         labels, _ = reject_outliers(Zs, labels)
         Zs, Ms, labels = Zs[labels >= 0], Ms[labels >= 0], labels[labels >= 0]
@@ -525,8 +524,8 @@ def _fit_least_squares(args, channels, Z) -> str:
 
 
 def _apply(args) -> str:
-    from ._validate import check_matrix
-    from .io import load_calibration, load_columns, read_csv, write_csv
+    from calib.data.io import load_calibration, load_columns, read_csv, write_csv
+    from calib.data.validate import check_matrix
 
     _check_outputs([args.cal, args.raw], args.out)
     cal, cal_channels = load_calibration(args.cal)
@@ -548,9 +547,9 @@ def _apply(args) -> str:
 
 
 def _evaluate(args) -> str:
-    from ._validate import check_matrix
-    from .io import LOAD_COLUMNS, load_calibration, load_columns, read_csv
-    from .rig import match_poses
+    from calib.data.io import LOAD_COLUMNS, load_calibration, load_columns, read_csv
+    from calib.data.validate import check_matrix
+    from calib.estimators.rig.poses import match_poses
 
     cal, cal_channels = load_calibration(args.cal)
     header, data = read_csv(args.test)
@@ -598,8 +597,8 @@ def _evaluate(args) -> str:
 
 
 def _plan(args) -> str:
-    from .io import read_csv
-    from .plan import plan
+    from calib.data.io import read_csv
+    from calib.simulation.plan import plan
 
     header, data = read_csv(args.poses)
     for cols in (["Fx", "Fy", "Fz"], ["ux", "uy", "uz"]):
@@ -630,7 +629,7 @@ def _plan(args) -> str:
 
 
 def _trials(args) -> str:
-    from .trials import trial_summary, write_report
+    from calib.simulation.trials import trial_summary, write_report
 
     res = write_report(args.out, seeds=args.seeds, plots=not args.no_plots, progress=not args.quiet)
     parts = []

@@ -17,7 +17,7 @@ Routes: ``joint`` (``calib fit --bias --known`` default: the maximum-likelihood 
   Cramer-Rao bound: per sensor 20 draws from the bound's offset covariance (the forward model's
   inverse Schur complement at the true parameters and noise), the same metric, pooled;
 - "> 20 % silent": fits with a channel more than 20 % of its span off that ``calib fit`` would
-  accept (``calib.reliability.assess`` empty) without a warning naming that channel;
+  accept (``calib.verdict.reliability.assess`` empty) without a warning naming that channel;
 - coverage: share of channel offsets whose error is within 1.96 of their stated standard errors
   (nominal 95 %);
 - warned / refused: share of fits with any CalibrationWarning / an unreliable verdict (exit 3).
@@ -37,12 +37,13 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.bias import fit_bias  # noqa: E402
-from calib.forward import Problem, _global_cov, curvature  # noqa: E402
-from calib.joint import fit_joint  # noqa: E402
-from calib.reliability import assess  # noqa: E402
-from calib.result import CalibrationError, CalibrationWarning  # noqa: E402
-from calib.simulate import random_shape, sample_directions  # noqa: E402
+from calib.data.result import CalibrationError, CalibrationWarning  # noqa: E402
+from calib.estimators.bias import fit_bias  # noqa: E402
+from calib.estimators.forward.problem import Problem, curvature
+from calib.estimators.forward.refits import _global_cov  # noqa: E402
+from calib.routes.joint import fit_joint  # noqa: E402
+from calib.simulation.simulate import random_shape, sample_directions  # noqa: E402
+from calib.verdict.reliability import assess  # noqa: E402
 
 ROUTES = ("joint", "centered", "paper")
 BEGIN, END = "<!-- calib_low_signal:begin -->", "<!-- calib_low_signal:end -->"

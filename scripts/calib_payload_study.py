@@ -1,6 +1,7 @@
 """Robot-held payload rigs: the joint route against least squares and the oracle.
 
-Rigs from :func:`calib.simulate.simulate_payload_rig`: a gripper (0.3-3 kg, centre of mass 2-15 cm
+Rigs from :func:`calib.simulation.simulate.simulate_payload_rig`: a gripper (0.3-3 kg, centre of
+mass 2-15 cm
 off the sensor) on a 6-axis force/torque sensor read through raw gauges that mix forces and
 torques, each channel with its own scale (1e-2..1e2) and noise (0.2-2 % of its spread); the
 wrist holds it in orientations 30-90 degrees from vertical, one reading per pose unless the case
@@ -16,23 +17,25 @@ of that many degrees gives, ``|m| theta sqrt(2/9)``). Routes:
 
 - least squares with every load known (bias on): the reference;
 - joint, the default of ``calib fit --method joint`` (no static poses: the maximum-likelihood
-  forward fit of :mod:`calib.forward`);
+  forward fit of :mod:`calib.estimators.forward`);
 - joint with ``poses=None`` (the Sampson-distance fit, the route such logs took before);
 - the oracle: the same forward model fitted from the true directions only (no search; refitted
   in whitened channels where the same test finds the noise correlated).
 
 Cells: held-out load rms over least squares' (and over the oracle's), median / 95th percentile /
-worst over the rigs, and (in brackets) the share of joint fits :func:`calib.reliability.assess`
+worst over the rigs, and (in brackets) the share of joint fits
+:func:`calib.verdict.reliability.assess`
 refuses (``calib fit`` exit 3). The last columns count joint fits beyond 3x least squares that
 still exit 0 (target: none), refused fits where the oracle is within 1.5x least squares (what
 the issue asks to be made, but for fits whose offset is not identified: those are refused by
 rule, the oracle or not; in brackets those of them whose offset least squares with every load
 known identifies: its own standard error, from the same forward regression ``z = A m + o``, within
-``calib.result.OFFSET_STDERR_MAX_FRACTION`` of every channel's span, so only those are refusals
+``calib.data.result.OFFSET_STDERR_MAX_FRACTION`` of every channel's span, so only those are refusals
 the data do not explain), the share of fits whose held-out error lies in the predicted
-interval (the printed one, ``calib.forward.INTERVAL_COVERAGE``: 95 %; where the sensor reads
-as not linear the fit states no upper end, ``calib.joint.one_sided``, and the count of such fits
-follows in brackets, "no upper end"), and the share in which
+interval (the printed one, ``calib.verdict.predicted_error.INTERVAL_COVERAGE``: 95 %; where the
+sensor reads
+as not linear the fit states no upper end, ``calib.verdict.predicted_error.one_sided``, and the
+count of such fits follows in brackets, "no upper end"), and the share in which
 the channels' noise was found correlated (whitened fit).
 
     python scripts/calib_payload_study.py [--rigs 100] [--workers 2] [--write docs/calib_study.md]
@@ -52,17 +55,14 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.forward import (  # noqa: E402
-    INTERVAL_COVERAGE,
-    Problem,
-    fit_correlated,
-    gls_inverse,
-)
-from calib.joint import choose_known_poses, fit_joint  # noqa: E402
-from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.reliability import assess  # noqa: E402
-from calib.result import OFFSET_STDERR_MAX_FRACTION, CalibrationError  # noqa: E402
-from calib.simulate import simulate_payload_rig  # noqa: E402
+from calib.data.result import OFFSET_STDERR_MAX_FRACTION, CalibrationError  # noqa: E402
+from calib.estimators.forward.correlated import fit_correlated
+from calib.estimators.forward.problem import Problem
+from calib.estimators.least_squares import fit_least_squares  # noqa: E402
+from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
+from calib.simulation.simulate import simulate_payload_rig  # noqa: E402
+from calib.verdict.predicted_error import INTERVAL_COVERAGE, gls_inverse
+from calib.verdict.reliability import assess  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from calib_rig_study import fmt  # noqa: E402  (median / 95th percentile / worst)
@@ -89,7 +89,7 @@ CASES = {
 def ls_offset_identified(Z, M) -> bool:
     """Whether least squares with every load known identifies the offset: the forward
     regression ``z_c = a_c . m + o_c`` per channel, ``o_c``'s standard error within
-    :data:`calib.result.OFFSET_STDERR_MAX_FRACTION` of the channel's span (the rule the joint
+    :data:`calib.data.result.OFFSET_STDERR_MAX_FRACTION` of the channel's span (the rule the joint
     route's verdict applies to its own offset)."""
     X = np.column_stack([M, np.ones(len(M))])
     B = np.linalg.lstsq(X, Z, rcond=None)[0]

@@ -13,7 +13,7 @@ error is the held-out load rms, ``sqrt(mean |m_hat - m|^2)`` in N. Least squares
 known (per-row loads, affine) is the reference; ``least squares, channel`` is the same data under
 the ``channel`` model (each channel straightened by its own square; below 1x means the model
 fits this sensor better than affine). The joint route gets the training rows in pose order and 4
-known pose means on the poses :func:`calib.joint.choose_known_poses` recommends (from the
+known pose means on the poses :func:`calib.routes.joint.choose_known_poses` recommends (from the
 reference load directions; ``--known-poses first`` takes the first 4 instead, a fixed choice);
 centered and paper routes get the same 4 known loads. Prints per set the held-out rms of least
 squares and each route's ratio to it, and whether ``calib fit`` would exit 3.
@@ -41,12 +41,13 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib import rig as rig_mod  # noqa: E402
-from calib.bias import fit_bias  # noqa: E402
-from calib.joint import choose_known_poses, fit_joint  # noqa: E402
-from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.models import fit_model  # noqa: E402
-from calib.reliability import assess, crosscheck  # noqa: E402
+from calib.estimators import rig as rig_mod  # noqa: E402
+from calib.estimators.bias import fit_bias  # noqa: E402
+from calib.estimators.least_squares import fit_least_squares  # noqa: E402
+from calib.estimators.models import fit_model  # noqa: E402
+from calib.routes.crosscheck import crosscheck  # noqa: E402
+from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
+from calib.verdict.reliability import assess  # noqa: E402
 
 
 def load_set(folder: str, k: int):

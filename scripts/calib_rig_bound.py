@@ -18,7 +18,7 @@ load known, each against its own bound (an efficient estimator reaches it), and 
     python scripts/calib_rig_bound.py [--rigs 200] [--mc-rigs 12] [--draws 30] [--design spread]
 
 ``--design spread`` puts the known loads on the most spread poses
-(:func:`calib.joint.choose_known_poses`) instead of the first (random) ones.
+(:func:`calib.routes.joint.choose_known_poses`) instead of the first (random) ones.
 
 Writes nothing; docs/calib.md quotes its output.
 """
@@ -34,9 +34,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.joint import choose_known_poses, fit_joint  # noqa: E402
-from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.simulate import random_shape, sample_directions  # noqa: E402
+from calib.estimators.least_squares import fit_least_squares  # noqa: E402
+from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
+from calib.simulation.simulate import random_shape, sample_directions  # noqa: E402
 
 POSES, SAMPLES, NOISE, LOAD = 12, 100, 0.05, 3.03
 

@@ -1,6 +1,7 @@
 """Every route on realistic static-pose rigs: held-out error against least squares.
 
-Rigs from :func:`calib.simulate.simulate_rig`: a 10 N mass in 12 random poses, 200 readings each,
+Rigs from :func:`calib.simulation.simulate.simulate_rig`: a 10 N mass in 12 random poses, 200
+readings each,
 an 8-channel 3-axis sensor (random shape, condition 1-10), and per case the imperfections below
 (levels as fractions of each channel's full-scale signal). Half the samples of every pose train
 (even samples), the other half test; the test target is the *stated* load (weighed mass times
@@ -9,11 +10,11 @@ the design direction), as on a real rig. Routes:
 - least squares with every load known (per-row loads, bias on): the reference;
 - joint, 4 known loads on the recommended poses (``choose_known_poses`` on the design
   directions), known readings = the training pose means: the default route (static poses found,
-  the pose-level fit of :mod:`calib.rig`), and ``poses=None`` (the Sampson-distance fit);
+  the pose-level fit of :mod:`calib.estimators.rig`), and ``poses=None`` (the Sampson-distance fit);
 - centered and paper routes aligned to the same 4 known loads.
 
 Cells: held-out load rms / least squares' (median, 95th percentile, worst) over the rigs, and
-the share of fits :func:`calib.reliability.assess` rejects (``calib fit`` exit 3). The last
+the share of fits :func:`calib.verdict.reliability.assess` rejects (``calib fit`` exit 3). The last
 column counts fits whose held-out error exceeds 10x least squares and that would still exit 0
 (the issue asks for none).
 
@@ -34,12 +35,13 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.bias import fit_bias  # noqa: E402
-from calib.joint import choose_known_poses, fit_joint  # noqa: E402
-from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.reliability import assess, crosscheck  # noqa: E402
-from calib.result import CalibrationError  # noqa: E402
-from calib.simulate import simulate_rig  # noqa: E402
+from calib.data.result import CalibrationError  # noqa: E402
+from calib.estimators.bias import fit_bias  # noqa: E402
+from calib.estimators.least_squares import fit_least_squares  # noqa: E402
+from calib.routes.crosscheck import crosscheck  # noqa: E402
+from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
+from calib.simulation.simulate import simulate_rig  # noqa: E402
+from calib.verdict.reliability import assess  # noqa: E402
 
 NONE = {"nonlinearity": 0.0, "drift": 0.0, "wander": 0.0, "creep": 0.0, "hysteresis": 0.0,
         "mass_error": 0.0, "misalignment_deg": 0.0}

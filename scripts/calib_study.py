@@ -14,7 +14,7 @@ Cases (3-DOF, seeded; sensor k uses seed k):
 - static-pose rig: 12 poses of a 3.03 N proof mass, 100 samples each, shape as above x 10
   counts/N, Gaussian noise 0.05, offsets N(0, 20^2); 4 poses have known loads (reading = the
   pose's mean); "spread": the 4 known poses are the most spread of the 12
-  (``calib.joint.choose_known_poses``), a rig-design choice.
+  (``calib.routes.joint.choose_known_poses``), a rig-design choice.
 
 Routes: least squares with every load known (``bias=True``), centered (auto prior = the
 route's default; always prior tau 0.1; no prior), paper (centered and paper whiten their
@@ -43,11 +43,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.bias import fit_bias  # noqa: E402
-from calib.joint import choose_known_poses, fit_joint  # noqa: E402
-from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.result import CalibrationError, CalibrationWarning  # noqa: E402
-from calib.simulate import random_shape, sample_directions, simulate  # noqa: E402
+from calib.data.result import CalibrationError, CalibrationWarning  # noqa: E402
+from calib.estimators.bias import fit_bias  # noqa: E402
+from calib.estimators.least_squares import fit_least_squares  # noqa: E402
+from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
+from calib.simulation.simulate import random_shape, sample_directions, simulate  # noqa: E402
 
 CASES = ["full sphere", "90 deg cap", "60 deg cap", "anisotropic (ratio 5-10), 60 deg",
          "p = r = 3, full sphere", "p = r = 3, 90 deg cap", "static-pose rig, 4 known",

@@ -12,7 +12,8 @@ gripper's weight in the sensor frame, ``R^T (0, 0, w)``, ``w`` the vertical forc
 base-frame model ``f = (0, 0, w) + R f_bias`` fitted by least squares (the kinematics' load).
 Alternate poses train and the others test (``--split halves``: the first 50 train, a narrow
 band of directions). Least squares with every load known (bias on) is the reference; the joint,
-centered and paper routes get 4 known loads on the poses :func:`calib.joint.choose_known_poses`
+centered and paper routes get 4 known loads on the poses
+:func:`calib.routes.joint.choose_known_poses`
 recommends (``calib plan``), their readings the log's own rows (``known_samples=1``). Prints the
 held-out load rms (``sqrt(mean |m_hat - m|^2)``, N) of least squares and each route's ratio to
 it, whether ``calib fit`` would exit 3 and, for the joint route, its predicted held-out error and
@@ -33,12 +34,12 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.bias import fit_bias  # noqa: E402
-from calib.io import open_regular  # noqa: E402
-from calib.joint import choose_known_poses, fit_joint  # noqa: E402
-from calib.least_squares import fit_least_squares  # noqa: E402
-from calib.reliability import assess  # noqa: E402
-from calib.result import CalibrationError  # noqa: E402
+from calib.data.io import open_regular  # noqa: E402
+from calib.data.result import CalibrationError  # noqa: E402
+from calib.estimators.bias import fit_bias  # noqa: E402
+from calib.estimators.least_squares import fit_least_squares  # noqa: E402
+from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
+from calib.verdict.reliability import assess  # noqa: E402
 from sfm_common.cli import one_line  # noqa: E402
 
 POSE = "recorded_messages_pose_100.txt"

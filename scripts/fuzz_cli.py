@@ -161,8 +161,8 @@ def main_() -> int:
     import numpy as np
 
     from calib.cli import main as calib
-    from calib.io import write_csv
-    from calib.simulate import paper_trial
+    from calib.data.io import write_csv
+    from calib.simulation.simulate import paper_trial
     from mkv_env.dataset import save
     from mkv_env.recorder import record
     from sfm_learn.cli import main as mkv

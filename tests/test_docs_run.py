@@ -68,8 +68,8 @@ def _quick_sweep(scratch: pathlib.Path) -> None:
 
 def _raw_csvs(scratch: pathlib.Path) -> None:
     """RAW.csv / HUGE.csv (a paper Trial 2 log), KNOWN.csv (three known poses) for `calib fit`."""
-    from calib.io import write_csv
-    from calib.simulate import paper_trial
+    from calib.data.io import write_csv
+    from calib.simulation.simulate import paper_trial
 
     d = paper_trial(2, rng=0)
     ch = [f"g{i}" for i in range(1, d.Z.shape[1] + 1)]
@@ -82,7 +82,7 @@ def _raw_csvs(scratch: pathlib.Path) -> None:
 def _zarr_log(scratch: pathlib.Path) -> None:
     import zarr
 
-    from calib.simulate import paper_trial
+    from calib.simulation.simulate import paper_trial
 
     Z = paper_trial(2, rng=0).Z
     arr = zarr.open(str(scratch / "log.zarr"), mode="w", shape=Z.shape, chunks=(500, Z.shape[1]),

@@ -437,7 +437,7 @@ def _reference_sweep(png: str) -> dict | None:
 
 def _calib(out: str, seeds: int, quiet: bool) -> dict:
     """``calib trials``: the paper's Trials 1-4; returns the offset-error summary per trial."""
-    from calib.trials import trial_summary, write_report
+    from calib.simulation.trials import trial_summary, write_report
 
     res = write_report(out, seeds=seeds, plots=True, progress=not quiet)
     summary = {t: trial_summary(res["trials"][t], t) for t in (2, 3, 4)}

@@ -31,8 +31,8 @@ def _payload_joint(seed, **kw):
     ``rig, tr, te, M`` (every reading's stated load), ``kn`` (known rows of the training
     readings), ``cal``, ``err`` (held-out load rms) and ``rms`` (that function)."""
     from calib import fit_joint
-    from calib.joint import choose_known_poses
-    from calib.simulate import simulate_payload_rig
+    from calib.routes.joint import choose_known_poses
+    from calib.simulation.simulate import simulate_payload_rig
 
     rig = simulate_payload_rig(seed, **({"poses": 80} | kw))
     tr, te = rig.split("poses")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from calib.cli import main
-from calib.ft6 import random_known_loads
-from calib.io import read_csv, write_csv
-from calib.simulate import paper_trial, random_shape, simulate
+from calib.data.io import read_csv, write_csv
+from calib.estimators.ft6 import random_known_loads
+from calib.simulation.simulate import paper_trial, random_shape, simulate
 
 CH = [f"g{i}" for i in range(1, 9)]
 

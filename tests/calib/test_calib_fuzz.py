@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calib.cli import main
-from calib.io import write_csv
-from calib.simulate import paper_trial
+from calib.data.io import write_csv
+from calib.simulation.simulate import paper_trial
 
 FUZZ = settings(max_examples=40, deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])

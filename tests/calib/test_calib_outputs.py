@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from calib.cli import main
-from calib.io import read_csv, write_csv
-from calib.simulate import paper_trial
+from calib.data.io import read_csv, write_csv
+from calib.simulation.simulate import paper_trial
 
 CH = [f"g{i}" for i in range(1, 9)]
 
@@ -102,7 +102,7 @@ def test_csv_fast_path_and_the_line_of_a_bad_row(tmp_path, capsys):
     ("\n , \n", "line 2: the header has no column names"),  # refused, not skipped
 ])
 def test_csv_errors_name_the_file_line(tmp_path, text, message):
-    from calib.result import CalibrationError
+    from calib.data.result import CalibrationError
 
     p = tmp_path / "f.csv"
     p.write_text(text)
@@ -112,7 +112,7 @@ def test_csv_errors_name_the_file_line(tmp_path, text, message):
 
 
 def test_csv_fallback_reads_what_numpy_refuses_and_agrees_with_the_fast_path(tmp_path):
-    from calib.io import _read_rows_slowly
+    from calib.data.io import _read_rows_slowly
 
     data = np.random.default_rng(1).normal(0, 100, (500, 4))
     data[3, 1], data[7, 2], data[9, 0] = np.nan, np.inf, -np.inf

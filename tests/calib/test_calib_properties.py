@@ -6,10 +6,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.bias import fit_bias
-from calib.result import Calibration
-from calib.sfm import fit_sfm
-from calib.simulate import random_shape, simulate
+from calib.data.result import Calibration
+from calib.estimators.bias import fit_bias
+from calib.estimators.sfm import fit_sfm
+from calib.simulation.simulate import random_shape, simulate
 
 SET = settings(max_examples=15, deadline=None)
 seeds = st.integers(0, 10_000)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from calib.cli import main
-from calib.io import load_calibration
-from calib.result import CalibrationError
+from calib.data.io import load_calibration
+from calib.data.result import CalibrationError
 
 GOOD = {"C": [[1.0, 0.0, 0.5], [0.0, 1.0, 0.5]], "offset": [0.1, 0.2, 0.3], "dof": 2,
         "channels": ["a", "b", "c"]}

@@ -1,4 +1,4 @@
-"""calib.copies: which channels are exact affine copies of another (left out of the fits)."""
+"""calib.data.copies: which channels are exact affine copies of another (left out of the fits)."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from calib.copies import (
+from calib.data.copies import (
     COMBINATION_MIN_DOF,
     COMBINATION_ROWS,
     COPY_TOLERANCE,
@@ -14,7 +14,7 @@ from calib.copies import (
     find_copies,
     fit_without_copies,
 )
-from calib.simulate import simulate_payload_rig, simulate_rig
+from calib.simulation.simulate import simulate_payload_rig, simulate_rig
 
 
 @settings(max_examples=200, deadline=None)

@@ -5,12 +5,12 @@ import warnings
 import numpy as np
 import pytest
 
-from calib.bias import fit_bias
-from calib.ellipsoid import fit_ellipsoid
-from calib.least_squares import fit_least_squares
-from calib.result import CalibrationError, CalibrationWarning
-from calib.sfm import fit_sfm
-from calib.simulate import paper_trial, random_shape, simulate
+from calib.data.result import CalibrationError, CalibrationWarning
+from calib.estimators.bias import fit_bias
+from calib.estimators.ellipsoid import fit_ellipsoid
+from calib.estimators.least_squares import fit_least_squares
+from calib.estimators.sfm import fit_sfm
+from calib.simulation.simulate import paper_trial, random_shape, simulate
 
 
 @pytest.mark.parametrize("method", ["centered", "paper"])
@@ -173,7 +173,7 @@ def test_shape_from_motion_without_offsets_does_not_warn_of_a_cap():
     noise 5 % of each channel's signal, 20 random sensors: the 60 degree cap's held-out load
     error within 1.3x the sphere's, median), so the sfm route records its coverage and does
     not warn (it said "the shape is unreliable" before stop 65)."""
-    from calib.simulate import sample_directions
+    from calib.simulation.simulate import sample_directions
 
     def error(cap, seed):
         rng = np.random.default_rng(seed)

@@ -15,9 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calib.cli import main
-from calib.io import CSVSource, read_csv, write_csv
-from calib.result import CalibrationError
-from calib.simulate import paper_trial
+from calib.data.io import CSVSource, read_csv, write_csv
+from calib.data.result import CalibrationError
+from calib.simulation.simulate import paper_trial
 
 CH = [f"g{i}" for i in range(1, 9)]
 
@@ -229,8 +229,8 @@ def test_joint_options_without_method_joint_are_refused(tmp_path, capsys, good, 
 
 
 def test_library_readers_refuse_a_fifo_at_once(tmp_path, deadline):
-    from calib.io import load_calibration
-    from calib.magnetometer import load_furbrain, load_xyz
+    from calib.data.io import load_calibration
+    from calib.estimators.magnetometer import load_furbrain, load_xyz
 
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)

@@ -7,10 +7,11 @@ readings' channels are rescaled by factors 1e-4..1e4, permuted and shifted by pe
 offsets, and move by less than half the noise-level error when a redundant channel (a noisy
 linear combination of the others) is added, and not at all (to the same tolerances) when an
 exact copy of a channel, or an exact combination of channels logged after them, is
-(calib.copies: left out of the fit).
+(calib.data.copies: left out of the fit).
 
 Routes: least squares with every load known, paper and centered (each channel whitened by its
-noise level, :func:`calib.sfm.noise_scale`), joint on a log without static poses (the forward
+noise level, :func:`calib.estimators.sfm.noise_scale`), joint on a log without static poses (the
+forward
 maximum-likelihood fit) and joint on a static-pose log (the rig fit). One exception, a property
 of the published method: the paper route's SVD of the uncentred readings weighs the offsets, so
 with noise it is equivariant to units and order but not to offsets (noise-free it is:
@@ -23,10 +24,15 @@ import pytest
 from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
 
-from calib.bias import fit_bias
-from calib.joint import choose_known_poses, fit_joint
-from calib.least_squares import fit_least_squares
-from calib.simulate import random_shape, sample_directions, simulate_payload_rig, simulate_rig
+from calib.estimators.bias import fit_bias
+from calib.estimators.least_squares import fit_least_squares
+from calib.routes.joint import choose_known_poses, fit_joint
+from calib.simulation.simulate import (
+    random_shape,
+    sample_directions,
+    simulate_payload_rig,
+    simulate_rig,
+)
 
 TOL = 1e-6
 TOL_RIG = 1e-4
@@ -169,7 +175,7 @@ def test_an_exact_copy_of_a_channel_leaves_the_loads_as_they_were(route, seed, o
                                                                    log_scale, shift):
     """A channel logged twice (an affine copy of channel ``of``, in other units, inserted at
     ``at``): every route's loads are those of the log without it (to 1e-6 of the load; the rig
-    fit to its 1e-4), the copy's column of C is 0 and the copy is named (calib.copies). Before
+    fit to its 1e-4), the copy's column of C is 0 and the copy is named (calib.data.copies). Before
     stop 65 the copy cost the joint fit up to 1.7x and the centered route up to 5x on payload
     rigs: its noise was counted twice."""
     Z, F, Zt, Zk, Mk, g, tol = _log(route, seed)
@@ -208,10 +214,10 @@ def test_an_exact_combination_of_channels_leaves_the_loads_as_they_were(route, s
                                                                          log_scale, after, shift):
     """A channel that is an exact affine combination of 2 or 3 others (a sum or difference
     channel; coefficients 1e-2..1e2 of either sign over the channels' spreads, any offset; a
-    term below 1e-6 of the largest is not named, calib.copies._participants),
+    term below 1e-6 of the largest is not named, calib.data.copies._participants),
     logged anywhere after the channels it combines: every route's loads are those of the log
     without it (1e-6 of the load; the rig fit 1e-4), its column of C is 0, and it is named by
-    the channels it combines (calib.copies.find_combinations). Before stop 66 such a channel
+    the channels it combines (calib.data.copies.find_combinations). Before stop 66 such a channel
     cost the joint fit up to 1.5x and the centered route up to 4.3x on payload rigs."""
     Z, F, Zt, Zk, Mk, g, tol = _log(route, seed)
     rng = np.random.default_rng(seed)

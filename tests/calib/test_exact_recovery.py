@@ -7,11 +7,11 @@ return a weighted one, not the minimum-norm ``d.C``: for them ``C S^T = I`` is t
 import numpy as np
 import pytest
 
-from calib.bias import fit_bias
-from calib.ft6 import fit_ft6, random_known_loads
-from calib.least_squares import fit_least_squares
-from calib.sfm import fit_sfm
-from calib.simulate import random_shape, simulate
+from calib.estimators.bias import fit_bias
+from calib.estimators.ft6 import fit_ft6, random_known_loads
+from calib.estimators.least_squares import fit_least_squares
+from calib.estimators.sfm import fit_sfm
+from calib.simulation.simulate import random_shape, simulate
 
 TOL = 1e-8
 
@@ -95,7 +95,7 @@ def test_least_squares_exact(dof, p):
 
 
 def test_paper_matrix_exact_both_methods():
-    from calib.simulate import paper_trial
+    from calib.simulation.simulate import paper_trial
 
     d = paper_trial(1, rng=3)
     for method in ("paper", "centered"):

@@ -1,7 +1,8 @@
 """A 3-axis sensor with 4 or 5 channels on a one-reading log: one or two complement dimensions
 do not identify each channel's variance (Ledermann's bound), and the printed interval takes
 the noise level along the load's span from the fit's radial residuals
-(:func:`calib.forward.range_level`). Seeds 13,000 on: never used while it was developed (stop
+(:func:`calib.estimators.forward.shared_noise.range_level`). Seeds 13,000 on: never used while it
+was developed (stop
 65 measured 10,000-10,029 and 12,000-12,039: 4 channels 24 -> 29 of 30 and 28 -> 40 of 40
 inside the 95 % interval, 5 channels 29 -> 29 and 36 -> 37)."""
 
@@ -47,13 +48,13 @@ def test_the_radial_level_is_what_brings_the_four_channel_interval_to_its_rate(m
     """The same 20 four-channel rigs with the level left out (the interval before stop 65):
     fewer inside, the misses below the interval (its noise too high: 17 of 20 then, 3 below;
     20 of 20 with it), so the coverage above is the level's doing."""
-    import calib.forward
+    import calib.verdict.predicted_error
 
     def inside(res):
         return sum(pe["interval"][0] <= e <= pe["interval"][1] for e, _, pe in res)
 
     with_level = _rigs(payload_joint, 4)
-    monkeypatch.setattr(calib.forward, "range_level", lambda pr, fit: None)
+    monkeypatch.setattr(calib.verdict.predicted_error, "range_level", lambda pr, fit: None)
     without = [_one(payload_joint, 13_000 + k, 4) for k in range(20)]
     assert all(pe["range_level"] is None for _, _, pe in without)
     assert inside(with_level) >= inside(without) + 2

@@ -1,4 +1,5 @@
-"""The maximum-likelihood forward fit (calib.forward) and the joint route on logs without static
+"""The maximum-likelihood forward fit (calib.estimators.forward) and the joint route on logs
+without static
 poses: noise-free recovery, the optimum reached, equivariance to units/order/offsets, the oracle
 ratio and the coverage of the predicted held-out error."""
 
@@ -9,27 +10,24 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.forward import (
+from calib.data.result import CalibrationError
+from calib.estimators.forward.fit import fit_forward
+from calib.estimators.forward.problem import (
     SEARCH_POSES,
     Problem,
-    _trigamma_inverse,
     cost,
     curvature,
-    dof_of_logs,
-    fit_forward,
-    gls_inverse,
     grid,
-    moderate_variances,
-    predict_error,
-    reweighting_dof,
     solve,
     sphere_minimum,
 )
-from calib.joint import choose_known_poses, fit_joint
-from calib.least_squares import fit_least_squares
-from calib.reliability import assess
-from calib.result import CalibrationError
-from calib.simulate import sample_directions, simulate_payload_rig
+from calib.estimators.forward.refits import dof_of_logs, reweighting_dof
+from calib.estimators.forward.variances import _trigamma_inverse, moderate_variances
+from calib.estimators.least_squares import fit_least_squares
+from calib.routes.joint import choose_known_poses, fit_joint
+from calib.simulation.simulate import sample_directions, simulate_payload_rig
+from calib.verdict.predicted_error import gls_inverse, predict_error
+from calib.verdict.reliability import assess
 
 
 def _random_sensor(rng, p, cap, poses, readings=1, noise=0.0):
@@ -219,7 +217,7 @@ def test_dof_of_logs_counts_the_undershoots_and_agrees_on_symmetric_spreads(seed
 def test_the_tangents_cross_products_are_numpys_to_the_bit():
     """tangents' row-wise cross product is np.cross's arithmetic in the same order: the fits
     are unchanged by it, bit for bit."""
-    from calib.forward import _cross
+    from calib.estimators.forward.problem import _cross
 
     rng = np.random.default_rng(7)
     for m in (1, 5, 1000):
@@ -391,7 +389,7 @@ def _cli(argv, capsys):
 
 
 def _write_payload(tmp_path, seed, **kw):
-    from calib.io import write_csv
+    from calib.data.io import write_csv
 
     d, Z, M, known, Zt, Mt = _payload_split(seed, **kw)
     ch = [f"g{i}" for i in range(Z.shape[1])]
@@ -403,7 +401,7 @@ def _write_payload(tmp_path, seed, **kw):
 def test_cli_fits_one_reading_per_pose_with_a_predicted_error(tmp_path, capsys):
     """`calib fit --method joint` on a one-reading-per-pose payload log: the forward fit, exit 0,
     the summary names the route and prints the predicted held-out error with its interval."""
-    from calib.io import load_calibration
+    from calib.data.io import load_calibration
 
     Zt, Mt = _write_payload(tmp_path, 11, poses=60)
     code, out, err = _cli(["fit", tmp_path / "raw.csv", "--dof", 3, "--method", "joint",
@@ -423,7 +421,7 @@ def test_cli_default_route_is_joint_with_two_known_loads_else_centered(tmp_path,
     a joint-only option with too few known loads is one line, exit 2, nothing written."""
     import csv
 
-    from calib.io import load_calibration
+    from calib.data.io import load_calibration
 
     _write_payload(tmp_path, 11, poses=60)
     out = tmp_path / "cal.json"
@@ -458,7 +456,7 @@ def test_cli_refuses_a_narrow_log_in_one_line(tmp_path, capsys):
 
 
 def test_plan_reports_the_single_reading_ratio():
-    from calib.plan import plan
+    from calib.simulation.plan import plan
 
     U = simulate_payload_rig(0, poses=100).directions
     res = plan(U, 4, samples=1)
@@ -546,8 +544,8 @@ def test_the_variance_rounds_settle_and_bring_the_quietest_channel_closer(monkey
     channel quietest relative to its span (started from a weight that cannot favour it) closer
     to its truth than the fixed 3 rounds it replaced (on these 8 rigs: mean |log(estimate /
     truth)| 0.28 against 0.42; medians 1.25x and 1.36x)."""
-    import calib.forward as forward
-    from calib.forward import MAX_REWEIGHT_ROUNDS, REWEIGHT_TOL, _reweight_step
+    import calib.estimators.forward.variances as forward
+    from calib.estimators.forward.variances import MAX_REWEIGHT_ROUNDS, REWEIGHT_TOL, _reweight_step
 
     def quiet_error(seed, fixed3):
         d = simulate_payload_rig(900 + seed, poses=120)
@@ -579,7 +577,7 @@ def test_unidentified_variances_keep_the_fixed_three_rounds():
     """With p = r = 3 channels the per-channel variances are not identified (Ledermann's bound):
     the rounds do not chase them: exactly UNIDENTIFIED_ROUNDS run, settled or not (settling
     rounds would stop at 2 or run on, depending on the rig)."""
-    from calib.forward import UNIDENTIFIED_ROUNDS
+    from calib.estimators.forward.variances import UNIDENTIFIED_ROUNDS
 
     for seed in range(4):
         d = simulate_payload_rig(950 + seed, poses=60, p=3)
@@ -595,7 +593,8 @@ def test_a_channel_the_directions_take_over_keeps_its_variance():
     15) whose Fz channel the fit had taken every pose's direction from (its leverages summing to
     the poses, its variance at the floor: 1.5e-15 against about 1e-2): 3.64x least squares
     (4.26x, written, with an estimator tried and not kept). That channel's variance now comes
-    from the directions the other channels set (:func:`calib.forward._held_out_variances`): no
+    from the directions the other channels set
+    (:func:`calib.estimators.forward.variances._held_out_variances`): no
     channel's estimate falls below 1/100 of its noise as least squares with every load known
     sees it, and the calibration is within 2x of least squares (measured 1.43x)."""
     rig = simulate_payload_rig(10_015, poses=80, wrench=True, gauges=8)
@@ -622,9 +621,10 @@ def test_a_channel_the_directions_take_over_keeps_its_variance():
 
 def test_the_variance_guard_leaves_p_equal_r_alone():
     """Where ``p = r`` the other channels cannot set a direction without the collapsed one, so
-    :func:`calib.forward._held_out_variances` returns the variances unchanged; with one more
-    channel it replaces a collapsed channel's floor value by a held-out one."""
-    from calib.forward import _held_out_variances, curvature
+    :func:`calib.estimators.forward.variances._held_out_variances` returns the variances unchanged;
+    with one more channel it replaces a collapsed channel's floor value by a held-out one."""
+    from calib.estimators.forward.problem import curvature
+    from calib.estimators.forward.variances import _held_out_variances
 
     for p in (3, 4):
         rng = np.random.default_rng(p)

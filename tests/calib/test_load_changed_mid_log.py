@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from calib import fit_joint, fit_least_squares
-from calib.joint import choose_known_poses
-from calib.reliability import assess
-from calib.simulate import simulate_payload_rig
+from calib.routes.joint import choose_known_poses
+from calib.simulation.simulate import simulate_payload_rig
+from calib.verdict.reliability import assess
 
 
 def rms(a):

@@ -35,9 +35,9 @@ def test_the_table_reports_every_route(load_script):
 def _paper_and_centered(mod, seed, cap):
     import warnings
 
-    from calib.bias import fit_bias
-    from calib.reliability import assess
-    from calib.result import CalibrationError, CalibrationWarning
+    from calib.data.result import CalibrationError, CalibrationWarning
+    from calib.estimators.bias import fit_bias
+    from calib.verdict.reliability import assess
 
     S, z0, g, U, Z, sd = mod.make_sensor(seed, cap=cap)
     Zk, Mk = Z[:4], g * U[:4]

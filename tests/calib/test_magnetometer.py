@@ -5,15 +5,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.bias import fit_bias
-from calib.magnetometer import (
+from calib.data.result import CalibrationError
+from calib.estimators.bias import fit_bias
+from calib.estimators.magnetometer import (
     calibrate_vector_sensor,
     dip_analysis,
     load_furbrain,
     load_xyz,
     magnitude_cv,
 )
-from calib.result import CalibrationError
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "magnetometer"
 FILES = sorted((DATA / "furbrain" / "cal_data").glob("*.json"))

@@ -3,7 +3,8 @@
 A commercial F/T sensor's wrench is mixed from its gauges by the factory matrix, so one gauge's
 noise reads on several channels at once (`simulate_payload_rig(wrench=True, gauges=8)`). The
 forward route regresses the residual's part along the span of ``A`` on its part outside it
-(:func:`calib.forward.shared_noise`), tests the regression (:func:`calib.forward.noise_correlation`)
+(:func:`calib.estimators.forward.shared_noise.shared_noise`), tests the regression
+(:func:`calib.estimators.forward.correlated.noise_correlation`)
 and refits in whitened channels where it finds it."""
 
 import warnings
@@ -12,19 +13,18 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from calib.forward import (
+from calib.estimators.forward.correlated import (
     CORRELATION_ALPHA,
-    Problem,
-    _range_and_complement,
     fit_correlated,
-    fit_forward,
-    gls_inverse,
     noise_correlation,
     round_nll,
-    shared_noise,
 )
-from calib.joint import choose_known_poses, fit_joint
-from calib.simulate import simulate_payload_rig
+from calib.estimators.forward.fit import fit_forward
+from calib.estimators.forward.problem import Problem
+from calib.estimators.forward.shared_noise import _range_and_complement, shared_noise
+from calib.routes.joint import choose_known_poses, fit_joint
+from calib.simulation.simulate import simulate_payload_rig
+from calib.verdict.predicted_error import gls_inverse
 
 
 def _split(rig):
@@ -170,7 +170,9 @@ def _world(seed, delta_sd=0.0):
     (or one of entries ``delta_sd`` times the regression's standard errors). Returns the fit,
     its problem, the world's covariance parts and a sampler of refits at the fit's weights,
     each started from the truth (first order: the linearisation the estimates are exact to)."""
-    from calib.forward import _shared_covariance, fit_correlated, solve
+    from calib.estimators.forward.correlated import fit_correlated
+    from calib.estimators.forward.problem import solve
+    from calib.estimators.forward.shared_noise import _shared_covariance
 
     rig = simulate_payload_rig(7_000 + seed, poses=80, wrench=True, gauges=8)
     M, tr, _, kn = _split(rig)
@@ -208,10 +210,11 @@ def test_the_range_variance_counts_the_degrees_of_freedom_the_fit_takes():
 def test_the_attenuation_predicts_what_the_regression_recovers():
     """A shared part ``delta`` put into readings simulated from a fitted gauge-mixed rig and
     refitted 150 times: the regression recovers on average ``Lambda delta``
-    (:func:`calib.forward.attenuation`), not ``delta`` (0.78 of it on this rig): the mean
+    (:func:`calib.estimators.forward.shared_noise.attenuation`), not ``delta`` (0.78 of it on this
+    rig): the mean
     estimate lies within 15 % of ``Lambda delta`` (measured 5 %) and several times closer to it
     than to ``delta`` (0.13 of the distance)."""
-    from calib.forward import attenuation
+    from calib.estimators.forward.shared_noise import attenuation
 
     pr, fit, sn, delta, refit = _world(6, delta_sd=4.0)
     lam = attenuation(pr, fit, sn)
@@ -222,13 +225,14 @@ def test_the_attenuation_predicts_what_the_regression_recovers():
 
 
 def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
-    """Mauchly's sphericity test on the complement's covariance (``calib.forward._sphericity``):
+    """Mauchly's sphericity test on the complement's covariance
+    (``calib.estimators.forward.correlated._sphericity``):
     on independent normal components its p-values are close to uniform (10 % below 0.1 over
     400 draws, within 5-15 %), and it fires on gauge-mixed wrench rigs where the shared-part
     regression alone does not (development rigs of the payload study's generator: regression
     p = 0.02-0.34; unwhitened, 534 and 539 measured 3.46x and 2.11x least squares, whitened
     1.95x and 1.69x)."""
-    from calib.forward import _sphericity
+    from calib.estimators.forward.correlated import _sphericity
 
     rng = np.random.default_rng(0)
     ps = [_sphericity(np.cov(rng.normal(size=(36, 5)).T), 35) for _ in range(400)]
@@ -253,20 +257,21 @@ def test_a_failing_shared_noise_or_attenuation_falls_back_instead_of_raising(mon
     """Where the shared-part regression's or the attenuation's linear algebra fails (a singular
     system on a degenerate fit), the prediction falls back (the regression's error drawn
     unattenuated; no shared part at all) and still returns an interval, never a traceback."""
-    import calib.forward as fw
+    import calib.estimators.forward.shared_noise as fw
+    from calib.verdict.predicted_error import predict_error
 
     pr, fit, sn, _, _ = _world(0)
-    base = fw.predict_error(pr, fit, draws=200, whitened=True)
+    base = predict_error(pr, fit, draws=200, whitened=True)
 
     def boom(*a, **k):
         raise np.linalg.LinAlgError("singular")
 
     monkeypatch.setattr(fw, "_attenuation", boom)
     assert fw.attenuation(pr, fit, sn) is None
-    unatt = fw.predict_error(pr, fit, draws=200, whitened=True)
+    unatt = predict_error(pr, fit, draws=200, whitened=True)
     monkeypatch.setattr(fw, "_shared_noise", boom)
     assert fw.shared_noise(pr, fit) is None
-    plain = fw.predict_error(pr, fit, draws=200, whitened=True)
+    plain = predict_error(pr, fit, draws=200, whitened=True)
     for pred in (base, unatt, plain):
         lo, hi = pred["interval"]
         assert np.isfinite(pred["rms"]) and 0 < lo <= pred["rms"] <= hi, pred
@@ -275,13 +280,15 @@ def test_a_failing_shared_noise_or_attenuation_falls_back_instead_of_raising(mon
 
 
 def test_the_range_covariance_posterior_covers_the_truth():
-    """:func:`calib.forward._range_draws` on what the regression's rows show of a known range
+    """:func:`calib.verdict.predicted_error._range_draws` on what the regression's rows show of a
+    known range
     covariance ``K`` (one radial component at each of 36 unknown poses in a 70 degree cap, all
     three at 4 known ones): its central 90 % interval of a random quadratic form ``b^T K b``
     and of the trace covers the truth on about 90 % of 120 worlds (measured 87 / 86 % on 200;
     accepted 78-97 %). The model of one number (``c I``) covers an anisotropic ``K`` at no rate
     at all: it has no interval."""
-    from calib.forward import _range_draws, _shared_covariance
+    from calib.estimators.forward.shared_noise import _shared_covariance
+    from calib.verdict.predicted_error import _range_draws
 
     rng = np.random.default_rng(1)
     hits, hits_tr = [], []
@@ -312,13 +319,14 @@ def test_the_range_covariance_posterior_covers_the_truth():
 
 
 def test_the_range_posterior_on_a_sweeps_rows_strides_them_and_keeps_their_weight():
-    """A sweep gives tens of thousands of radial rows: :func:`calib.forward._range_draws`
+    """A sweep gives tens of thousands of radial rows:
+    :func:`calib.verdict.predicted_error._range_draws`
     augments ``MC_TEST_READINGS`` strided ones, each weighing for the rows it stands for. On
     10,000 rows of a known ``K`` its draws' mean is within 10 % of ``K`` (trace and a random
     quadratic form), and the trace's spread is below what 2,000 rows alone give: measured
     2.4 % of its mean (2.2 % on another seed), against 1.5 % augmenting every row and 3.2 %
     with 2,000 rows unweighted."""
-    from calib.forward import MC_TEST_READINGS, _range_draws
+    from calib.verdict.predicted_error import MC_TEST_READINGS, _range_draws
 
     rng = np.random.default_rng(4)
     n = 5 * MC_TEST_READINGS
@@ -375,7 +383,7 @@ def test_the_rounds_take_out_a_shared_part_the_directions_mostly_absorb():
     by the unshrunk estimate (the rounds solve gamma_ls = 0): 1.54x after 8 rounds, 1.14x at the
     likeliest of 30 (stop 57). Least squares' rms from the same training poses is the
     reference."""
-    from calib.least_squares import fit_least_squares
+    from calib.estimators.least_squares import fit_least_squares
 
     rig = simulate_payload_rig(10_501, poses=80, wrench=True, gauges=8)
     M, tr, te, kn = _split(rig)
@@ -434,7 +442,7 @@ def test_round_nll_moves_with_the_units_by_a_constant(log_scale, seed):
 def test_a_round_whose_likelihood_is_not_finite_is_never_chosen(monkeypatch):
     """A round whose likelihood cannot be evaluated (NaN) is not returned while a finite one
     exists: rounds scored NaN, then 1, 2, ... return the second."""
-    import calib.forward as fwd
+    import calib.estimators.forward.correlated as fwd
 
     calls = []
 

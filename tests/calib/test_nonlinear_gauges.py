@@ -8,10 +8,12 @@ the same), but that model loses to least squares with every load known as ``x`` 
 predicted error and ratio take the misfit for noise: at 5 % one fit of 30 was written at 3.73x
 least squares, at 8 % six (3.0-3.7x), where the oracle is as far (a refusal would be right).
 
-What the fit does about it (stop 64): it tells. :func:`calib.forward.direction_misfit` tests
+What the fit does about it (stop 64): it tells.
+:func:`calib.estimators.forward.misfit.direction_misfit` tests
 whether the residuals of nearby load directions agree (a misfit of the direction) beyond noise;
 where they do, ``fit_joint`` warns that the predicted error and ratio can be low, and (stop 66,
-:func:`calib.joint.one_sided`) states no upper end of the error: the lower end holds.
+:func:`calib.verdict.predicted_error.one_sided`) states no upper end of the error: the lower end
+holds.
 """
 
 import json
@@ -22,19 +24,16 @@ import pytest
 
 from calib import fit_joint, fit_least_squares
 from calib.cli import main
-from calib.forward import (
-    DIRECTION_ALPHA,
-    Problem,
-    direction_misfit,
-    fit_correlated,
-    fit_forward,
-    gls_inverse,
-)
-from calib.io import write_csv
-from calib.joint import choose_known_poses
-from calib.reliability import assess
-from calib.result import CalibrationError
-from calib.simulate import simulate_payload_rig
+from calib.data.io import write_csv
+from calib.data.result import CalibrationError
+from calib.estimators.forward.correlated import fit_correlated
+from calib.estimators.forward.fit import fit_forward
+from calib.estimators.forward.misfit import DIRECTION_ALPHA, direction_misfit
+from calib.estimators.forward.problem import Problem
+from calib.routes.joint import choose_known_poses
+from calib.simulation.simulate import simulate_payload_rig
+from calib.verdict.predicted_error import gls_inverse
+from calib.verdict.reliability import assess
 
 
 def rms(a):
@@ -192,7 +191,8 @@ def test_the_stated_interval_holds_where_the_sensor_is_not_linear(strongly_nonli
     lower end holds: every miss of the affine interval lies above it (seeds 20,000-20,029: 12 of
     30 at 5 %, 5 of 30 at 2 %, none below). So the interval as stated covers the measured error
     on at least 11 of 12 rigs; the affine interval, still in the diagnostics, misses at least 2
-    (it would be stated otherwise: this test fails without :func:`calib.joint.one_sided`)."""
+    (it would be stated otherwise: this test fails without
+    :func:`calib.verdict.predicted_error.one_sided`)."""
     res = strongly_nonlinear_fits
     inside = sum(pe["interval"][0] <= e <= pe["interval"][1] for e, pe in res)
     assert inside >= 11, [(e, pe["interval"]) for e, pe in res]

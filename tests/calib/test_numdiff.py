@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize._numdiff import approx_derivative
 
-from calib._numdiff import batched_jacobian
+from calib.estimators.numdiff import batched_jacobian
 
 
 def _fun_batch(xs, A):

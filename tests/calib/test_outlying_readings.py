@@ -4,10 +4,11 @@ a known load stated for another reading.
 Found on payload rigs with one reading of all channels 30 noise standard deviations off: on one
 of the 4 known readings the fit measured up to 8.8x least squares on the same readings (4 of 20
 beyond 3x, each written with exit 0 and the direction test's "not linear" warning, the wrong
-cause); on an unknown reading up to 1.9x, with no warning. :func:`calib.forward.outlying_readings`
+cause); on an unknown reading up to 1.9x, with no warning.
+:func:`calib.estimators.forward.misfit.outlying_readings`
 flags such readings (a robust chi-square test, Bonferroni over the log); ``fit_joint`` names
 them, refuses the fit where a flagged known reading moves it by more than its own predicted
-error (``calib.joint.KNOWN_INFLUENCE_MAX``), and with ``robust=True`` leaves them out.
+error (``calib.verdict.reliability.KNOWN_INFLUENCE_MAX``), and with ``robust=True`` leaves them out.
 """
 
 import json
@@ -18,10 +19,10 @@ import pytest
 
 from calib import fit_joint, fit_least_squares
 from calib.cli import main
-from calib.io import write_csv
-from calib.joint import choose_known_poses
-from calib.reliability import assess
-from calib.simulate import simulate_payload_rig
+from calib.data.io import write_csv
+from calib.routes.joint import choose_known_poses
+from calib.simulation.simulate import simulate_payload_rig
+from calib.verdict.reliability import assess
 
 
 def rms(a):
@@ -109,14 +110,14 @@ def test_a_known_reading_that_barely_moves_the_fit_is_told_not_refused(monkeypat
     """A flagged known reading whose removal moves the loads by less than the fit's predicted
     error (heavy-tailed noise's tail draws measured 0.4-0.8x) is told and the fit kept: here the
     limit is raised past the measured influence, and the same fit passes."""
-    import calib.joint as joint
+    import calib.verdict.reliability as reliability
 
     Z, Mt, kn, *_ = _rig(33_010, "known")
     cal, _ = _fit(Z, Mt, kn)
     infl = cal.diagnostics["joint"]["outlying_readings"]["known_influence"]
-    assert infl > joint.KNOWN_INFLUENCE_MAX
+    assert infl > reliability.KNOWN_INFLUENCE_MAX
     assert any("known load" in r for r in assess(cal, Z[kn], Mt[kn]))
-    monkeypatch.setattr(joint, "KNOWN_INFLUENCE_MAX", 2 * infl)
+    monkeypatch.setattr(reliability, "KNOWN_INFLUENCE_MAX", 2 * infl)
     assert not any("known load" in r for r in assess(cal, Z[kn], Mt[kn]))
 
 
@@ -149,14 +150,14 @@ def test_the_flag_is_unit_free_order_free_and_offset_free():
 def test_rows_are_the_logs_own_where_a_long_log_is_strided(monkeypatch):
     """A log longer than the forward fit's rows is fitted on strided rows: the row named is the
     user's row, not the strided subset's index (the limit lowered to 2,000 rows here)."""
-    import calib.joint as joint
+    import calib.routes.forward_rows as forward_rows
 
-    monkeypatch.setattr(joint, "FORWARD_MAX_ROWS", 2_000)
+    monkeypatch.setattr(forward_rows, "FORWARD_MAX_ROWS", 2_000)
     rig = simulate_payload_rig(33_030, poses=6_000, sweep=True)
     Z = rig.Z.copy()
     M = rig.stated_loads[rig.pose]
     kn = choose_known_poses(M / np.linalg.norm(M, axis=1, keepdims=True), 4)
-    step = joint._forward_step(len(Z))
+    step = forward_rows._forward_step(len(Z))
     assert step > 1
     row = step * 1_001  # a row the strided fit sees, not a known one
     assert row not in kn
@@ -185,7 +186,7 @@ def test_a_sweep_with_spikes_is_fitted_as_a_sweep_and_its_spikes_named():
     without splitting the run, the log is fitted as a sweep, the fit names the spikes, and
     ``robust=True`` leaves them out (measured on 4 rigs: 0.88-0.97x least squares, against
     1.06-1.22x with them)."""
-    from calib.rig import find_poses
+    from calib.estimators.rig.poses import find_poses
 
     rig = simulate_payload_rig(36_000, poses=2000, sweep=True)
     tr, te = rig.split("poses")

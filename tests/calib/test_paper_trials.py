@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from calib.simulate import PAPER_C, paper_shape_matrix, paper_trial
-from calib.trials import paper_mean_abs_error, run_trial, smoothed_std
+from calib.simulation.simulate import PAPER_C, paper_shape_matrix, paper_trial
+from calib.simulation.trials import paper_mean_abs_error, run_trial, smoothed_std
 
 SEEDS = range(100)
 
@@ -59,14 +59,14 @@ def test_smoothed_std():
 
 
 def test_ft6_sfm_beats_least_squares_with_same_known_loads():
-    from calib.trials import ft6_comparison
+    from calib.simulation.trials import ft6_comparison
 
     r = ft6_comparison(range(20))
     assert r["sfm"] < 0.6 * r["ls_same"], r
 
 
 def test_table1_sfm_steadier_than_least_squares():
-    from calib.trials import table1
+    from calib.simulation.trials import table1
 
     t = table1(range(10))
     for _load, d in t.items():

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.simulate import simulate_rig
+from calib.simulation.simulate import simulate_rig
 
 
 def _write_set(folder: Path, k: int, rig) -> None:

@@ -2,8 +2,8 @@
 
 The forward fit counts every reading of a one-reading log as independent. A sweep whose noise is
 an AR(1) along the log (a filtered sensor output, a slow wander) is worth fewer readings:
-:func:`calib.forward.serial_correlation` finds the residuals' autocorrelation and measures, on
-refits of logs simulated from the fit with that noise, how much wider the fit's and least
+:func:`calib.verdict.serial.serial_correlation` finds the residuals' autocorrelation and measures,
+on refits of logs simulated from the fit with that noise, how much wider the fit's and least
 squares' parameter errors are and how far low the variances come out; the predicted error takes
 both (docs/calib.md, "Noise correlated in time")."""
 
@@ -15,8 +15,8 @@ import pytest
 
 from calib import fit_joint
 from calib.cli import _summary
-from calib.joint import choose_known_poses
-from calib.simulate import simulate_payload_rig
+from calib.routes.joint import choose_known_poses
+from calib.simulation.simulate import simulate_payload_rig
 
 
 def _sweep(s, rho, poses=2000):

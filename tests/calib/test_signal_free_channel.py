@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from calib import fit_joint, fit_least_squares
-from calib.joint import choose_known_poses
-from calib.reliability import assess
-from calib.simulate import simulate_payload_rig, simulate_rig
+from calib.routes.joint import choose_known_poses
+from calib.simulation.simulate import simulate_payload_rig, simulate_rig
+from calib.verdict.reliability import assess
 
 
 def rms(a):
@@ -95,7 +95,7 @@ def test_weak_torque_channel_is_not_refused():
 def _rule(C, off_se, span, load_span, cov=None):
     """The offset rule's diagnostics for a fit with map C and offset standard errors off_se;
     ``cov`` the offset's covariance (default: independent), False for none (the rig routes)."""
-    from calib.result import Calibration, add_uncertainty
+    from calib.data.result import Calibration, add_uncertainty
 
     cal = Calibration(C=C, offset=np.zeros(C.shape[1]), dof=C.shape[0], method="joint",
                       diagnostics={})
@@ -165,7 +165,8 @@ def _factor_readings(rng, P=200, p=8, r=3):
 
 @pytest.mark.parametrize("seed", range(5))
 def test_start_variances_are_about_each_channels_noise_even_where_a_channel_is_repeated(seed):
-    from calib.forward import Problem, start_variances
+    from calib.estimators.forward.problem import Problem
+    from calib.estimators.forward.variances import start_variances
 
     rng = np.random.default_rng(seed)
     Y, sd, M = _factor_readings(rng)

@@ -1,4 +1,4 @@
-"""Streamed fits (calib.stream: CSV chunks, dask arrays) equal the in-memory fits; strided
+"""Streamed fits (calib.data.stream: CSV chunks, dask arrays) equal the in-memory fits; strided
 subsamples are chosen by the global row index; one-line errors and the CLI's --chunk-rows."""
 
 import json
@@ -9,10 +9,9 @@ import pytest
 
 from calib import fit_bias, fit_least_squares, fit_sfm
 from calib.cli import main
-from calib.io import CSVSource, write_csv
-from calib.result import CalibrationError, CalibrationWarning
-from calib.simulate import paper_trial
-from calib.stream import (
+from calib.data.io import CSVSource, write_csv
+from calib.data.result import CalibrationError, CalibrationWarning
+from calib.data.stream import (
     CHUNK_ROWS,
     QR,
     ArraySource,
@@ -21,6 +20,7 @@ from calib.stream import (
     MappedSource,
     as_source,
 )
+from calib.simulation.simulate import paper_trial
 
 CH = [f"g{i}" for i in range(1, 9)]
 N = 60_013  # > 50,000: strided subsample plus full-data steps; > 20,000: the Gram route
@@ -223,7 +223,11 @@ def test_cli_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, bias):
 def test_joint_stream_equal_in_memory(data, csv_path):
     # 4 known pairs: noise-free readings of known loads (the trial's own shape and offsets)
     from calib import fit_joint
-    from calib.simulate import PAPER_FORCE_MAGNITUDE, paper_shape_matrix, sample_directions
+    from calib.simulation.simulate import (
+        PAPER_FORCE_MAGNITUDE,
+        paper_shape_matrix,
+        sample_directions,
+    )
 
     Mk = PAPER_FORCE_MAGNITUDE * sample_directions(4, 3, np.random.default_rng(1))
     Zk = Mk @ paper_shape_matrix() + data.offset
@@ -254,7 +258,11 @@ def test_cli_chunk_rows_errors(tmp_path, capsys, csv_path):
 
 
 def test_cli_joint_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, data):
-    from calib.simulate import PAPER_FORCE_MAGNITUDE, paper_shape_matrix, sample_directions
+    from calib.simulation.simulate import (
+        PAPER_FORCE_MAGNITUDE,
+        paper_shape_matrix,
+        sample_directions,
+    )
 
     Mk = PAPER_FORCE_MAGNITUDE * sample_directions(4, 3, np.random.default_rng(2))
     write_csv(tmp_path / "known.csv", CH + ["Fx", "Fy", "Fz"],
@@ -272,8 +280,8 @@ def test_cli_joint_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, data)
 
 
 def test_ft6_stream_equal_in_memory(tmp_path):
-    from calib.ft6 import fit_ft6, random_known_loads
-    from calib.simulate import random_shape, simulate
+    from calib.estimators.ft6 import fit_ft6, random_known_loads
+    from calib.simulation.simulate import random_shape, simulate
 
     rng = np.random.default_rng(7)
     S = random_shape(6, 8, rng)
@@ -323,7 +331,7 @@ def test_chunked_progress_counts_rows_and_knows_the_total_from_the_second_pass(t
     """The --chunk-rows bar counts data rows (not bytes or characters); the first pass learns
     their number, later passes show it as the total and end full."""
     import sfm_common.progress as prog
-    from calib.io import CSVSource
+    from calib.data.io import CSVSource
 
     bars = []
 

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.bias import fit_bias, fit_centered
 from calib.cli import main
-from calib.result import OFFSET_STDERR_MAX_FRACTION, CalibrationWarning
-from calib.simulate import paper_trial, random_shape, simulate
+from calib.data.result import OFFSET_STDERR_MAX_FRACTION, CalibrationWarning
+from calib.estimators.bias import fit_bias, fit_centered
+from calib.simulation.simulate import paper_trial, random_shape, simulate
 
 
 def quiet(fn, *a, **k):
@@ -253,8 +253,8 @@ def test_cli_bootstrap_bad_count_is_one_line(tmp_path, capsys):
 def test_whitening_term_of_a_rank_deficient_c_is_infinite_not_an_error():
     # the study met a degenerate centered fit whose C had lower rank than its rows: the weights'
     # term of C_stderr cannot be formed there; it is infinite, and fit_bias does not crash
-    from calib.bias import _unwhiten
-    from calib.result import Calibration
+    from calib.data.result import Calibration
+    from calib.estimators.bias import _unwhiten
 
     C = np.zeros((3, 8))
     C[0, 0] = C[1, 1] = 1.0  # rank 2 of 3 rows

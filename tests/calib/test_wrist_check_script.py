@@ -5,7 +5,7 @@ rotated into the base frame."""
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib.simulate import simulate_payload_rig
+from calib.simulation.simulate import simulate_payload_rig
 
 
 def _write(tmp_path, seed=7):

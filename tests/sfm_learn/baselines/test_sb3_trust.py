@@ -209,8 +209,8 @@ def test_a_fifo_as_any_policy_file_is_refused_at_once(tmp_path, prefix):
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 def test_fifos_as_hyperparameters_or_calibration_are_refused_at_once(tmp_path):
-    from calib.io import load_calibration
-    from calib.result import CalibrationError
+    from calib.data.io import load_calibration
+    from calib.data.result import CalibrationError
     from sfm_learn.baselines.ppo import load_hyperparameters
 
     fifo = tmp_path / "f"

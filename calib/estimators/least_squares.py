@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_dof
-from .result import Calibration, CalibrationError
-from .stream import is_dask
+from calib.data.result import Calibration, CalibrationError
+from calib.data.stream import is_dask
+from calib.data.validate import check_dof
 
 
 def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) -> Calibration:
@@ -22,7 +22,7 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
     ----------
     Z : array of shape (n, p), raw readings
     M : array of shape (n, dof), the known applied loads, dof in {2, 3, 6}
-    Z and M may also be ``dask.array.Array`` objects or :class:`calib.stream.ChunkSource`
+    Z and M may also be ``dask.array.Array`` objects or :class:`calib.data.stream.ChunkSource`
     objects of equal length: the normal equations are sums, streamed block by block (a
     streaming QR, the same solution as the in-memory ``lstsq`` up to rounding).
     bias : also fit a constant offset
@@ -32,16 +32,23 @@ def fit_least_squares(Z, M, bias: bool = False, drop_nonfinite: bool = False) ->
     Calibration with ``method="least_squares"``; diagnostics: ``singular_values`` of the design,
     ``condition_number``, ``residual_rms`` (load units), ``n_samples``.
     """
-    from .stream import QR, StackedSource, as_source, blocks_of, check_scan_samples, is_streamed
-    from .stream import scan as scan_source
+    from calib.data.stream import (
+        QR,
+        StackedSource,
+        as_source,
+        blocks_of,
+        check_scan_samples,
+        is_streamed,
+    )
+    from calib.data.stream import scan as scan_source
 
     if bias and not (is_streamed(Z) or is_streamed(M)):
         # a channel logged twice or a sum channel (an exact affine copy or combination,
-        # calib.copies): fitted without it. A copy's centred column equals its original's but
+        # calib.data.copies): fitted without it. A copy's centred column equals its original's but
         # for the rounding of its shift, which the solve's cut-off (relative eps) keeps: a copy
         # shifted by 843 standard deviations gave C entries of 1e6 and loads 14 units off
         # (found by tests/calib/test_equivariance.py)
-        from .copies import fit_without_copies
+        from calib.data.copies import fit_without_copies
 
         try:
             M_all = np.atleast_2d(np.asarray(M, float))

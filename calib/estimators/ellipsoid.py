@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .result import warn
-from .stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per block of a pass
-from .stream import QR, ChunkSource, blocks_of, rows_of, strided_of
+from calib.data.result import warn
+from calib.data.stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per block of a pass
+from calib.data.stream import QR, ChunkSource, blocks_of, rows_of, strided_of
 
 #: Above this many points the refinement converges on a strided subsample of this size first.
 SUBSAMPLE_ROWS = 50_000
@@ -415,7 +415,8 @@ def fit_ellipsoid(
     Returns an :class:`EllipsoidFit`; ``info["start"]`` is ``"algebraic"`` or
     ``"sphere (hyperboloid rejected)"``.
 
-    Y may be a :class:`calib.stream.ChunkSource` (rows computed per block, never all in memory).
+    Y may be a :class:`calib.data.stream.ChunkSource` (rows computed per block, never all in
+    memory).
     """
     if isinstance(Y, ChunkSource):  # two passes: mean, then mean squared distance from it
         n, r = Y.count(), Y.p
@@ -434,7 +435,7 @@ def fit_ellipsoid(
 
 def normalised(Y: ChunkSource, mu, scale) -> ChunkSource:
     """``(Y - mu) / scale`` computed per block."""
-    from .stream import MappedSource
+    from calib.data.stream import MappedSource
 
     return MappedSource(Y, lambda y: (y - mu) / scale, p=Y.p)
 
@@ -459,7 +460,7 @@ def fit_normalised(
     isotropy_prior: float | str | None = "auto",
 ) -> EllipsoidFit:
     """:func:`fit_ellipsoid` on ``Yn = (Y - mu) / scale`` (an array or a
-    :class:`calib.stream.ChunkSource`, streamed: full passes only for the full-data steps);
+    :class:`calib.data.stream.ChunkSource`, streamed: full passes only for the full-data steps);
     the result is in Y's units."""
     n, r = rows_of(Yn), _ncols(Yn)
     if isinstance(Yn, ChunkSource) and n <= SUBSAMPLE_ROWS:

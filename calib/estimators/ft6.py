@@ -25,12 +25,17 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ._validate import check_matrix
-from .bias import fit_bias
-from .result import Calibration, CalibrationError
-from .sfm import fit_sfm
-from .simulate import skew
-from .stream import as_source, scan
+from calib.data.result import Calibration, CalibrationError
+from calib.data.stream import as_source, scan
+from calib.data.validate import check_matrix
+from calib.estimators.bias import fit_bias
+from calib.estimators.sfm import fit_sfm
+
+
+def skew(v) -> np.ndarray:
+    """Cross-product matrix: ``skew(r) @ F == np.cross(r, F)``; shape (3, 3)."""
+    x, y, z = np.asarray(v, float)
+    return np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
 
 
 def _vee(K):
@@ -59,7 +64,7 @@ def fit_ft6(
     Parameters
     ----------
     Z : array (n, p), p >= 6: a proof mass moved over orientations (constant lever arm); a dask
-        array or a :class:`calib.stream.ChunkSource` is streamed
+        array or a :class:`calib.data.stream.ChunkSource` is streamed
     known_Z : array (k, p), readings under known loads (same offset as Z)
     known_M : array (k, 6), the known loads [Fx, Fy, Fz, Tx, Ty, Tz]; must span 6 dimensions
     bias : estimate the offset from Z (shape from motion with bias) or assume none

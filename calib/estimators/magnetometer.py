@@ -1,8 +1,8 @@
 """Real 3-axis data (p = r = 3): magnetometer and accelerometer calibration with the centered route.
 
 The paper's rank r+1 method cannot handle p = r, so these use
-:func:`calib.bias.fit_centered` (ellipsoid fit, approximate maximum likelihood). Two physical checks
-need no ground truth:
+:func:`calib.estimators.bias.fit_centered` (ellipsoid fit, approximate maximum likelihood). Two
+physical checks need no ground truth:
 
 - the calibrated magnitude is constant (coefficient of variation, :func:`magnitude_cv`);
 - for a rigid device carrying both sensors, the angle between the calibrated magnetic and gravity
@@ -21,8 +21,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from .bias import fit_centered
-from .result import Calibration, CalibrationError, CalibrationWarning
+from calib.data.result import Calibration, CalibrationError, CalibrationWarning
+from calib.estimators.bias import fit_centered
 
 
 def load_furbrain(path) -> tuple[np.ndarray, np.ndarray]:
@@ -31,7 +31,7 @@ def load_furbrain(path) -> tuple[np.ndarray, np.ndarray]:
     The files hold flat float lists padded with NaN (and not a multiple of 3 long); the leading
     finite triples are the shots, same device orientation per index.
     """
-    from .io import open_regular
+    from calib.data.io import open_regular
 
     with open_regular(path, encoding="utf-8") as f:
         d = json.load(f)
@@ -51,7 +51,7 @@ def load_furbrain(path) -> tuple[np.ndarray, np.ndarray]:
 
 def load_xyz(path) -> np.ndarray:
     """Whitespace-separated ``x y z`` rows (bazhin/mag_out.txt) as (n, 3)."""
-    from .io import open_regular
+    from calib.data.io import open_regular
 
     with open_regular(path, encoding="utf-8") as f:
         return np.loadtxt(f, ndmin=2)[:, :3]

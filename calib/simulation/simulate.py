@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .result import CalibrationError
+from calib.data.result import CalibrationError
+from calib.estimators.ft6 import skew
 
 #: The paper's idealised 3-DOF calibration matrix (section 8), shape (3, 8): counts -> unit force.
 PAPER_C = np.array(
@@ -152,12 +153,6 @@ def _rotation_to(axis: np.ndarray, r: int) -> np.ndarray:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
     vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + vx + vx @ vx / (1 + c)
-
-
-def skew(v) -> np.ndarray:
-    """Cross-product matrix: ``skew(r) @ F == np.cross(r, F)``; shape (3, 3)."""
-    x, y, z = np.asarray(v, float)
-    return np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
 
 
 def lever_matrix(lever_arm) -> np.ndarray:

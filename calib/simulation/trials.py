@@ -1,7 +1,7 @@
 """The paper's section 8 simulation trials and a Table 1 style least-squares vs SfM comparison.
 
 Everything here is seeded and returns plain dicts/arrays; :func:`write_report` turns them into
-``trials.md`` (and, via :mod:`calib.plots`, PNG figures).
+``trials.md`` (and, via :mod:`calib.simulation.plots`, PNG figures).
 
 Conventions (the paper leaves them open):
 - magnitudes are of the unit-magnitude calibration (the paper's "Mean" is about 1);
@@ -17,13 +17,11 @@ import warnings
 
 import numpy as np
 
-from sfm_common.progress import progress as progress_bar
-
-from .bias import fit_bias, fit_paper
-from .least_squares import fit_least_squares
-from .result import CalibrationWarning
-from .sfm import fit_sfm
-from .simulate import (
+from calib.data.result import CalibrationWarning
+from calib.estimators.bias import fit_bias, fit_paper
+from calib.estimators.least_squares import fit_least_squares
+from calib.estimators.sfm import fit_sfm
+from calib.simulation.simulate import (
     PAPER_FORCE_MAGNITUDE,
     PAPER_N_SAMPLES,
     PAPER_TRIALS,
@@ -32,6 +30,7 @@ from .simulate import (
     sample_directions,
     simulate,
 )
+from sfm_common.progress import progress as progress_bar
 
 SMOOTH_WINDOW = 5
 METHODS = ("centered", "paper")
@@ -132,7 +131,7 @@ def gradient_descent_check(seeds, trials=(2, 3)) -> dict:
 
 def random_shape_check(seeds, noise: float = 0.2) -> dict:
     """Paper route on random (non-symmetric) shape matrices: resolved vs naive quadric start."""
-    from .simulate import random_shape
+    from calib.simulation.simulate import random_shape
 
     res = {"resolved": [], "naive": [], "centered": []}
     for seed in seeds:
@@ -250,8 +249,8 @@ def ft6_comparison(
     Random 6 x ``p`` shapes, loads ~10 N / 1 N m, Gaussian reading noise, known loads measured with
     ``force_err`` / ``torque_err`` std. Returns median RMS load error on 200 random test loads.
     """
-    from .ft6 import fit_ft6, random_known_loads
-    from .simulate import random_shape
+    from calib.estimators.ft6 import fit_ft6, random_known_loads
+    from calib.simulation.simulate import random_shape
 
     res = {"sfm": [], "ls_same": [], "ls_double": []}
     for seed in seeds:
@@ -402,7 +401,7 @@ def write_report(
     figs = []
     os.makedirs(out_dir, exist_ok=True)  # only now: an interrupted run leaves no folder
     if plots:
-        from . import plots as P
+        from calib.simulation import plots as P
 
         figs = [
             P.plot_spectra(spec, os.path.join(out_dir, "singular_values.png")),

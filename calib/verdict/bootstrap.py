@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from .result import Calibration, CalibrationError, CalibrationWarning
+from calib.data.result import Calibration, CalibrationError, CalibrationWarning
 
 
 def _rotate_onto(C: np.ndarray, ref: np.ndarray) -> np.ndarray:

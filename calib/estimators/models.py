@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .result import Calibration, CalibrationError
+from calib.data.result import Calibration, CalibrationError
 
 MODELS = ("affine", "channel", "quadratic")
 DRIFTS = ("none", "linear")
@@ -67,11 +67,11 @@ def fit_model(Z, M, model: str = "affine", drift: str = "none", t=None) -> Calib
     """Least squares of loads ``M`` (n, dof) on readings ``Z`` (n, p) under ``model`` and
     ``drift``; ``t`` (n,) each row's position in the log (default the row order, 0..1).
 
-    ``affine`` without drift is :func:`calib.least_squares.fit_least_squares` with a bias.
-    Diagnostics: ``model``, ``drift``, ``drift_per_log`` (dof,: the load change over the log),
+    ``affine`` without drift is :func:`calib.estimators.least_squares.fit_least_squares` with a
+    bias. Diagnostics: ``model``, ``drift``, ``drift_per_log`` (dof,: the load change over the log),
     ``residual_rms``, ``n_samples``, ``singular_values`` of the centred design.
     """
-    from .least_squares import fit_least_squares
+    from calib.estimators.least_squares import fit_least_squares
 
     if model not in MODELS or drift not in DRIFTS:
         raise CalibrationError(f"model must be one of {MODELS} and drift one of {DRIFTS}, got "
@@ -177,10 +177,11 @@ def choose(cv_of, n_poses: int, p: int, model: str, drift: str) -> tuple[str, st
 def leave_one_pose_out_ls(Z, M, labels, model: str = "affine", drift: str = "none",
                           t=None) -> dict:
     """Leave-one-pose-out error of least squares (bias on; ``model``/``drift`` of
-    :func:`calib.models.fit_model`, ``t`` each row's position in the log) on a static-pose log:
+    :func:`calib.estimators.models.fit_model`, ``t`` each row's position in the log) on a
+    static-pose log:
     each pose of ``labels`` (-1 rows unused) is left out in turn, the rest fitted, and the fit's
     mean load over the pose's rows compared with the pose's mean known load. Same keys as
-    :func:`calib.joint.leave_one_pose_out`."""
+    :func:`calib.routes.joint.leave_one_pose_out`."""
     Z = np.asarray(Z, float)
     M = np.asarray(M, float)
     labels = np.asarray(labels)

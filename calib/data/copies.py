@@ -7,18 +7,21 @@ its noise is its original's, so a fit that weighs the channels as independent co
 twice. Measured (stop 65) on the payload study's default case (seeds 10,000-10,005, channel 0
 copied as ``2 z_0 + 5``), the held-out error over least squares with every load known went from
 0.85-1.10x to 1.01-1.45x for the joint fit and from 1.07-2.24x to 1.17-5.34x for the centered
-route; least squares (every load known) does not change. So :func:`calib.joint.fit_joint` and
-:func:`calib.bias.fit_bias` fit the log without its copies and give each copy a column of zeros
+route; least squares (every load known) does not change. So :func:`calib.routes.joint.fit_joint` and
+:func:`calib.estimators.bias.fit_bias` fit the log without its copies and give each copy a column
+of zeros
 in ``C`` (:func:`expand`): the loads are then those of the log without the copy, and the copy's
 offset is its original's, mapped by the same affine relation. So does
-:func:`calib.least_squares.fit_least_squares` with a bias (in-memory arrays), for a reason of
+:func:`calib.estimators.least_squares.fit_least_squares` with a bias (in-memory arrays), for a
+reason of
 its own: its centred columns then differ only by the rounding of the copy's shift, which its
 solve's cut-off keeps (a copy shifted by 843 standard deviations put 1e6 into ``C``, stop 66).
 
 "Exact": the affine regression of a channel on an earlier channel leaves at most
 :data:`COPY_TOLERANCE` of its variance. Distinct channels leave far more: at least 3.7e-4 over
 every pair of every case of the payload study (10 rigs a case, the wrench channels' torques
-included, which follow their forces closely) and of :func:`calib.simulate.simulate_rig`, 2.5e-3
+included, which follow their forces closely) and of :func:`calib.simulation.simulate.simulate_rig`,
+2.5e-3
 on the real printed sensor's sets and 5.3e-2 on the real wrist sensor. A copy written with few
 significant digits, or one read through a second amplifier with noise of its own, leaves more
 than the tolerance and is fitted as a channel of its own, as before (docs/calib.md, "A channel
@@ -39,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .result import Calibration, warn
+from calib.data.result import Calibration, warn
 
 #: Largest share of a channel's variance the affine regression on an earlier channel may leave
 #: for it to be that channel's exact copy (module docstring).

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .result import CalibrationError
+from calib.data.result import CalibrationError
 
 
 def check_dof(dof: int) -> int:

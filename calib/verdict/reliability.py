@@ -23,7 +23,7 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   the known loads, the pose loads the readings alone imply miss them by more than
   :data:`KNOWN_INCONSISTENT` of the load (a load entered for the wrong pose, a wrong mass);
 - **disagrees with the pose fit** (any other route given known loads on a static-pose log):
-  its loads at the poses differ from those of the pose-level joint fit (:mod:`calib.rig`,
+  its loads at the poses differ from those of the pose-level joint fit (:mod:`calib.estimators.rig`,
   computed as a reference by :func:`crosscheck`) by more than :data:`CROSSCHECK_FACTOR` times
   that fit's own pose-level residual (simulated rigs: fits within 2x of all-known least squares
   measure at most 5, fits beyond 10x at least 15);
@@ -31,14 +31,15 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   ``holdout_factor`` times the fit's in-sample pose-level residual, or half the load magnitude;
 - **no rank-r structure** (the shape-from-motion routes: sfm, centered, paper): the rank gap
   ``s_r / s_(r+1)`` of the readings the route factors is below
-  :data:`calib.sfm.MIN_RANK_GAP` (the paper's noisiest trial has 9, pure noise about 1). The
-  route's own warning says the calibration is unreliable there; before stop 65 a log of pure
+  :data:`calib.estimators.sfm.MIN_RANK_GAP` (the paper's noisiest trial has 9, pure noise about 1).
+  The route's own warning says the calibration is unreliable there; before stop 65 a log of pure
   noise was written as a "reliable" sfm calibration beside that warning;
 - **a known reading far from the model** (forward fits of one-reading logs and sweeps): the
   reading of a known load lies far from the fitted model
-  (:func:`calib.forward.outlying_readings`: a spike, or the load stated for another reading),
-  and leaving it out moves the log's loads by more than
-  the fit's own predicted error (``calib.joint.KNOWN_INFLUENCE_MAX``, 1). A known reading pins
+  (:func:`calib.estimators.forward.misfit.outlying_readings`: a spike, or the load stated for
+  another reading), and leaving it out moves the log's loads by more than
+  the fit's own predicted error (``calib.verdict.reliability.KNOWN_INFLUENCE_MAX``, 1). A known
+  reading pins
   the fit's rotation, so it moves the whole fit: on payload rigs with a 30-standard-deviation
   spike on one of the 4 known readings the fit measured up to 8.8x least squares (4 of 20
   beyond 3x, every one written before); now 20 of 20 are refused. No reading of 180 clean,
@@ -46,7 +47,7 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
   noise's tail draws flagged moved the loads 0.4-0.8x, and their fits (1.02-1.06x least
   squares) are kept. ``robust=True`` leaves it out while enough known loads remain;
 - **the paper route under poor excitation**: a ``method="paper"`` fit whose directions cover
-  too little of the sphere (:func:`calib.result.excitation_is_poor`, the "poor excitation"
+  too little of the sphere (:func:`calib.data.result.excitation_is_poor`, the "poor excitation"
   warning). Its standard errors hold the rank-(r+1) subspace the plane and cylinder are fitted
   in as known, and where the directions lie in a cap that subspace's error is most of the
   offset's: on the low-signal generator (``scripts/calib_low_signal.py``, 100 sensors a cap)
@@ -63,9 +64,16 @@ import numpy as np
 
 # rig fits: known loads inconsistent with the readings, and one weighed mass (defined beside the
 # fit, which also uses them)
-from .result import OFFSET_STDERR_MAX_FRACTION
-from .rig import KNOWN_INCONSISTENT, SAME_MAGNITUDE
-from .sfm import MIN_RANK_GAP
+from calib.data.result import OFFSET_STDERR_MAX_FRACTION
+from calib.estimators.rig.fit import KNOWN_INCONSISTENT, SAME_MAGNITUDE
+from calib.estimators.sfm import MIN_RANK_GAP
+
+#: A known reading flagged by :func:`calib.estimators.forward.misfit.outlying_readings` whose
+#: removal moves the log's loads by more than this multiple of the fit's predicted held-out error
+#: makes the fit unreliable: the error it states does not hold. 1 is the fit's own unit, not tuned
+#: (measured on payload rigs: a 30-standard-deviation spike on a known reading 1.4-5.4, a 10 sd one
+#: 0.8-1.6; the known readings that heavy-tailed (t3) noise's tail draws flagged 0.4-0.8).
+KNOWN_INFLUENCE_MAX = 1.0
 
 #: Chi-square tail probability below which known residuals are implausible.
 CHI2_PROBABILITY = 1e-6
@@ -82,7 +90,8 @@ MAGNITUDE_TOLERANCE = 0.2
 #: Default factor of the held-out check (leave-one-pose-out rms over in-sample residual rms).
 #: Measured on simulated rigs (scripts/calib_rig_study.py): 3-8 for good fits.
 HOLDOUT_FACTOR = 20.0
-#: A forward fit whose predicted held-out error (:func:`calib.forward.predict_error`) may exceed
+#: A forward fit whose predicted held-out error
+#: (:func:`calib.verdict.predicted_error.predict_error`) may exceed
 #: this multiple of what least squares with every load known would achieve on the same rig is
 #: refused: the ceiling the calibration study holds every written fit to (3x). "May": the
 #: 95th percentile of the predicted ratio (``RATIO_COVERAGE`` 0.90: the upper end of its central
@@ -159,7 +168,6 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                    f"{se_g:.1%} of it (limit {OFFSET_STDERR_MAX_FRACTION:.0%})")
     outl = joint_d.get("outlying_readings")
     if isinstance(outl, dict) and len(outl.get("known", [])):
-        from .joint import KNOWN_INFLUENCE_MAX
 
         infl = outl.get("known_influence")
         if infl is None or not infl <= KNOWN_INFLUENCE_MAX:
@@ -229,36 +237,3 @@ def assess(cal, known_Z=None, known_M=None, known_sigma=None,
                        f"{cv['folds']} pose(s), {cv['rms'] / max(inside, 1e-300):.3g}x the "
                        f"in-sample {inside:.4g} (limit {holdout_factor:g}x)")
     return out
-
-
-def crosscheck(cal, Z, known_Z, known_M) -> dict | None:
-    """Compare ``cal`` (a route other than the pose fit) with the pose-level joint fit on the
-    same static-pose log ``Z`` and known loads; None when ``Z`` has no static poses or the pose
-    fit fails. Returns ``poses``, ``disagreement_rms`` (load units, over the pose means),
-    ``reference_residual`` and their ``ratio``; stored as ``diagnostics["crosscheck"]``."""
-    import warnings
-
-    from .joint import fit_joint
-    from .result import CalibrationError
-    from .rig import find_poses
-
-    Z = np.asarray(Z, float)
-    labels = find_poses(Z)
-    if labels is None:
-        return None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            ref = fit_joint(Z, known_Z, known_M, cal.C.shape[0], poses=labels)
-        except CalibrationError:
-            return None
-    j = ref.diagnostics.get("joint", {})
-    if j.get("route") != "poses":
-        return None
-    ids = np.unique(labels[labels >= 0])
-    means = np.array([Z[labels == i].mean(axis=0) for i in ids])
-    D = float(np.sqrt(np.mean((cal.apply(means) - ref.apply(means)) ** 2)))
-    scale = max(float(j["known_residual_rms"]), float(j["pose_magnitude_residual_rms"]),
-                1e-12 * float(j["magnitude"]))
-    return {"reference": "joint (poses)", "poses": len(ids), "disagreement_rms": D,
-            "reference_residual": scale, "ratio": D / scale}

@@ -15,7 +15,7 @@ in-memory and the streamed fits run the same code. Sources:
 
 - :class:`ArraySource`: an in-memory (n, p) array;
 - :class:`DaskSource`: a ``dask.array.Array``, one row-block computed at a time;
-- :class:`CSVSource`: a CSV file read ``chunk_rows`` rows at a time (:mod:`calib.io`);
+- :class:`CSVSource`: a CSV file read ``chunk_rows`` rows at a time (:mod:`calib.data.io`);
 - :class:`MappedSource`: a row-wise function of another source (e.g. ``(Z - mu) @ V_r``),
   computed per block;
 - :class:`FilteredSource`: another source without its non-finite rows;
@@ -28,8 +28,8 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from ._validate import check_samples
-from .result import CalibrationError
+from calib.data.result import CalibrationError
+from calib.data.validate import check_samples
 
 #: Rows per block of an in-memory array (bounds the temporaries of every pass).
 CHUNK_ROWS = 1 << 17
@@ -296,7 +296,7 @@ class Scan:
 
 def scan(source: ChunkSource, name: str = "Z", drop_nonfinite: bool = False) -> Scan:
     """One pass: row count, non-finite rows, column sums, minima and maxima; the checks of
-    :func:`calib._validate.check_matrix` (same one-line errors). Returns a :class:`Scan`
+    :func:`calib.data.validate.check_matrix` (same one-line errors). Returns a :class:`Scan`
     whose source skips the non-finite rows when ``drop_nonfinite``."""
     p = source.p
     n = nbad = 0
@@ -343,7 +343,7 @@ def scan(source: ChunkSource, name: str = "Z", drop_nonfinite: bool = False) -> 
 
 def check_scan_samples(sc: Scan, n_params: int, name: str = "Z",
                        rows_per_channel: bool = True) -> None:
-    """:func:`calib._validate.check_samples` on the statistics of a scan."""
+    """:func:`calib.data.validate.check_samples` on the statistics of a scan."""
     check_samples(sc.n, sc.p, sc.min, sc.max, n_params, name, rows_per_channel)
 
 

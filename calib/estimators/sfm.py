@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_dof, check_matrix, check_rank, force_rank
-from .result import (
+from calib.data.result import (
     COVERAGE_MAX_ROWS,
     Calibration,
     CalibrationError,
@@ -27,8 +26,8 @@ from .result import (
     excitation_is_poor,
     warn,
 )
-from .stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per block of a pass
-from .stream import (
+from calib.data.stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per block of a pass
+from calib.data.stream import (
     QR,
     ChunkSource,
     MappedSource,
@@ -37,6 +36,7 @@ from .stream import (
     check_scan_samples,
     scan,
 )
+from calib.data.validate import check_dof, check_matrix, check_rank, force_rank
 
 #: Above this many rows the right singular vectors come from the Gram matrix (no n x p U).
 GRAM_THRESHOLD_ROWS = 20_000
@@ -44,7 +44,7 @@ GRAM_THRESHOLD_ROWS = 20_000
 
 def gram(Z, center: np.ndarray | None = None) -> np.ndarray:
     """``(Z - center)^T (Z - center)`` of shape (p, p), accumulated in chunks of rows (Z an
-    array or a :class:`calib.stream.ChunkSource`)."""
+    array or a :class:`calib.data.stream.ChunkSource`)."""
     p = Z.p if isinstance(Z, ChunkSource) else Z.shape[1]
     G = np.zeros((p, p))
     for block in blocks_of(Z):
@@ -57,7 +57,7 @@ def gram(Z, center: np.ndarray | None = None) -> np.ndarray:
 def principal(Z, center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Singular values (p,) descending and right singular vectors V (p, p) of ``Z - center``.
 
-    Z is an array or a :class:`calib.stream.ChunkSource` (above :data:`GRAM_THRESHOLD_ROWS`
+    Z is an array or a :class:`calib.data.stream.ChunkSource` (above :data:`GRAM_THRESHOLD_ROWS`
     rows one pass over its blocks; below, it is small and read whole).
     Signs are deterministic: the largest-magnitude entry of every column of V is positive.
     """
@@ -167,7 +167,7 @@ def sym_from_vec(q: np.ndarray, r: int) -> np.ndarray:
 def fit_unit_quadric(X) -> np.ndarray:
     """Least-squares symmetric Q (r, r) with ``x_i^T Q x_i = 1`` for the rows of X (n, r).
 
-    X is an array or a :class:`calib.stream.ChunkSource` (then one pass: a streaming QR of the
+    X is an array or a :class:`calib.data.stream.ChunkSource` (then one pass: a streaming QR of the
     design, the same minimum-norm solution as ``lstsq`` on the whole design up to rounding).
     """
     if not isinstance(X, ChunkSource):
@@ -215,9 +215,9 @@ def fit_sfm(
     Parameters
     ----------
     Z : array of shape (n, p), raw readings of a constant-magnitude load over orientations; or a
-        ``dask.array.Array`` or :class:`calib.stream.ChunkSource`, streamed block by block (never
-        held whole in memory: :mod:`calib.stream`)
-    dof : 2 or 3 (for 6 use :func:`calib.ft6.fit_ft6`)
+        ``dask.array.Array`` or :class:`calib.data.stream.ChunkSource`, streamed block by block
+        (never held whole in memory: :mod:`calib.data.stream`)
+    dof : 2 or 3 (for 6 use :func:`calib.estimators.ft6.fit_ft6`)
     known_Z, known_M : optional arrays (k, p) and (k, dof): known pairs that fix rotation and scale
     magnitude : optional load magnitude used as scale when no known pairs are given
 
@@ -228,7 +228,8 @@ def fit_sfm(
     """
     dof = check_dof(dof)
     if dof == 6:
-        raise CalibrationError("6-DOF shape from motion needs known loads: use calib.ft6.fit_ft6")
+        raise CalibrationError("6-DOF shape from motion needs known loads: use "
+                               "calib.estimators.ft6.fit_ft6")
     r = force_rank(dof)
     data = scan(as_source(Z), "Z", drop_nonfinite)
     check_scan_samples(data, r * (r + 1) // 2 + 1)
@@ -262,7 +263,7 @@ def fit_sfm(
     # of each channel's signal: held-out load error median 0.23 / 0.24 / 0.22 % of the load at
     # 45 / 60 / 90 degree caps, 0.25 % over the sphere; at 20 % noise 5.1 / 5.1 / 4.6 / 4.9 %).
     # The coverage stays in the diagnostics (excitation_poor), and it is the offset routes
-    # (calib.bias) that warn.
+    # (calib.estimators.bias) that warn.
     diag["excitation_poor"] = bool(excitation_is_poor(cov))
     cal = Calibration(
         C=C_unit, offset=np.zeros(data.p), dof=dof, method="sfm", diagnostics=diag

@@ -1,8 +1,8 @@
 """Plan a static-pose rig before weighing masses: which poses get the known loads, and how
 accurate the calibration can be (``calib plan``).
 
-The accuracy is the Cramer-Rao bound of the pose-level model of :mod:`calib.rig`: pose means
-``zbar_j = A m_j + o`` with Gaussian noise of standard deviation ``noise / sqrt(samples)`` per
+The accuracy is the Cramer-Rao bound of the pose-level model of :mod:`calib.estimators.rig`: pose
+means ``zbar_j = A m_j + o`` with Gaussian noise of standard deviation ``noise / sqrt(samples)`` per
 channel, the k known poses' loads given and the others' directions unknown (two angles each,
 nuisance parameters), the magnitude tied by the known loads. The load error of a calibration on
 a test load m is ``-C (dA m + do)`` to first order; its rms over 300 test loads spread over the
@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .joint import choose_known_poses
-from .result import CalibrationError
-from .simulate import sample_directions
+from calib.data.result import CalibrationError
+from calib.routes.joint import choose_known_poses
+from calib.simulation.simulate import sample_directions
 
 
 def _unit(th, ph):
@@ -88,8 +88,8 @@ def plan(directions, k: int = 4, magnitude: float = 1.0, samples: int = 100,
          noise: float | None = None, sensitivity: float | None = None) -> dict:
     """The recommended known poses for a budget of ``k`` known loads and the predicted error.
 
-    Returns ``known`` (indices, :func:`calib.joint.choose_known_poses`), ``ratio`` (bound over
-    the all-known bound), ``ratio_first`` (the same for the first k poses, a naive choice),
+    Returns ``known`` (indices, :func:`calib.routes.joint.choose_known_poses`), ``ratio`` (bound
+    over the all-known bound), ``ratio_first`` (the same for the first k poses, a naive choice),
     ``ratio_reading`` / ``ratio_reading_first`` (the same for the error on a new single
     reading, whose own noise adds to both: what a rig with one reading per pose sees) and,
     with ``noise`` and ``sensitivity``, ``bound`` and ``bound_all_known`` in load units.

@@ -13,11 +13,10 @@ from array import array
 
 import numpy as np
 
+from calib.data.result import Calibration, CalibrationError
+from calib.data.stream import ChunkSource
 from sfm_common.cli import one_line
 from sfm_common.files import atomic_write_text
-
-from .result import Calibration, CalibrationError
-from .stream import ChunkSource
 
 LOAD_COLUMNS = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
 
@@ -140,8 +139,8 @@ def _is_number(text: str) -> bool:
 
 
 class CSVSource(ChunkSource):
-    """A CSV file read ``chunk_rows`` lines at a time, a :class:`calib.stream.ChunkSource`: each
-    pass reads the file again and holds one chunk in memory, so a log larger than memory can be
+    """A CSV file read ``chunk_rows`` lines at a time, a :class:`calib.data.stream.ChunkSource`:
+    each pass reads the file again and holds one chunk in memory, so a log larger than memory can be
     fitted (``calib fit --chunk-rows``). The header is read (and checked) at once; a bad row is
     the same one-line error as :func:`read_csv`'s, found when a pass reaches it."""
 
@@ -297,7 +296,7 @@ def save_calibration(path: str, cal: Calibration, channels=None) -> None:
     d = cal.to_dict()
     if channels is not None:
         d["channels"] = list(channels)
-    from .result import _jsonable
+    from calib.data.result import _jsonable
 
     atomic_write_text(path, json.dumps(_jsonable(d), indent=2) + "\n")
 

@@ -1,6 +1,6 @@
 """Shape from motion with sensor bias: ``Z = [M 1] [S; z0^T]`` (paper eqs. 15-18).
 
-Two routes, both returning a :class:`calib.result.Calibration` with the offset filled in:
+Two routes, both returning a :class:`calib.data.result.Calibration` with the offset filled in:
 
 ``method="paper"`` (section 7.1): rank r+1 SVD of the raw data, ``M^ = U* Sigma*^1/2``. The last
 column of ``A^-1`` satisfies the plane ``m^T a4 = 1`` (linear least squares); the first r columns
@@ -13,7 +13,8 @@ free ``lam`` is fixed where Q becomes singular: by the matrix determinant lemma
 gradient descent on their mean square, as in the paper (``refine="gd"``). Needs p >= r+1.
 
 ``method="centered"``: subtract the mean, rank-r PCA, fit an ellipsoid to the r-dimensional
-coordinates (:mod:`calib.ellipsoid`, approximate maximum likelihood); its centre c gives the offset
+coordinates (:mod:`calib.estimators.ellipsoid`, approximate maximum likelihood); its centre c gives
+the offset
 ``z0 = mean + V_r c`` and its shape the calibration. Works for p = r (3-axis magnetometers).
 """
 
@@ -22,9 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from ._validate import check_dof, check_rank, force_rank
-from .ellipsoid import fit_ellipsoid, fit_normalised, subsample_steps
-from .result import (
+from calib.data.result import (
     Calibration,
     CalibrationError,
     add_uncertainty,
@@ -34,16 +33,7 @@ from .result import (
     propagate,
     warn,
 )
-from .sfm import (
-    coverage_step,
-    finish_frame,
-    fit_unit_quadric,
-    magnitude_pass,
-    principal,
-    rank_gap,
-    unit_quadric_and_plane,
-)
-from .stream import (
+from calib.data.stream import (
     ChunkSource,
     MappedSource,
     Scan,
@@ -51,6 +41,17 @@ from .stream import (
     check_scan_samples,
     is_streamed,
     scan,
+)
+from calib.data.validate import check_dof, check_rank, force_rank
+from calib.estimators.ellipsoid import fit_ellipsoid, fit_normalised, subsample_steps
+from calib.estimators.sfm import (
+    coverage_step,
+    finish_frame,
+    fit_unit_quadric,
+    magnitude_pass,
+    principal,
+    rank_gap,
+    unit_quadric_and_plane,
 )
 
 METHODS = ("centered", "paper")
@@ -73,14 +74,15 @@ def fit_bias(
 
     Parameters
     ----------
-    Z : array of shape (n, p); or a ``dask.array.Array`` or :class:`calib.stream.ChunkSource`,
-        streamed block by block and never held whole in memory (:mod:`calib.stream`; the same
+    Z : array of shape (n, p); or a ``dask.array.Array`` or :class:`calib.data.stream.ChunkSource`,
+        streamed block by block and never held whole in memory (:mod:`calib.data.stream`; the same
         result as the in-memory fit up to rounding)
-    dof : 2 or 3 (6-DOF: :func:`calib.ft6.fit_ft6`)
+    dof : 2 or 3 (6-DOF: :func:`calib.estimators.ft6.fit_ft6`)
     method : "centered" (default) or "paper"
     known_Z, known_M : optional known pairs (k, p), (k, dof) fixing rotation and scale
     magnitude : load magnitude used as scale when no known pairs are given
-    whiten : divide every channel by its noise level (:func:`calib.sfm.noise_scale`, factor
+    whiten : divide every channel by its noise level (:func:`calib.estimators.sfm.noise_scale`,
+    factor
         analysis of the readings' covariance) before the route's SVD, and scale the result back:
         the calibrated loads then do not depend on the channels' units. The centered
         route is also independent of the channels' offsets (it subtracts the mean); the paper
@@ -91,13 +93,13 @@ def fit_bias(
         7.4 counts raw, 17.1 whitened; at 90 degrees 1.6 and 2.4; full sphere equal).
 
     A channel that is an exact affine copy of another (logged twice) is left out of the fit
-    and given a column of zeros in C (:mod:`calib.copies`).
+    and given a column of zeros in C (:mod:`calib.data.copies`).
     """
     if method not in METHODS:
         raise CalibrationError(f"method must be one of {METHODS}, got {method!r}")
-    from .copies import fit_without_copies
+    from calib.data.copies import fit_without_copies
 
-    # a channel logged twice (an exact affine copy): fitted without it (calib.copies)
+    # a channel logged twice (an exact affine copy): fitted without it (calib.data.copies)
     out = fit_without_copies(Z, known_Z, lambda Zs, Zk: fit_bias(
         Zs, dof, method, Zk, known_M, magnitude, drop_nonfinite, whiten, **kwargs), dof)
     if out is not None:
@@ -106,7 +108,7 @@ def fit_bias(
     if not whiten:
         return route(Z, dof, known_Z, known_M, magnitude, drop_nonfinite, **kwargs)
     _, r, data = _prepare_source(Z, dof, drop_nonfinite, int(method == "paper"))
-    from .sfm import gram, noise_scale
+    from calib.estimators.sfm import gram, noise_scale
 
     cov = gram(data.source, center=data.mean) / max(data.n - 1, 1)
     s, how = noise_scale(cov, r)
@@ -133,12 +135,13 @@ SCALE_BOOTSTRAP_ROWS = 20_000
 
 
 def _log_scale_cov(rows: np.ndarray, r: int, seed: int = 0) -> np.ndarray | None:
-    """Covariance of the log channel scales of :func:`calib.sfm.noise_scale` over bootstrap
+    """Covariance of the log channel scales of :func:`calib.estimators.sfm.noise_scale` over
+    bootstrap
     resamples of the rows (deterministic: seeded; the resamples' factor analyses run as one
     stack). The scales choose which left inverse of the
     shape C is (its part that the loads of noise-free readings never see), so their sampling
     error is part of C's standard error."""
-    from .sfm import noise_scale
+    from calib.estimators.sfm import noise_scale
 
     rows = rows[np.all(np.isfinite(rows), axis=1)]
     n = len(rows)
@@ -193,7 +196,8 @@ def _prepare_source(Z, dof, drop_nonfinite, extra_rank) -> tuple[int, int, Scan]
     (dof, r, scan) with the checked source and its column statistics."""
     dof = check_dof(dof)
     if dof == 6:
-        raise CalibrationError("6-DOF calibration needs known loads: use calib.ft6.fit_ft6")
+        raise CalibrationError("6-DOF calibration needs known loads: use "
+                               "calib.estimators.ft6.fit_ft6")
     r = force_rank(dof)
     data = scan(as_source(Z), "Z", drop_nonfinite)
     p = data.p
@@ -227,7 +231,7 @@ def _finish(
     loads=None,
 ):
     """Diagnostics, frame and uncertainty of a fit. Z is the data (an array, with U its unit
-    loads or None) or a :class:`calib.stream.Scan` (then one more pass over its source, with
+    loads or None) or a :class:`calib.data.stream.Scan` (then one more pass over its source, with
     ``loads(block)`` the unit loads of a block, ``(block - offset) @ C_unit.T`` by default)."""
     if isinstance(Z, Scan):
         n = Z.n
@@ -261,7 +265,7 @@ def _finish(
     diag["excitation_poor"] = bool(poor)
     if poor:
         # the paper route's standard errors leave the poor excitation out (its verdict refuses
-        # such a fit, calib.reliability); the centered route's carry it (covered 91-93 % of
+        # such a fit, calib.verdict.reliability); the centered route's carry it (covered 91-93 % of
         # true offsets at 60-90 degree caps, nominal 95 %), so its warning says where to look
         warn(
             f"poor excitation (isotropy {cov['isotropy']:.2f}, directions within "
@@ -299,8 +303,8 @@ def fit_centered(
     """Mean removal, rank-r PCA, ellipsoid fit; see the module docstring. Works for p >= r.
 
     ``refine`` runs the approximate maximum-likelihood refinement; ``isotropy_prior`` is the prior
-    spread of the shape around a sphere (see :func:`calib.ellipsoid.fit_ellipsoid`): negligible with
-    good coverage, it keeps the offset bounded under partial coverage.
+    spread of the shape around a sphere (see :func:`calib.estimators.ellipsoid.fit_ellipsoid`):
+    negligible with good coverage, it keeps the offset bounded under partial coverage.
 
     Returns a Calibration with ``method="centered"``; extra diagnostics: ``ellipsoid`` (fit info),
     ``offset_stderr`` (p,) from the refinement's Jacobian.

@@ -1,0 +1,159 @@
+"""The forward fit by maximum likelihood (:func:`fit_forward`): starts, alternation, LM and the
+feasible-GLS rounds; the lowest cost under the final weights wins.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib.data.result import CalibrationError
+from calib.estimators.forward.problem import (
+    SEARCH_POSES,
+    Problem,
+    _search_pick,
+    alternate,
+    cost,
+    curvature,
+    linear_fit,
+    reinfer,
+    solve,
+)
+from calib.estimators.forward.variances import _feasible_gls, estimate_variances, start_variances
+
+#: Starts with every unknown direction drawn uniformly, alternated; the best distinct ones are
+#: refined by LM.
+RANDOM_STARTS = 8
+
+
+def _directions(L):
+    L = np.asarray(L, float)
+    n = np.linalg.norm(L, axis=1)
+    if not np.all(np.isfinite(L)) or np.any(n <= 0):
+        return None
+    return L / n[:, None]
+
+
+def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
+                random_starts: int = RANDOM_STARTS, restarts: int = 2,
+                only: dict | None = None, v0: np.ndarray | None = None) -> dict:
+    """The maximum-likelihood forward fit of a rig (module docstring).
+
+    ``start_loads``: named (P, r) arrays of every pose's load as another route estimates them
+    (the closed-form routes' calibrations applied to the pose means); their directions at the
+    unknown poses start the search. ``only``: named unit directions (nu, r) that are the *only*
+    starts (the oracle: the true directions). ``v0``: channel variances to start the
+    feasible-GLS rounds from (default: weights that favour no channel). Returns the final fit
+    (:func:`solve`'s dict) plus ``v`` (pose-level variance per channel), ``W``, ``starts``
+    (every start: name, cost under the final weights, converged, iterations),
+    ``chosen_start``, ``rounds`` (feasible-GLS rounds), ``g0``, ``v0`` (as given: the rounds'
+    start, which :func:`reweighting_dof` repeats).
+    """
+    rng = np.random.default_rng(seed)
+    known_mag = np.linalg.norm(pr.known_M, axis=1)
+    g0 = pr.magnitude if pr.magnitude is not None else float(np.median(known_mag))
+    nu = len(pr.unknown)
+    if nu == 0:
+        raise CalibrationError("every pose has a known load: use least squares")
+    # the search runs on at most SEARCH_POSES unknown poses (evenly strided)
+    if nu > SEARCH_POSES:
+        pick = _search_pick(nu)
+        sp = pr.sub(pr.unknown[pick])
+    else:
+        pick, sp = np.arange(nu), pr
+    # start weights that favour no channel (and are equivariant): each channel's variance left
+    # after regressing it on the others (start_variances), else its spread
+    psi = start_variances(pr) if v0 is None else None
+    W0 = (sp.weights(np.asarray(v0, float)) if v0 is not None
+          else np.broadcast_to(1.0 / np.sqrt(psi) if psi is not None else 1.0 / pr.spread,
+                               (sp.P, sp.p)).copy())
+    named = []
+    if only is not None:
+        for name, U in only.items():
+            named.append((name, np.asarray(U, float)[pick]))
+    else:
+        # 1. the affine map of the known poses (r + 1 spanning loads), extended by |m| = g
+        X = np.column_stack([pr.known_M, np.ones(len(pr.known))])
+        if len(X) >= pr.r + 1 and np.linalg.matrix_rank(X) == pr.r + 1:
+            Bk = np.linalg.lstsq(X, pr.Y[pr.known], rcond=None)[0]
+            A, o = Bk[: pr.r].T, Bk[pr.r]
+            Ws = W0[0]
+            Aw = A * Ws[:, None]
+            got = _directions(((sp.Y[sp.unknown] - o) * Ws) @ np.linalg.pinv(Aw).T)
+            if got is not None:
+                named.append(("affine map of the known poses", got))
+        for name, L in (start_loads or {}).items():
+            got = _directions(np.asarray(L, float)[pr.unknown][pick])
+            if got is not None:
+                named.append((name, got))
+    results = []
+
+    def run(name, U, W, alt=True):
+        out = []
+        try:
+            f = solve(sp, U, g0, W)
+            out.append({**f, "start": name})
+            if alt:
+                Ua = alternate(sp, U, g0, W)
+                if not np.allclose(Ua, U):
+                    f = solve(sp, Ua, g0, W)
+                    out.append({**f, "start": f"{name}, alternated"})
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+            pass
+        return out
+
+    for name, U in named:
+        results += run(name, U, W0)
+    if only is None:
+        pool = []
+        for i in range(random_starts):
+            U = rng.standard_normal((len(sp.unknown), sp.r))
+            U /= np.linalg.norm(U, axis=1, keepdims=True)
+            try:
+                Ua = alternate(sp, U, g0, W0)
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            A, o = linear_fit(sp, sp.loads(Ua, g0), W0)
+            pool.append((cost(sp, A, o, sp.loads(Ua, g0), W0), i, Ua))
+        for _, i, Ua in sorted(pool, key=lambda t: t[:2])[:2]:
+            results += run(f"random directions {i + 1}, alternated", Ua, W0, alt=False)
+    if not results:
+        raise CalibrationError("no start of the forward fit gave finite directions")
+    best = min(results, key=lambda f: f["cost"])
+    if only is None:
+        for i in range(restarts):  # every unknown direction turned by about 20 degrees
+            U = best["U"] + rng.normal(scale=0.35, size=best["U"].shape)
+            results += run(f"perturbed restart {i + 1}", U, W0)
+        best = min(results, key=lambda f: f["cost"])
+    # feasible GLS on the search subset: rounds from the best start until the variances settle
+    # (variances from its residuals, refit); then every start refitted under those final
+    # weights and the lowest cost kept: the returned fit is the best of all starts under one
+    # objective
+    best, v, rounds = _feasible_gls(sp, best, v0)
+    Wf = sp.weights(v)
+    refit = [best]
+    for f in results:
+        if f["start"] == best["start"]:
+            continue
+        try:
+            refit.append({**solve(sp, f["U"], f["g"], Wf), "start": f["start"]})
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+    results = refit
+    best = min(results, key=lambda f: f["cost"])
+    # every pose: the search subset's model placed on the other poses by the global step, then
+    # refined together, the variances re-estimated once on every pose (settled on the subset's
+    # hundreds of poses; a sweep's tens of thousands would only refine them, at a full solve
+    # per round)
+    if sp is not pr:
+        W = pr.weights(v)
+        U = reinfer(pr, best["A"], best["o"], best["g"], W)
+        U[pick] = best["U"]
+        best = {**solve(pr, U, best["g"], W, best["A"], best["o"]), "start": best["start"]}
+        v = estimate_variances(pr, best)
+        best = {**solve(pr, best["U"], best["g"], pr.weights(v), best["A"], best["o"]),
+                "start": best["start"]}
+        rounds += 1
+    starts = [{"start": f["start"], "cost": f["cost"], "converged": f["converged"],
+               "iterations": f["iterations"]} for f in results]
+    return {**best, **curvature(pr, best), "v": v, "starts": starts,
+            "chosen_start": best["start"], "rounds": rounds, "g0": g0, "v0": v0}
