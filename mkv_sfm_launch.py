@@ -5,7 +5,7 @@ tenths of a second to import (numpy, scipy, gymnasium): a Ctrl-C in that window 
 a ``KeyboardInterrupt`` traceback from inside scipy's import. These launchers import the command
 package while a Ctrl-C is already answered the commands' way (one line, exit 130, nothing
 written: nothing has started), including one that an extension module's initialisation turns into
-``ImportError("initialization failed")`` (scipy's pybind11 modules do: stop 66's CI, ``mkv demo``).
+``ImportError("initialization failed")`` (scipy's pybind11 modules do, e.g. in ``mkv demo``).
 They live outside the packages because importing any module of ``calib`` or ``sfm_learn`` runs
 that package's heavy ``__init__`` first; they import only the standard library and
 ``sfm_common.cli`` (itself the standard library only).

@@ -1,4 +1,4 @@
-"""Every route on a real 3D-printed 8-channel force sensor, with the issue-23 protocol.
+"""Every route on a real 3D-printed 8-channel force sensor, with the real-rig protocol.
 
 Data (not shipped: the repository has no licence file): github.com/jonurce/FTS_Calibration,
 ``Datasets/12_final_extra_bounded/data/data_<set>.0_R.._P.._Y...csv``: five load sets (a mass at
@@ -7,7 +7,7 @@ per pose; columns ``Timestamp,Fx,Fy,Fz,Mx,My,Mz,s0..s7`` (a reference F/T sensor
 printed sensor's 8 channels, integer counts). Fetch it yourself and point ``--data`` at the folder.
 
 Protocol: every ``--stride``-th sample of every pose is kept (7: about 285 of 2,000, "a few
-hundred samples per pose" as in the issue), then even samples of every pose train, odd ones test
+hundred samples per pose"), then even samples of every pose train, odd ones test
 (``--split halves``: first and second half); the test target is the reference load, and the
 error is the held-out load rms, ``sqrt(mean |m_hat - m|^2)`` in N. Least squares with every load
 known (per-row loads, affine) is the reference; ``least squares, channel`` is the same data under
@@ -172,7 +172,7 @@ def main(argv=None):
     ap.add_argument("--known-poses", choices=("recommended", "first"), default="recommended",
                     help="which poses get the known loads (default: choose_known_poses)")
     ap.add_argument("--known", type=int, default=4, choices=range(3, 12), metavar="K",
-                    help="known pose means handed to the motion routes (default 4, the issue's)")
+                    help="known pose means handed to the motion routes (default 4)")
     ap.add_argument("--diagnose", action="store_true",
                     help="also print where the joint route's error comes from (slow)")
     args = ap.parse_args(argv)

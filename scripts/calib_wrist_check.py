@@ -1,4 +1,4 @@
-"""Every route on a real commercial 6-axis F/T sensor on a robot wrist, with the issue-37 protocol.
+"""Every route on a real commercial 6-axis F/T sensor on a robot wrist, with the wrist protocol.
 
 Data (not shipped: the repository has no licence file): github.com/leledeyuan00/
 Gravity-Compensation-F-T-sensor, ``datas/recorded_messages_pose_100.txt`` and

@@ -1,4 +1,4 @@
-"""Issue-13 PPO targets, checked on the rows of a sample-efficiency sweep.
+"""The PPO targets, checked on the rows of a sample-efficiency sweep.
 
     python scripts/ppo_targets.py SWEEP_DIR [--seeds 3]
 

@@ -4,18 +4,18 @@ combination of earlier channels (a sum or difference channel).
 A log can hold one reading twice: the same channel logged in two units (counts and volts), or
 copied into a second column by the logging software. A copy adds nothing about the load, and
 its noise is its original's, so a fit that weighs the channels as independent counts that noise
-twice. Measured (stop 65) on the payload study's default case (seeds 10,000-10,005, channel 0
+twice. Measured on the payload study's default case (seeds 10,000-10,005, channel 0
 copied as ``2 z_0 + 5``), the held-out error over least squares with every load known went from
 0.85-1.10x to 1.01-1.45x for the joint fit and from 1.07-2.24x to 1.17-5.34x for the centered
 route; least squares (every load known) does not change. So :func:`calib.routes.joint.fit_joint` and
 :func:`calib.estimators.bias.fit_bias` fit the log without its copies and give each copy a column
-of zeros
-in ``C`` (:func:`expand`): the loads are then those of the log without the copy, and the copy's
+of zeros in
+``C`` (:func:`expand`): the loads are then those of the log without the copy, and the copy's
 offset is its original's, mapped by the same affine relation. So does
 :func:`calib.estimators.least_squares.fit_least_squares` with a bias (in-memory arrays), for a
 reason of
 its own: its centred columns then differ only by the rounding of the copy's shift, which its
-solve's cut-off keeps (a copy shifted by 843 standard deviations put 1e6 into ``C``, stop 66).
+solve's cut-off keeps (a copy shifted by 843 standard deviations put 1e6 into ``C``).
 
 "Exact": the affine regression of a channel on an earlier channel leaves at most
 :data:`COPY_TOLERANCE` of its variance. Distinct channels leave far more: at least 3.7e-4 over
@@ -27,15 +27,15 @@ significant digits, or one read through a second amplifier with noise of its own
 than the tolerance and is fitted as a channel of its own, as before (docs/calib.md, "A channel
 that repeats another": such a repeat costs 1.1-1.6x).
 
-Combinations (stop 66, :func:`find_combinations`): a channel that the affine regression on every
+Combinations (:func:`find_combinations`): a channel that the affine regression on every
 earlier channel kept leaves with at most :data:`COMBINATION_TOLERANCE` (1e-12) of its variance is
-left out the same way. Measured before: a channel combining 2 or 3 others (payload default case,
-seeds 10,000-10,005, appended) cost the joint fit 1.00-1.48x and the centered route 0.87-4.29x
-its fit without it; now both are the same as without it. The later channel of a dependency is
-the one left out: where a combination is logged before a channel it combines, that channel is
-left out instead, and the fit still moves, the combination's noise being correlated with its
-channels' (the same rigs: joint 0.92-1.35x, centered 0.76-3.17x, least squares 1.00x): which of
-the dependent channels carries noise of its own is not known from the dependency alone.
+left out the same way. Measured without that: a channel combining 2 or 3 others (payload default
+case, seeds 10,000-10,005, appended) cost the joint fit 1.00-1.48x and the centered route 0.87-4.29x
+its fit without it; now both are the same as without it. The later channel of a dependency is the
+one left out: where a combination is logged before a channel it combines, that channel is left out
+instead, and the fit still moves, the combination's noise being correlated with its channels' (the
+same rigs: joint 0.92-1.35x, centered 0.76-3.17x, least squares 1.00x): which of the dependent
+channels carries noise of its own is not known from the dependency alone.
 """
 
 from __future__ import annotations

@@ -259,7 +259,7 @@ def fit_sfm(
         "residual_magnitude_rms": mags["residual_magnitude_rms"],
     }
     # no "poor excitation" warning here: without an offset to find, a cap costs the shape
-    # nothing measurable (stop 65, 40 random 8-channel sensors a cap, 4 known pairs, noise 1 %
+    # nothing measurable (40 random 8-channel sensors a cap, 4 known pairs, noise 1 %
     # of each channel's signal: held-out load error median 0.23 / 0.24 / 0.22 % of the load at
     # 45 / 60 / 90 degree caps, 0.25 % over the sphere; at 20 % noise 5.1 / 5.1 / 4.6 / 4.9 %).
     # The coverage stays in the diagnostics (excitation_poor), and it is the offset routes

@@ -32,8 +32,8 @@ A fit is unreliable (``calib fit`` exits with status 3 and writes nothing unless
 - **no rank-r structure** (the shape-from-motion routes: sfm, centered, paper): the rank gap
   ``s_r / s_(r+1)`` of the readings the route factors is below
   :data:`calib.estimators.sfm.MIN_RANK_GAP` (the paper's noisiest trial has 9, pure noise about 1).
-  The route's own warning says the calibration is unreliable there; before stop 65 a log of pure
-  noise was written as a "reliable" sfm calibration beside that warning;
+  The route's own warning says the calibration is unreliable there, and without this check a log of
+  pure noise would be written as a "reliable" sfm calibration beside that warning;
 - **a known reading far from the model** (forward fits of one-reading logs and sweeps): the
   reading of a known load lies far from the fitted model
   (:func:`calib.estimators.forward.misfit.outlying_readings`: a spike, or the load stated for
@@ -103,7 +103,7 @@ HOLDOUT_FACTOR = 20.0
 #: the real wrist sensor with random sets of 4 known poses the median alone wrote fits measured
 #: 3.3-7.6x (their medians predicted 1.5-2.1x, their intervals reaching 4.7-6.1x; paired, the
 #: same fits are refused); on the payload study's simulated rigs it refuses 0-2 % of fits
-#: outside the case whose offset is not identified (docs/calib_study.md; 0-5 % before stop 54).
+#: outside the case whose offset is not identified (docs/calib_study.md).
 PREDICTED_RATIO_MAX = 3.0
 #: The held-out rms may never exceed this fraction of the load magnitude.
 HOLDOUT_MAX_FRACTION = 0.5

@@ -80,8 +80,8 @@ def test_fewer_samples_than_channels_is_refused(tmp_path, capsys):
 
 def test_pure_noise_is_refused_as_its_warning_says(tmp_path, capsys):
     """A log of pure noise: the route's warning says the calibration is unreliable, so the
-    verdict does (exit 3, one line, nothing written; before stop 65 it was written as
-    "reliable" beside that warning); written only on request, then called UNRELIABLE."""
+    verdict does (exit 3, one line, nothing written, never "reliable" beside that
+    warning); written only on request, then called UNRELIABLE."""
     raw = tmp_path / "raw.csv"
     np.savetxt(raw, np.random.default_rng(0).normal(size=(200, 8)), delimiter=",",
                header=",".join(f"c{i}" for i in range(8)), comments="")

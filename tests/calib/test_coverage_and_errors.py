@@ -172,7 +172,7 @@ def test_shape_from_motion_without_offsets_does_not_warn_of_a_cap():
     """Without an offset to find, a cap costs the shape nothing measurable (4 known pairs,
     noise 5 % of each channel's signal, 20 random sensors: the 60 degree cap's held-out load
     error within 1.3x the sphere's, median), so the sfm route records its coverage and does
-    not warn (it said "the shape is unreliable" before stop 65)."""
+    not warn that the shape is unreliable."""
     from calib.simulation.simulate import sample_directions
 
     def error(cap, seed):

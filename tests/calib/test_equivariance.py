@@ -119,9 +119,9 @@ def test_motion_routes_are_equivariant(route, seed, log_scale, shift, perm_seed)
           phases=[Phase.explicit, Phase.reuse, Phase.generate])
 @given(seed=st.integers(0, 10_000), log_scale=scales, shift=shifts,
        perm_seed=st.integers(0, 99))
-# found by hypothesis (stop 53): offsets up to 1,000 spreads with scales to 10^3.2 cost the rig
+# found by hypothesis: offsets up to 1,000 spreads with scales to 10^3.2 cost the rig
 # fit's residuals three digits to cancellation, its LM stopped short (2.4e-4 of the load apart);
-# the pose means are now centred per channel inside the solves (5e-8)
+# the pose means are centred per channel inside the solves (5e-8)
 @example(seed=379, log_scale=[-3.616872148692389, -0.4916466581262702, 0.0, 3.2093285226934967,
                               3.0, 0.0, -0.6814173625793591, 0.0],
          shift=[-999.9999999999999, 0.0, 784.8105872217191, -459.96564210875, 358.217765950551,
@@ -167,17 +167,17 @@ def test_the_whitened_forward_fit_is_equivariant(log_scale, shift, perm_seed):
           phases=[Phase.explicit, Phase.reuse, Phase.generate])
 @given(seed=st.integers(0, 10_000), of=st.integers(0, P - 1), at=st.integers(0, P),
        log_scale=st.floats(-4, 4), shift=st.floats(-1e3, 1e3))
-# found on a fresh machine (stop 66): least squares with a copy in the same units shifted by 843
+# found on a fresh machine: least squares with a copy in the same units shifted by 843
 # standard deviations put 1e6 into C and the loads 14 units off (the centred columns differ only
-# by the shift's rounding, which the solve's cut-off kept); least squares now leaves copies out
+# by the shift's rounding, which the solve's cut-off kept); least squares leaves copies out
 @example(seed=906, of=4, at=4, log_scale=0.0, shift=843.2231708223719)
 def test_an_exact_copy_of_a_channel_leaves_the_loads_as_they_were(route, seed, of, at,
                                                                    log_scale, shift):
     """A channel logged twice (an affine copy of channel ``of``, in other units, inserted at
     ``at``): every route's loads are those of the log without it (to 1e-6 of the load; the rig
-    fit to its 1e-4), the copy's column of C is 0 and the copy is named (calib.data.copies). Before
-    stop 65 the copy cost the joint fit up to 1.7x and the centered route up to 5x on payload
-    rigs: its noise was counted twice."""
+    fit to its 1e-4), the copy's column of C is 0 and the copy is named (calib.data.copies). Fitted
+    as a channel of its own, the copy cost the joint fit up to 1.7x and the centered route up to 5x
+    on payload rigs: its noise was counted twice."""
     Z, F, Zt, Zk, Mk, g, tol = _log(route, seed)
     scale = (10.0 ** log_scale) * (-1 if seed % 2 else 1)
     if route == "paper":  # (not offset-equivariant with noise: the module docstring)
@@ -217,8 +217,8 @@ def test_an_exact_combination_of_channels_leaves_the_loads_as_they_were(route, s
     term below 1e-6 of the largest is not named, calib.data.copies._participants),
     logged anywhere after the channels it combines: every route's loads are those of the log
     without it (1e-6 of the load; the rig fit 1e-4), its column of C is 0, and it is named by
-    the channels it combines (calib.data.copies.find_combinations). Before stop 66 such a channel
-    cost the joint fit up to 1.5x and the centered route up to 4.3x on payload rigs."""
+    the channels it combines (calib.data.copies.find_combinations). Fitted as a channel of its own,
+    it cost the joint fit up to 1.5x and the centered route up to 4.3x on payload rigs."""
     Z, F, Zt, Zk, Mk, g, tol = _log(route, seed)
     rng = np.random.default_rng(seed)
     b = (10.0 ** np.asarray(log_scale[: len(of)]) * rng.choice([-1, 1], len(of))

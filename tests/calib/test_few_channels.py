@@ -2,9 +2,8 @@
 do not identify each channel's variance (Ledermann's bound), and the printed interval takes
 the noise level along the load's span from the fit's radial residuals
 (:func:`calib.estimators.forward.shared_noise.range_level`). Seeds 13,000 on: never used while it
-was developed (stop
-65 measured 10,000-10,029 and 12,000-12,039: 4 channels 24 -> 29 of 30 and 28 -> 40 of 40
-inside the 95 % interval, 5 channels 29 -> 29 and 36 -> 37)."""
+was developed (on the development seeds 10,000-10,029 and 12,000-12,039: 4 channels 24 -> 29 of 30
+and 28 -> 40 of 40 inside the 95 % interval, 5 channels 29 -> 29 and 36 -> 37)."""
 
 import functools
 
@@ -45,7 +44,7 @@ def test_the_interval_holds_where_the_variances_are_not_identified(p, payload_jo
 
 def test_the_radial_level_is_what_brings_the_four_channel_interval_to_its_rate(monkeypatch,
                                                                                payload_joint):
-    """The same 20 four-channel rigs with the level left out (the interval before stop 65):
+    """The same 20 four-channel rigs with the level left out (the range level of the shared noise):
     fewer inside, the misses below the interval (its noise too high: 17 of 20 then, 3 below;
     20 of 20 with it), so the coverage above is the level's doing."""
     import calib.verdict.predicted_error

@@ -1,5 +1,5 @@
-"""A load that changes during a one-reading log (open, stop 61), and offsets that drift over a
-short one (open, stop 62).
+"""A load that changes during a one-reading log, and offsets that drift over a short one: both
+open (strict xfails).
 
 The forward fit assumes one load magnitude at every unknown pose. A payload that changes during
 the log breaks it: the gripper picks something up, a finger moves, a cable starts to pull. On
@@ -9,8 +9,7 @@ error on clean readings, and the joint fit 1.3-58x that least squares; of 15 rig
 written beyond 3x with exit 0 (3.5x, 5.6x, 18.5x; docs/calib.md, "A load that changes during
 the log"). Its own predicted error does not see it: the Monte Carlo draws least squares' error
 under the same misfit noise model, so their ratio stays small. A check of the log's halves
-fitted alone was built for it in stop 62 and not kept: it refused the real wrist sensor's good
-fit (docs/calib.md).
+fitted alone is rejected: it refused the real wrist sensor's good fit (docs/calib_design.md).
 """
 
 import warnings
@@ -41,7 +40,7 @@ def _written_or_within_3x(rig, tr, te, Z):
     return bool(assess(cal, Z[kn], M[tr][kn])) or ratio <= 3.0
 
 
-@pytest.mark.xfail(strict=True, reason="open (stop 61): a load that changes during the log is "
+@pytest.mark.xfail(strict=True, reason="open: a load that changes during the log is "
                    "fitted and written far beyond least squares; docs/calib.md")
 def test_a_load_that_changes_during_the_log_is_not_written_far_beyond_least_squares():
     rig = simulate_payload_rig(10_010, poses=80)
@@ -54,7 +53,7 @@ def test_a_load_that_changes_during_the_log_is_not_written_far_beyond_least_squa
     assert _written_or_within_3x(rig, tr, te, Z)  # 18.5x, written with exit 0
 
 
-@pytest.mark.xfail(strict=True, reason="open (stop 62): offsets drifting 2 % over a 20-reading "
+@pytest.mark.xfail(strict=True, reason="open: offsets drifting 2 % over a 20-reading "
                    "log are written at 3.1-4.0x least squares on the same readings; docs/calib.md")
 def test_offsets_drifting_over_a_short_log_are_not_written_far_beyond_least_squares():
     # the payload study's 20-pose case (seed 10,002): every channel's offset drifts 2 % of its

@@ -1,5 +1,5 @@
-"""Gauges that are not linear: a misfit no affine model holds (stop 64; docs/calib.md, "Gauges
-that are not linear (open)").
+"""Gauges that are not linear: a misfit no affine model holds (docs/calib.md, "Limits";
+docs/calib_design.md).
 
 ``simulate_payload_rig(nonlinearity=x)`` adds to every channel up to ``x`` of its spread as a random
 quadratic form of the load's direction, on training and test readings alike. The forward fit
@@ -8,11 +8,11 @@ the same), but that model loses to least squares with every load known as ``x`` 
 predicted error and ratio take the misfit for noise: at 5 % one fit of 30 was written at 3.73x
 least squares, at 8 % six (3.0-3.7x), where the oracle is as far (a refusal would be right).
 
-What the fit does about it (stop 64): it tells.
+What the fit does about it: it tells.
 :func:`calib.estimators.forward.misfit.direction_misfit` tests
 whether the residuals of nearby load directions agree (a misfit of the direction) beyond noise;
-where they do, ``fit_joint`` warns that the predicted error and ratio can be low, and (stop 66,
-:func:`calib.verdict.predicted_error.one_sided`) states no upper end of the error: the lower end
+where they do, ``fit_joint`` warns that the predicted error and ratio can be low, and
+(:func:`calib.verdict.predicted_error.one_sided`) states no upper end of the error: the lower end
 holds.
 """
 
@@ -68,8 +68,8 @@ def test_nonlinear_gauges_are_fitted_to_the_models_optimum(seed):
     assert written and joint < 3.0
 
 
-@pytest.mark.xfail(strict=True, reason="open (stop 64): under 5 % gauge nonlinearity a fit at "
-                   "3.73x least squares is written (since stop 66 with no upper end of its error "
+@pytest.mark.xfail(strict=True, reason="open: under 5 % gauge nonlinearity a fit at "
+                   "3.73x least squares is written (with no upper end of its error "
                    "stated); the verdict's ratio takes the misfit for noise")
 def test_a_strongly_nonlinear_sensor_is_not_written_beyond_3x_least_squares():
     joint, oracle, written = _fit(10_019, 0.05)  # 3.73x (oracle 3.74x), written

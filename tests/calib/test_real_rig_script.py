@@ -1,4 +1,4 @@
-"""scripts/calib_real_rig.py (the issue-23 protocol on a real rig's logs) on a simulated rig written
+"""scripts/calib_real_rig.py (the real-rig protocol on a real rig's logs) on a simulated rig written
 in the real data's file layout: the table and ``--diagnose`` run and report what they should."""
 
 import re

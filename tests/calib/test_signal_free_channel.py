@@ -2,12 +2,12 @@
 
 Real sensors can have one: an unloaded gauge, or the torque about the tool axis of a commercial
 F/T sensor holding a gripper whose centre of mass lies on that axis (``T_z = r_x F_y - r_y F_x``
-is then 0 in every pose). Until stop 60 the fit could collapse onto a channel of noise alone
-(its start weights, one spread a channel, made that channel's noise the largest residual the
+is then 0 in every pose). With start weights of one spread a channel the fit could collapse onto
+a channel of noise alone (that choice made that channel's noise the largest residual the
 directions could take up: 17.8x and 106x least squares, written), and the offset rule refused
 one-reading fits over such a channel's span (docs/calib.md, "A channel that reads no load").
-A channel that repeats another took the start weights of stop 60 (docs/calib.md, "A channel
-that repeats another").
+A channel that repeats another defeats the start weights that regress each channel on every other
+(docs/calib_design.md).
 """
 
 import warnings
@@ -75,7 +75,8 @@ def test_wrench_sensor_with_the_centre_of_mass_on_the_axis_is_not_refused():
 
 def test_weak_torque_channel_is_not_refused():
     # T_z reads 1 % of its load, as much as its noise: its column of C is significant, but its
-    # span is noise; stop 60's rule refused 11 of 20 such fits at the oracle's error
+    # span is noise; an offset rule over the channel's span refused 11 of 20 such fits at the
+    # oracle's error
     ok = []
     for seed in (0, 1, 2):
         rig = simulate_payload_rig(10_000 + seed, poses=80, wrench=True)
@@ -147,9 +148,9 @@ def test_one_reading_rig_with_an_added_noise_only_channel_is_fitted_well():
 
 
 # A channel that repeats another: one gauge read twice, or a wrench logged beside the gauges
-# it was mixed from. Its noise is the other's, so regressed on every other channel (the start
-# weights of stop 60) both are predicted to the repeat's own noise (the Heywood case) and
-# take almost all the weight.
+# it was mixed from. Its noise is the other's, so regressed on every other channel (the
+# start weights that regress each channel on every other) both are predicted to the repeat's own
+# noise (the Heywood case) and take almost all the weight.
 
 
 def _factor_readings(rng, P=200, p=8, r=3):
@@ -179,7 +180,7 @@ def test_start_variances_are_about_each_channels_noise_even_where_a_channel_is_r
     # about each channel's noise, at or above it (Guttman: the variance left after regressing
     # on the others bounds a channel's own from above; measured 0.9-15x)
     assert np.all((ratio > 0.7) & (ratio < 30.0)), ratio
-    # the repeated pair too: regressed on every other channel (stop 60) it got the repeat's
+    # the repeated pair too: regressed on every other channel it would get the repeat's
     # own noise, 1e-4 of its real noise
     assert 0.7 < np.sqrt(v[8]) / (3.0 * sd[1]) < 30.0
     assert np.sqrt(v[9]) == pytest.approx(Y[:, 9].std(), rel=0.05)  # its whole variance
@@ -192,8 +193,8 @@ def test_start_variances_are_about_each_channels_noise_even_where_a_channel_is_r
 
 def test_one_reading_rig_with_a_repeated_channel_is_fitted_well():
     # the payload study's default case, seed 2, channel 1 repeated (x2, its own noise 1e-4 of
-    # its span): with stop 60's start weights 3.55x least squares, written outside its
-    # interval; 1.08x without the repeat
+    # its span): with the start weights that regress each channel on every other 3.55x least
+    # squares, written outside its interval; 1.08x without the repeat
     rig = simulate_payload_rig(10_002, poses=80)
     tr, _ = rig.split("poses")
     rng = np.random.default_rng(2)

@@ -1,4 +1,4 @@
-"""scripts/calib_wrist_check.py (the issue-37 protocol on a real wrist F/T sensor's logs) on a
+"""scripts/calib_wrist_check.py (the wrist protocol on a real wrist F/T sensor's logs) on a
 simulated one written in the data's own format: poses as base-frame quaternions, the wrench
 rotated into the base frame."""
 

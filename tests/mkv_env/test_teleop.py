@@ -78,7 +78,7 @@ def test_gymnasium_play_drives_the_robot_with_the_envs_own_mapping(monkeypatch):
 
     # gymnasium's play module selects matplotlib's TkAgg backend when it is imported (for its
     # PlayPlot): every later figure in this process then needs a display, and the plotting
-    # tests that ran after this one on the same worker failed headless (stop 65's CI). Give
+    # tests that ran after this one on the same worker failed headless. Give
     # the process its backend back.
     matplotlib.use(backend)
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")

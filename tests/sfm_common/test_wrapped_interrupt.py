@@ -2,8 +2,8 @@
 
 Python wraps a ``KeyboardInterrupt`` raised in a descriptor's ``__set_name__`` (while a class is
 created) in a ``RuntimeError``. A Ctrl-C during torch's lazy import of ``torch._dynamo`` (inside
-PPO's optimiser set-up) ended ``mkv train-ppo`` that way with a traceback and exit 1 (CI of stop
-47, tests/sfm_learn/cli/test_interrupts.py)."""
+PPO's optimiser set-up) ended ``mkv train-ppo`` that way with a traceback and exit 1 (found by
+tests/sfm_learn/cli/test_interrupts.py)."""
 
 import argparse
 
@@ -83,7 +83,7 @@ def test_other_errors_still_propagate(monkeypatch, err):
 
 def _import_interrupted() -> ImportError:
     """What a Ctrl-C inside a pybind11 extension's initialisation raises (scipy.spatial's
-    ``_distance_pybind`` during ``mkv demo``'s lazy ``import scipy.stats``: stop 66's CI)."""
+    ``_distance_pybind`` during ``mkv demo``'s lazy ``import scipy.stats``)."""
     try:
         try:
             raise KeyboardInterrupt

@@ -99,7 +99,7 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
 #: :func:`shared_noise` finds in the whitened channels has no correlation above
 #: :data:`REWEIGHT_TOL` of a correlation's standard error (``1 / sqrt(P)``), at most this many;
 #: the round whose model is likeliest is returned (:func:`round_nll`), not the last. A budget,
-#: not a regulariser: with the last round returned, a cap of 8 (stops 55-56) stopped rounds that
+#: not a regulariser: with the last round returned, a cap of 8 stopped rounds that
 #: were still improving the fit (payload rig 10,069 written at 3.98x least squares; 1.62x after
 #: 30) and 30 let others drift away from the data (the real wrist sensor's plan fit 1.14 ->
 #: 1.24x), both visible in the likelihood (docs/calib.md, "The likeliest round").

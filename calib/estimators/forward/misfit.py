@@ -86,7 +86,7 @@ def direction_misfit(pr: Problem, fit: dict, permutations: int = DIRECTION_PERMU
     caller does not use the test, :func:`calib.routes.forward_rows.fit_forward_rows`.) Long logs
     are tested on their :data:`SEARCH_POSES` evenly strided unknown poses (in the log's order).
 
-    Measured (stop 64; docs/calib.md, "Gauges that are not linear"): on payload rigs whose
+    Measured (docs/calib.md, "Gauges that are not linear"): on payload rigs whose
     gauges are 2 % nonlinear p < 0.01 on 8 of 10, at 5 % on 10 of 10; on 40 rigs with linear
     gauges (independent or gauge-mixed noise, 6 or 8 or 12 channels) p >= 0.18; on the real
     wrist sensor (42 fits) p >= 0.10. Units, channel order and offsets do not change it

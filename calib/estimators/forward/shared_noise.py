@@ -283,10 +283,10 @@ def range_level(pr: Problem, fit: dict) -> tuple[float, int] | None:
     payload rigs, and the refits that measure the variances' spread start there too, so they
     do not see it (degrees of freedom up to 2e12). The radial residuals see the noise the
     calibration carries directly: one number per unknown pose, three per known one. On 30
-    4-channel payload rigs (seeds 10,000-10,029, stop 65) ``c`` correlated 0.70 in logs with
+    4-channel payload rigs (seeds 10,000-10,029) ``c`` correlated 0.70 in logs with
     the measured error's square over its prediction, and :func:`predict_error` drawing the
     level from it (a scaled inverse chi-square) held the measured error in its 95 % interval
-    on 29 of 30 (24 before)."""
+    on 29 of 30 (24 of 30 without the level)."""
     if (pr.p - pr.r) ** 2 >= pr.p + pr.r:
         return None
     sn = shared_noise(pr, fit)
