@@ -19,10 +19,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-# one import a line (the package's modules are being moved: easy to rewrite)
+# one line a module (the package's modules are being moved: easy to rewrite)
 from calib.joint import choose_known_poses  # noqa: E402
-from calib.simulate import simulate_payload_rig  # noqa: E402
-from calib.simulate import simulate_rig  # noqa: E402
+from calib.simulate import simulate_payload_rig, simulate_rig  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MAG = os.path.join(ROOT, "tests", "data", "magnetometer", "bazhin")
