@@ -12,8 +12,10 @@ Conventions the docs follow (and this test enforces):
   ``<!-- docs-test: quick -->``  run with the rewrites in ``QUICK`` (fewer episodes, steps, seeds);
   every rewrite is listed below with the reason, and a block marked quick must match at least one.
   ``<!-- docs-test: skip REASON -->``  not run; REASON says where the same thing is tested.
-- Files a page takes for granted (a raw sensor log, a dataset to export) are made by ``SETUP``,
-  keyed by the page and the start of the block's first line.
+- Files a page takes for granted (a zarr array, a dataset to export) are made by ``SETUP``,
+  keyed by the page and the start of the block's first line. ``sweeps/``, ``scripts/`` and
+  ``examples/`` (the bundled calibration logs of ``examples/calib/``) are copied into the
+  scratch folder first.
 """
 
 from __future__ import annotations
@@ -25,7 +27,6 @@ import shutil
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 import yaml
 
@@ -66,19 +67,6 @@ def _quick_sweep(scratch: pathlib.Path) -> None:
     (scratch / "sweeps" / "sample_efficiency.yml").write_text(yaml.safe_dump(spec))
 
 
-def _raw_csvs(scratch: pathlib.Path) -> None:
-    """RAW.csv / HUGE.csv (a paper Trial 2 log), KNOWN.csv (three known poses) for `calib fit`."""
-    from calib.data.io import write_csv
-    from calib.simulation.simulate import paper_trial
-
-    d = paper_trial(2, rng=0)
-    ch = [f"g{i}" for i in range(1, d.Z.shape[1] + 1)]
-    write_csv(scratch / "RAW.csv", ch, d.Z)
-    write_csv(scratch / "HUGE.csv", ch, d.Z)
-    F = np.eye(3) * 9.0
-    write_csv(scratch / "KNOWN.csv", ch + ["Fx", "Fy", "Fz"], np.hstack([F @ d.S + d.offset, F]))
-
-
 def _zarr_log(scratch: pathlib.Path) -> None:
     import zarr
 
@@ -96,7 +84,6 @@ def _teacher_npz(scratch: pathlib.Path) -> None:
 
 
 SETUP = {
-    ("README.md", "calib fit RAW.csv"): _raw_csvs,
     ("calib.md", "import dask.array"): _zarr_log,
     ("minari.md", "mkv export teacher.npz"): _teacher_npz,
 }
