@@ -46,6 +46,7 @@ from calib.data.result import Calibration, warn
 
 #: Largest share of a channel's variance the affine regression on an earlier channel may leave
 #: for it to be that channel's exact copy (module docstring).
+#: Decision: docs/calib_design.md D4.
 COPY_TOLERANCE = 1e-10
 #: Largest share of a channel's variance the affine regression on every earlier channel kept may
 #: leave for it to be their exact combination (:func:`find_combinations`). Far below
@@ -54,12 +55,15 @@ COPY_TOLERANCE = 1e-10
 #: ``simulate_rig`` (10 rigs each), and 1e-10 for a sensor whose noise is 1e-5 of its spread.
 #: 1e-12 is noise of one part per million of the spread (beyond a 20-bit reading), and keeps a
 #: combination written with six significant digits (about 1e-13).
+#: Decision: docs/calib_design.md D5.
 COMBINATION_TOLERANCE = 1e-12
 #: Residual degrees of freedom the combination regression needs (rows beyond its parameters):
 #: with as many rows as parameters any channel is a combination of the others.
+#: Decision: docs/calib_design.md D5.
 COMBINATION_MIN_DOF = 10
 #: Rows :func:`find_combinations` searches on (evenly strided; a channel found is confirmed on
 #: every row): a log of 1e6 readings costs it as much as one of 20,000.
+#: Decision: docs/calib_design.md D5.
 COMBINATION_ROWS = 20_000
 
 

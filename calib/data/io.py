@@ -18,6 +18,7 @@ from calib.data.stream import ChunkSource
 from sfm_common.cli import one_line
 from sfm_common.files import atomic_write_text
 
+#: Decision: docs/calib_design.md D1.
 LOAD_COLUMNS = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
 
 

@@ -194,9 +194,12 @@ def _jsonable(x):
 # : Below this coverage isotropy (smallest eigenvalue of r * mean(u u^T); 1 = uniform sphere), or
 # with
 #: the force directions inside a cap narrower than COVERAGE_MIN_CAP_DEG, offsets are unreliable.
+#: Decision: docs/calib_design.md D18.
 COVERAGE_MIN_ISOTROPY = 0.35
+#: Decision: docs/calib_design.md D18.
 COVERAGE_MIN_CAP_DEG = 100.0
 #: Coverage statistics use at most this many (evenly strided) samples.
+#: Decision: docs/calib_design.md D18.
 COVERAGE_MAX_ROWS = 100_000
 
 
@@ -277,6 +280,7 @@ def _cell_centres(r: int) -> np.ndarray | None:
 #: The mean unit direction of a cap of half-angle theta, uniform in area, has norm
 #: ``(1 + cos theta) / 2``: above this value (a cap of COVERAGE_MIN_CAP_DEG) coverage is poor too.
 #: Unlike the largest angle it is an average, so a few noisy directions do not hide a cap.
+#: Decision: docs/calib_design.md D18.
 COVERAGE_MAX_MEAN_NORM = (1 + float(np.cos(np.radians(COVERAGE_MIN_CAP_DEG)))) / 2
 
 
@@ -291,6 +295,7 @@ def excitation_is_poor(cov: dict) -> bool:
 
 #: A CalibrationWarning is raised when an offset standard error exceeds this fraction of its
 #: channel's span (range of the data in that channel).
+#: Decision: docs/calib_design.md D64.
 OFFSET_STDERR_MAX_FRACTION = 0.05
 
 

@@ -32,6 +32,7 @@ from calib.data.result import CalibrationError
 from calib.data.validate import check_samples
 
 #: Rows per block of an in-memory array (bounds the temporaries of every pass).
+#: Decision: docs/calib_design.md D74.
 CHUNK_ROWS = 1 << 17
 
 

@@ -54,8 +54,10 @@ from calib.estimators.sfm import (
     unit_quadric_and_plane,
 )
 
+#: Decision: docs/calib_design.md D12.
 METHODS = ("centered", "paper")
 #: The paper route's refinement uses at most this many (evenly strided) rows.
+#: Decision: docs/calib_design.md D13.
 PAPER_REFINE_MAX_ROWS = 50_000
 
 
@@ -130,7 +132,9 @@ def fit_bias(
 
 #: The uncertainty of the channel scales (:func:`_log_scale_cov`): bootstrap resamples, on at
 #: most this many (evenly strided) rows.
+#: Decision: docs/calib_design.md D17.
 SCALE_BOOTSTRAP = 20
+#: Decision: docs/calib_design.md D17.
 SCALE_BOOTSTRAP_ROWS = 20_000
 
 

@@ -32,8 +32,10 @@ from calib.data.stream import CHUNK_ROWS as CHUNK_ROWS  # re-exported: rows per 
 from calib.data.stream import QR, ChunkSource, blocks_of, rows_of, strided_of
 
 #: Above this many points the refinement converges on a strided subsample of this size first.
+#: Decision: docs/calib_design.md D14.
 SUBSAMPLE_ROWS = 50_000
 #: Full-data Gauss-Newton (LM) steps after the subsample has converged.
+#: Decision: docs/calib_design.md D14.
 FULL_DATA_STEPS = 1
 
 
@@ -281,12 +283,16 @@ def _lm(Yn, c, W, idx, npar, tau, max_iter, tol, sigma2=None):
 
 
 #: Folds of the cross-validation that decides whether the isotropy prior is used.
+#: Decision: docs/calib_design.md D15.
 CV_FOLDS = 5
 #: The cross-validation runs on an evenly strided subsample of at most this many points.
+#: Decision: docs/calib_design.md D15.
 CV_MAX_ROWS = 20_000
 #: The prior is kept only if its held-out cost is below this fraction of the cost without it.
+#: Decision: docs/calib_design.md D15.
 CV_MARGIN = 1.0
 #: The prior spread tried by ``isotropy_prior="auto"``.
+#: Decision: docs/calib_design.md D15.
 AUTO_TAU = 0.1
 
 
@@ -336,11 +342,14 @@ def cross_validate_prior(Yn, c, W, tau, folds=CV_FOLDS, max_iter=200, tol=1e-12)
 
 
 #: Prior-data conflict: the prior-free shape is this many prior spreads from isotropy ...
+#: Decision: docs/calib_design.md D16.
 CONFLICT_SPREADS = 3.0
 #: ... and known to better than this fraction of that distance.
+#: Decision: docs/calib_design.md D16.
 CONFLICT_PRECISION = 1.0 / 3.0
 #: The prior-free shape's anisotropy is known to better than this fraction of the prior spread:
 #: the prior cannot add information, no cross-validation needed.
+#: Decision: docs/calib_design.md D16.
 DATA_DOMINATED = 0.1
 
 

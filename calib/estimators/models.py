@@ -26,7 +26,9 @@ import numpy as np
 
 from calib.data.result import Calibration, CalibrationError
 
+#: Decision: docs/calib_design.md D8.
 MODELS = ("affine", "channel", "quadratic")
+#: Decision: docs/calib_design.md D9.
 DRIFTS = ("none", "linear")
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Decision: docs/calib_design.md D10.
 _REL_STEP = np.finfo(float).eps ** 0.5
 
 

@@ -39,6 +39,7 @@ from calib.data.stream import (
 from calib.data.validate import check_dof, check_matrix, check_rank, force_rank
 
 #: Above this many rows the right singular vectors come from the Gram matrix (no n x p U).
+#: Decision: docs/calib_design.md D11.
 GRAM_THRESHOLD_ROWS = 20_000
 
 
@@ -89,8 +90,11 @@ def principal(Z, center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarr
 #: floors at 1e-12 likewise). The cap matters near a Heywood case (a channel the factors explain
 #: almost wholly), where the iteration creeps towards a zero noise variance for hundreds of
 #: rounds; capped, that channel's weight stays finite. Every iterate is exactly equivariant.
+#: Decision: docs/calib_design.md D17.
 FA_MAX_ITER = 200
+#: Decision: docs/calib_design.md D17.
 FA_TOL = 1e-4
+#: Decision: docs/calib_design.md D17.
 FA_FLOOR = 1e-12
 
 
@@ -129,6 +133,7 @@ def noise_scale(cov: np.ndarray, r: int) -> tuple[np.ndarray, str]:
 
 #: Below this rank gap the data show no rank-r structure: the paper's noisiest trial still has
 #: 9, pure noise about 1.
+#: Decision: docs/calib_design.md D67.
 MIN_RANK_GAP = 2.0
 
 

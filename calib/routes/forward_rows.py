@@ -17,6 +17,7 @@ from calib.verdict.reliability import KNOWN_INFLUENCE_MAX
 
 #: A known reading within this fraction of every channel's spread of a row of the log is that
 #: row (the known loads given for readings of the log itself, as `calib plan` recommends).
+#: Decision: docs/calib_design.md D37.
 SAME_READING = 1e-6
 
 
@@ -25,6 +26,7 @@ SAME_READING = 1e-6
 #: on a simulated 100,000-reading payload sweep, 50,000 strided readings measured a held-out
 #: error 1.0266x least squares with every load known, all 100,000 1.0258x, in 9.6 s against
 #: 16.5 s, one run each).
+#: Decision: docs/calib_design.md D75.
 FORWARD_MAX_ROWS = 50_000
 
 

@@ -44,6 +44,7 @@ from calib.estimators.sfm import principal
 from calib.routes.forward_rows import _forward_step, _starts, fit_forward_rows
 
 #: At most this many (evenly strided) motion rows enter the nonlinear least squares.
+#: Decision: docs/calib_design.md D20.
 JOINT_MAX_ROWS = 50_000
 
 

@@ -27,6 +27,7 @@ from calib.data.result import CalibrationError
 from calib.estimators.ft6 import skew
 
 #: The paper's idealised 3-DOF calibration matrix (section 8), shape (3, 8): counts -> unit force.
+#: Decision: docs/calib_design.md D22.
 PAPER_C = np.array(
     [
         [0.03, 0, 0, 0, -0.03, 0, 0, 0],
@@ -36,9 +37,11 @@ PAPER_C = np.array(
 )
 
 #: Force magnitude that gives the paper's "maximum signal about 150" counts (see module docstring).
+#: Decision: docs/calib_design.md D22.
 PAPER_FORCE_MAGNITUDE = 9.0
 
 #: Samples per trial in the paper.
+#: Decision: docs/calib_design.md D22.
 PAPER_N_SAMPLES = 176
 
 #: Trials 1-4 of section 8: true offsets, uniform peak noise per channel, and the paper's reported
@@ -46,6 +49,7 @@ PAPER_N_SAMPLES = 176
 #: Trial 4 prints seven peak-noise values (15 15 25 15 15 25 15) for eight channels; the text says
 #: only two sense elements are raised to ~17 %, so the missing eighth value is 15 (channels 3 and 6,
 #: 1-based, carry 25). Trial 3 prints seven error percentages; the eighth is lost in the paper.
+#: Decision: docs/calib_design.md D22.
 PAPER_TRIALS = {
     1: {
         "offset": [3.0, 2.5, -2.5, 2.0, 4.0, -2.5, 5.0, -3.0],

@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 
 from calib.data.result import CalibrationWarning
-from calib.estimators.bias import fit_bias, fit_paper
+from calib.estimators.bias import METHODS, fit_bias, fit_paper
 from calib.estimators.least_squares import fit_least_squares
 from calib.estimators.sfm import fit_sfm
 from calib.simulation.simulate import (
@@ -32,8 +32,8 @@ from calib.simulation.simulate import (
 )
 from sfm_common.progress import progress as progress_bar
 
+#: Decision: docs/calib_design.md D22.
 SMOOTH_WINDOW = 5
-METHODS = ("centered", "paper")
 
 
 def smoothed_std(x: np.ndarray, window: int = SMOOTH_WINDOW) -> float:

@@ -27,12 +27,14 @@ from calib.estimators.forward.shared_noise import (
 #: The 95 % interval on the study's held-out rigs: 93-100 % per case, gauge-mixed 89.8 % (53 of
 #: 59; 92.5 % of 120 development rigs: short of 95 % there, docs/calib_study.md), 96.5 % pooled.
 #: The verdict does not move with it: :data:`RATIO_COVERAGE`.
+#: Decision: docs/calib_design.md D56.
 INTERVAL_COVERAGE = 0.95
 
 
 #: The central share of the fit-to-least-squares ratio's distribution whose upper end (its 95th
 #: percentile) the verdict holds to its ceiling
 #: (:data:`calib.verdict.reliability.PREDICTED_RATIO_MAX`).
+#: Decision: docs/calib_design.md D63.
 RATIO_COVERAGE = 0.90
 
 
@@ -102,6 +104,7 @@ def gls_inverse(A, v) -> np.ndarray:
 #: At most this many test readings in :func:`predict_error`'s Monte Carlo (evenly strided poses
 #: of larger rigs: the interval is then that of a 2,000-reading test set, a little wider than a
 #: larger one's).
+#: Decision: docs/calib_design.md D55.
 MC_TEST_READINGS = 2000
 
 

@@ -73,22 +73,29 @@ from calib.estimators.sfm import MIN_RANK_GAP
 #: makes the fit unreliable: the error it states does not hold. 1 is the fit's own unit, not tuned
 #: (measured on payload rigs: a 30-standard-deviation spike on a known reading 1.4-5.4, a 10 sd one
 #: 0.8-1.6; the known readings that heavy-tailed (t3) noise's tail draws flagged 0.4-0.8).
+#: Decision: docs/calib_design.md D51.
 KNOWN_INFLUENCE_MAX = 1.0
 
 #: Chi-square tail probability below which known residuals are implausible.
+#: Decision: docs/calib_design.md D69.
 CHI2_PROBABILITY = 1e-6
 #: ... and only when their rms also exceeds this fraction of the known loads' magnitude.
+#: Decision: docs/calib_design.md D69.
 PRACTICAL_FRACTION = 0.02
 #: Any fit given known loads: calibrated known readings further than this fraction of the load
 #: (rms of the vector error) from the known loads are a failed fit.
+#: Decision: docs/calib_design.md D70.
 KNOWN_MISS = 0.25
 #: Other routes on static-pose logs: largest disagreement with the pose fit, in units of its
 #: own pose-level residual.
+#: Decision: docs/calib_design.md D72.
 CROSSCHECK_FACTOR = 10.0
 #: A fitted magnitude further than this (relative) from that mass is implausible.
+#: Decision: docs/calib_design.md D70.
 MAGNITUDE_TOLERANCE = 0.2
 #: Default factor of the held-out check (leave-one-pose-out rms over in-sample residual rms).
 #: Measured on simulated rigs (scripts/calib_rig_study.py): 3-8 for good fits.
+#: Decision: docs/calib_design.md D73.
 HOLDOUT_FACTOR = 20.0
 #: A forward fit whose predicted held-out error
 #: (:func:`calib.verdict.predicted_error.predict_error`) may exceed
@@ -104,8 +111,10 @@ HOLDOUT_FACTOR = 20.0
 #: 3.3-7.6x (their medians predicted 1.5-2.1x, their intervals reaching 4.7-6.1x; paired, the
 #: same fits are refused); on the payload study's simulated rigs it refuses 0-2 % of fits
 #: outside the case whose offset is not identified (docs/calib_study.md).
+#: Decision: docs/calib_design.md D63.
 PREDICTED_RATIO_MAX = 3.0
 #: The held-out rms may never exceed this fraction of the load magnitude.
+#: Decision: docs/calib_design.md D73.
 HOLDOUT_MAX_FRACTION = 0.5
 
 

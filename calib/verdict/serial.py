@@ -11,14 +11,17 @@ from calib.estimators.forward.refits import REWEIGHT_REPS, _lag1, _refits, dof_o
 
 #: One-sided significance of a channel's lag-1 residual autocorrelation, in the log's order,
 #: before :func:`serial_correlation` takes the log's noise as correlated in time.
+#: Decision: docs/calib_design.md D48.
 SERIAL_ALPHA = 0.01
 
 
 #: Rounds, and refits in each, that set the simulated noise's AR coefficient in
 #: :func:`serial_correlation` (the refits' residual autocorrelation matched to the log's).
+#: Decision: docs/calib_design.md D48.
 SERIAL_ROUNDS = 3
 
 
+#: Decision: docs/calib_design.md D48.
 SERIAL_PROBE_REPS = 10
 
 

@@ -18,6 +18,7 @@ from calib.estimators.forward.variances import REWEIGHT_TOL
 #: range and complement parts correlate): at 5 % the payload study's rigs with independent
 #: noise were whitened on 8-13 % of fits and the 12-gauge case's 95th percentile rose from 1.21
 #: to 1.38x least squares; at 1 %, 0-5 % and unchanged (docs/calib.md).
+#: Decision: docs/calib_design.md D43.
 CORRELATION_ALPHA = 0.01
 
 
@@ -103,6 +104,7 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
 #: were still improving the fit (payload rig 10,069 written at 3.98x least squares; 1.62x after
 #: 30) and 30 let others drift away from the data (the real wrist sensor's plan fit 1.14 ->
 #: 1.24x), both visible in the likelihood (docs/calib.md, "The likeliest round").
+#: Decision: docs/calib_design.md D46.
 MAX_CORRELATION_ROUNDS = 30
 
 

@@ -22,6 +22,7 @@ from calib.estimators.forward.variances import _feasible_gls, estimate_variances
 
 #: Starts with every unknown direction drawn uniformly, alternated; the best distinct ones are
 #: refined by LM.
+#: Decision: docs/calib_design.md D36.
 RANDOM_STARTS = 8
 
 

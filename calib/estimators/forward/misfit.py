@@ -10,16 +10,19 @@ import numpy as np
 from calib.estimators.forward.problem import SEARCH_POSES, Problem, _search_pick, _unit
 
 #: Significance level of :func:`direction_misfit`'s test (one-sided, by permutation).
+#: Decision: docs/calib_design.md D53.
 DIRECTION_ALPHA = 0.01
 
 
 #: Permutations of :func:`direction_misfit`'s null (its p-value's resolution: 1 / 201).
+#: Decision: docs/calib_design.md D53.
 DIRECTION_PERMUTATIONS = 200
 
 
 #: :func:`outlying_readings`: a reading is outlying where its tail probability is below this
 #: over the number of readings (Bonferroni: a log of gaussian readings has none flagged in about
 #: 999 of 1,000 fits, whatever its length)
+#: Decision: docs/calib_design.md D50.
 OUTLIER_ALPHA = 1e-3
 
 

@@ -12,12 +12,14 @@ import numpy as np
 from calib.data.result import CalibrationError
 
 #: Points of :func:`grid` (about 5 degrees apart on the sphere).
+#: Decision: docs/calib_design.md D36.
 GRID = 2000
 
 
 #: At most this many unknown poses enter the search over starts; with more (a long sweep, one
 #: reading per pose), the starts run on an evenly strided subset and the best is then refined on
 #: every pose (same estimator, same optimum basin: the subset only chooses the basin).
+#: Decision: docs/calib_design.md D36.
 SEARCH_POSES = 400
 
 

@@ -134,6 +134,7 @@ def _shared_covariance(parts, gamma, K=None) -> np.ndarray:
 
 
 #: At most this many entries (``(P p)^2``) in :func:`attenuation`'s dense hat matrix (128 MB).
+#: Decision: docs/calib_design.md D47.
 HAT_ENTRIES = 16_000_000
 
 
@@ -267,6 +268,7 @@ def shared_noise(pr: Problem, fit: dict) -> dict | None:
 
 
 #: :func:`range_level` needs at least this many degrees of freedom of the radial residuals.
+#: Decision: docs/calib_design.md D60.
 RANGE_LEVEL_MIN_DOF = 5
 
 

@@ -21,9 +21,11 @@ from calib.estimators.forward.problem import Problem, curvature, reinfer, solve
 #: calibration under-used it and the predicted held-out error was too high (the measured error
 #: below the 90 % interval on 35 % of 40 simulated 200-pose rigs). The rounds converge
 #: geometrically (about 0.6x per round): 4-7 rounds for 30 poses, 5-12 for 200.
+#: Decision: docs/calib_design.md D39.
 REWEIGHT_TOL = 0.25
 
 
+#: Decision: docs/calib_design.md D39.
 MAX_REWEIGHT_ROUNDS = 12
 
 
@@ -32,16 +34,19 @@ MAX_REWEIGHT_ROUNDS = 12
 #: :func:`calib.estimators.sfm.noise_scale`) the
 #: rounds can only settle on noise: a fixed 3 from the neutral start instead (on the study's
 #: p = r = 3 sensors, settling rounds moved the 90 degree cap's p95 offset error 1.28 -> 1.59 %).
+#: Decision: docs/calib_design.md D40.
 UNIDENTIFIED_ROUNDS = 3
 
 
 #: Variances below this fraction of a channel's spread squared are floored (an exactly
 #: redundant channel would otherwise get an infinite weight).
+#: Decision: docs/calib_design.md D38.
 VARIANCE_FLOOR = 1e-16
 
 
 #: Leverages are clipped here: a reading that alone sets its pose's direction carries no
 #: information on its channel's noise.
+#: Decision: docs/calib_design.md D38.
 MAX_LEVERAGE = 0.98
 
 

@@ -14,23 +14,27 @@ from calib.estimators.forward.problem import Problem
 from calib.estimators.rig.model import DISTINCT_DEG, ForwardModel, IndexModel, PoseData
 
 #: The forward model gets a bending term per channel when an F-test gives p below this.
+#: Decision: docs/calib_design.md D30.
 BEND_P = 0.01
 
 
 #: The index refinement (:class:`IndexModel`): polynomial degrees up to 1 + this are tried
 #: per channel, each kept when an F-test against the lower one gives p below :data:`BEND_P` and
 #: its leave-one-pose-out error is lower.
+#: Decision: docs/calib_design.md D30.
 INDEX_DEGREE = 2
 
 
 #: Known loads whose magnitudes are within this relative spread are one weighed mass: the index
 #: refinement holds every pose's load at their magnitude (and :mod:`calib.verdict.reliability`
 #: checks the fitted magnitude against it).
+#: Decision: docs/calib_design.md D29.
 SAME_MAGNITUDE = 0.05
 
 
 #: Rounds of feasible GLS reweighting of the index refinement (channel weights from the
 #: highest-degree fit's own residuals).
+#: Decision: docs/calib_design.md D30.
 INDEX_REWEIGHT = 2
 
 
@@ -38,6 +42,7 @@ INDEX_REWEIGHT = 2
 #: readings alone imply are inconsistent (simulated imperfect rigs: up to 12 % with 5 % creep
 #: and 3 % hysteresis, at most 3.4 % otherwise; two swapped known loads: median 17 %); such a
 #: fit is refused (:mod:`calib.verdict.reliability`) and chooses no model by held-out error.
+#: Decision: docs/calib_design.md D71.
 KNOWN_INCONSISTENT = 0.15
 
 
@@ -45,7 +50,8 @@ KNOWN_INCONSISTENT = 0.15
 #: direction drawn uniformly on the sphere, besides the affine fit's directions: each is
 #: alternated to a pose-by-pose optimum (cheap), and the :data:`RANDOM_REFINED` best distinct
 #: ones are refined jointly by LM.
-RANDOM_STARTS = 12
+#: Decision: docs/calib_design.md D31.
+BENT_RANDOM_STARTS = 12
 
 
 #: 6: with 2 the bent search of a simulated rig at 15 % nonlinearity (seed 14, the known loads on
@@ -56,6 +62,7 @@ RANDOM_STARTS = 12
 #: 7.7x there (1 of 80
 #: simulated rigs at 5 and 15 % nonlinearity, seeds 10-49); with 6 every one of the 80 reaches
 #: the cost of the true directions (with :data:`RANDOM_NFEV`, as fast as 4 were without it).
+#: Decision: docs/calib_design.md D31.
 RANDOM_REFINED = 6
 
 
@@ -64,6 +71,7 @@ RANDOM_REFINED = 6
 #: a start far from any basin (its cost hundreds of times the best) could run the 400, 4 s each
 #: on a 12-pose rig, which took one rig's fit from 3 to 11 s. The cheapest refinement, if its
 #: budget ran out, is finished from where it stopped.
+#: Decision: docs/calib_design.md D31.
 RANDOM_NFEV = 50
 
 
@@ -192,7 +200,7 @@ def fit_rig(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None =
 def rig_pose_loads(Z, labels, known_Z, known_M, dof: int = 3, magnitude: float | None = None,
                    known_samples: int | None = None, restarts: int = 2, seed: int = 0,
                    starts: dict | None = None, known_sigma: float | None = None,
-                   random_starts: int = RANDOM_STARTS) -> dict:
+                   random_starts: int = BENT_RANDOM_STARTS) -> dict:
     """The pose-level joint fit (module docstring): forward model for the unknown pose loads,
     then least squares on every row with its pose's load.
 

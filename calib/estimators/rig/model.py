@@ -78,10 +78,12 @@ def sphere_grid(n: int, r: int) -> np.ndarray:
 
 #: Directions tried per unknown pose by the rig fit's global re-inference (:meth:`ForwardModel.
 #: alternate`): about 5 degrees apart on the sphere.
+#: Decision: docs/calib_design.md D31.
 SPHERE_GRID = 2000
 
 
 #: Two alternated starts are distinct when some pose's directions differ by more than this.
+#: Decision: docs/calib_design.md D31.
 DISTINCT_DEG = 10.0
 
 

@@ -7,20 +7,24 @@ from __future__ import annotations
 import numpy as np
 
 #: A pose needs at least this many readings; shorter runs (transitions) are left out.
+#: Decision: docs/calib_design.md D24.
 MIN_POSE_SAMPLES = 3
 
 
 #: A jump between consecutive readings starts a new pose when its chi-square (in noise units)
 #: has a probability below this under noise alone; the threshold is then raised by half.
+#: Decision: docs/calib_design.md D24.
 JUMP_PROBABILITY = 1e-6
 
 
 #: Neighbouring runs whose adjoining readings differ by less than this (rms over channels, noise
 #: units) are one pose (a spike or a burst of noise split it).
+#: Decision: docs/calib_design.md D24.
 MERGE_NOISE_UNITS = 2.0
 
 
 #: At most this many rows are searched for spatial clusters when the log is not in pose order.
+#: Decision: docs/calib_design.md D26.
 MAX_CLUSTER_ROWS = 20_000
 
 
@@ -85,6 +89,7 @@ def find_poses(Z) -> np.ndarray | None:
 #: the distance to the nearest other cluster's mean (median over clusters): readings of a static
 #: pose scatter by noise, far less than poses lie apart; one reading per pose over a band of
 #: directions chains into a few clusters as wide as the gaps between them (ratio 0.3-1).
+#: Decision: docs/calib_design.md D26.
 CLUSTER_SEPARATION = 0.1
 
 
@@ -131,6 +136,7 @@ def _merge(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 #: Runs whose means lie within this many noise units (rms over channels) of each other, directly or
 #: through a chain of runs, are one pose: a pose noisier than the rest is split into many runs.
+#: Decision: docs/calib_design.md D24.
 CLUSTER_NOISE_UNITS = 6.0
 
 
@@ -172,6 +178,7 @@ def _fill_gaps(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
 #: A pose logged for less than this fraction of the median pose's rows, in one run next to a
 #: longer pose's run, is a neighbouring pose's settling, not a pose of its own
 #: (:func:`_join_settling`).
+#: Decision: docs/calib_design.md D25.
 SETTLING_FRACTION = 1 / 3
 
 
@@ -248,6 +255,7 @@ def _is_static(labels: np.ndarray) -> bool:
 
 #: ``robust``: a row further than this many robust standard deviations (1.4826 MAD) from its
 #: pose's median on any channel is an outlier.
+#: Decision: docs/calib_design.md D49.
 OUTLIER_MADS = 5.0
 
 
