@@ -1,8 +1,7 @@
 """The calibration study: every calibration route x every case, medians and 95th percentiles over
-random sensors. Writes docs/calib_study.md (committed), the same tables into docs/calib.md (between
-its study markers), and prints them.
+random sensors. Writes its block of docs/calib_study.md (committed) and prints the tables.
 
-    python scripts/calib_study.py [--sensors 200] [--out docs/calib_study.md] [--doc docs/calib.md]
+    python scripts/calib_study.py [--sensors 200] [--out docs/calib_study.md]
 
 Cases (3-DOF, seeded; sensor k uses seed k):
 - motion cases: random 3 x 8 shape (``random_shape``, singular-value ratio uniform 1-10),
@@ -140,8 +139,6 @@ def main(argv=None):
     ap.add_argument("--sensors", type=int, default=200)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", default=os.path.join("docs", "calib_study.md"))
-    ap.add_argument("--doc", default=os.path.join("docs", "calib.md"),
-                    help="also put the tables between the study markers of this file")
     a = ap.parse_args(argv)
     t0 = time.time()
     jobs = [(c, s) for c in CASES for s in range(a.sensors)]
@@ -187,18 +184,6 @@ def main(argv=None):
         atomic_write_text(a.out, head + begin + "\n" + text + end + rest.split(end, 1)[1])
     else:
         atomic_write_text(a.out, begin + "\n" + text + end + "\n" + old)
-    # the same tables inside docs/calib.md, between its study markers
-    doc = a.doc
-    if doc and os.path.exists(doc):
-        with open(doc, encoding="utf-8") as f:
-            body = f.read()
-        begin, end = "<!-- calib_study:begin -->", "<!-- calib_study:end -->"
-        if begin in body and end in body:
-            table = "\n".join(line.replace("## ", "#### ", 1) if line.startswith("## ") else line
-                              for line in L[2:])
-            head, rest = body.split(begin, 1)
-            body = head + begin + "\n" + table + "\n" + end + rest.split(end, 1)[1]
-            atomic_write_text(doc, body)
     print(text)
 
 

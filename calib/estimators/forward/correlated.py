@@ -103,7 +103,7 @@ def noise_correlation(pr: Problem, fit: dict, alpha: float = CORRELATION_ALPHA) 
 #: not a regulariser: with the last round returned, a cap of 8 stopped rounds that
 #: were still improving the fit (payload rig 10,069 written at 3.98x least squares; 1.62x after
 #: 30) and 30 let others drift away from the data (the real wrist sensor's plan fit 1.14 ->
-#: 1.24x), both visible in the likelihood (docs/calib.md, "The likeliest round").
+#: 1.24x), both visible in the likelihood (docs/calib_design.md D46).
 #: Decision: docs/calib_design.md D46.
 MAX_CORRELATION_ROUNDS = 30
 
