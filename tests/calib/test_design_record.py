@@ -100,3 +100,12 @@ def test_the_checks_read_what_they_are_for():
     assert not ROW.match("| constant | value | module | decision |")
     assert CITE.findall("#: 5 degrees apart (docs/calib_design.md D36).") == ["D36"]
     assert "GRID" in constants() and len(table()) >= 80 and "D1" in decisions()
+
+
+def test_the_user_guide_is_a_guide():
+    """docs/calib.md stays a guide a newcomer reads through (at most 500 lines); the reasons go
+    to docs/calib_design.md and the study tables to docs/calib_study.md."""
+    guide = (ROOT / "docs" / "calib.md").read_text(encoding="utf-8")
+    assert len(guide.splitlines()) <= 500
+    for page in ("calib_design.md", "calib_study.md"):
+        assert page in guide and (ROOT / "docs" / page).is_file()
