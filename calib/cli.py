@@ -214,7 +214,7 @@ def main(argv=None) -> int:
         print(msg)
         return 0
     except UsageError as e:
-        print(f"calib: error: {e.prog}: {one_line(e)}", file=sys.stderr)
+        print(f"calib: error: {one_line(e)}", file=sys.stderr)  # the message names the command
         return 2
     except Unreliable as e:
         print(f"calib: unreliable: {_named(one_line(e), args)}", file=sys.stderr)

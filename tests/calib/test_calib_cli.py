@@ -199,6 +199,9 @@ def bad_cases(tmp_path, raw3):
         (["trials", "--seeds", 0, "--out", tmp_path / "tr"],
          "argument --seeds: expected a positive integer"),
         ([], "required"),
+        (["fit", tmp_path / "raw.csv", "--dof", 3, "--out", out, "--bogus"],
+         "unrecognized arguments: --bogus"),
+        (["fit", tmp_path / "raw.csv"], "required: --dof, --out (see calib fit --help)"),
     ]
 
 
@@ -208,6 +211,7 @@ def test_every_bad_input_is_one_line(tmp_path, capsys, raw3):
         assert code == 2, argv
         assert err.startswith("calib: error:") and err.count("\n") == 1, err
         assert expect in err, (argv, err)
+        assert not err.startswith("calib: error: calib"), err  # the prefix once
         assert "Traceback" not in err
 
 
