@@ -127,22 +127,49 @@ def _copies(Z: np.ndarray, search) -> list[tuple[int, int, float, float]]:
         return []
     fin, mu, Sc, ss, full = search
     found, copied = [], set()
-    for d in range(Z.shape[1]):
-        if not ss[d] > 0:
-            continue
-        for c in range(d):
-            if c in copied or not ss[c] > 0:
-                continue
-            with np.errstate(all="ignore"):
-                b = float(Sc[:, c] @ Sc[:, d]) / float(ss[c])
-                left = Sc[:, d] - b * Sc[:, c]
-                rest = float(left @ left)
-            if (np.isfinite(b) and b != 0 and rest <= COPY_TOLERANCE * float(ss[d])
-                    and (full or _holds(Z, fin, d, (c,), (b,), COPY_TOLERANCE))):
-                found.append((d, c, b, float(mu[d] - b * mu[c])))
-                copied.add(d)
-                break
+    p = Z.shape[1]
+    live = ss > 0
+    for lo in range(0, p, SCREEN_BLOCK):
+        hi = min(p, lo + SCREEN_BLOCK)
+        # the screen: a pair whose correlation is not within SCREEN_SLACK of +-1 leaves far more
+        # than COPY_TOLERANCE of the variance (rest / ss_d = 1 - r^2), whatever the rounding;
+        # the pairs left are decided exactly, one by one, in the order the full loop takes them
+        with np.errstate(all="ignore"):
+            R = (Sc.T @ Sc[:, lo:hi]) / np.sqrt(ss)[:, None] / np.sqrt(ss[lo:hi])[None, :]
+            r2 = R * R  # a correlation: |R| <= 1, no overflow
+        near = (r2 >= 1 - SCREEN_SLACK) & live[:, None] & live[None, lo:hi]
+        for d in range(lo, hi):
+            cand = np.flatnonzero(near[:d, d - lo])
+            if len(cand):
+                _first_copy(Sc, ss, Z, fin, full, d, cand, copied, found, mu)
     return found
+
+
+#: The copy search's screen (:func:`_copies`): pairs whose squared correlation is below
+#: ``1 - SCREEN_SLACK`` are not copies (a copy leaves at most ``COPY_TOLERANCE`` = 1e-10 of its
+#: variance, ``r^2 >= 1 - 1e-10``; the Gram entries' rounding is about 1e-15 of their size), and
+#: :data:`SCREEN_BLOCK` channels are screened at a time (a block's Gram columns: p x 512 doubles).
+#: Decision: docs/calib_design.md D4.
+SCREEN_SLACK = 1e-6
+#: Decision: docs/calib_design.md D4.
+SCREEN_BLOCK = 512
+
+
+def _first_copy(Sc, ss, Z, fin, full, d, cand, copied, found, mu) -> None:
+    """The exact test of :func:`_copies` for channel ``d`` against the screened earlier channels
+    ``cand`` (ascending): the first that ``d`` copies is recorded."""
+    for c in (int(c) for c in cand):
+        if c in copied:
+            continue
+        with np.errstate(all="ignore"):
+            b = float(Sc[:, c] @ Sc[:, d]) / float(ss[c])
+            left = Sc[:, d] - b * Sc[:, c]
+            rest = float(left @ left)
+        if (np.isfinite(b) and b != 0 and rest <= COPY_TOLERANCE * float(ss[d])
+                and (full or _holds(Z, fin, d, (c,), (b,), COPY_TOLERANCE))):
+            found.append((d, c, b, float(mu[d] - b * mu[c])))
+            copied.add(d)
+            return
 
 
 def find_combinations(Z) -> list[tuple[int, tuple[int, ...], tuple[float, ...], float]]:
@@ -309,6 +336,8 @@ def fit_without_copies(Z, known_Z, fit, dof: int):
         Za = np.asarray(Z, float)
     except (TypeError, ValueError):
         return None  # the fit's own checks name what is wrong with it
+    if Za.ndim != 2 or Za.shape[0] < Za.shape[1]:
+        return None  # the fit refuses it (fewer samples than channels) before any search
     copies = find_combinations(Za)
     if not copies:
         return None

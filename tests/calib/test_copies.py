@@ -128,3 +128,65 @@ def test_a_long_log_is_searched_on_strided_rows_and_confirmed_on_all():
     off = Z7.copy()
     off[1::3, 6] += 0.01 * rng.normal(size=len(off[1::3]))  # rows the search does not see
     assert find_combinations(off) == []
+
+
+def _copies_pair_by_pair(Z):
+    """The copy search without its screen: every pair tested exactly, in order (the reference
+    the screened search must agree with)."""
+    from calib.data.copies import _holds, _search
+
+    search = _search(np.asarray(Z, float))
+    if search is None:
+        return []
+    fin, mu, Sc, ss, full = search
+    found, copied = [], set()
+    for d in range(Sc.shape[1]):
+        if not ss[d] > 0:
+            continue
+        for c in range(d):
+            if c in copied or not ss[c] > 0:
+                continue
+            with np.errstate(all="ignore"):
+                b = float(Sc[:, c] @ Sc[:, d]) / float(ss[c])
+                left = Sc[:, d] - b * Sc[:, c]
+                rest = float(left @ left)
+            if (np.isfinite(b) and b != 0 and rest <= COPY_TOLERANCE * float(ss[d])
+                    and (full or _holds(Z, fin, d, (c,), (b,), COPY_TOLERANCE))):
+                found.append((d, c, b, float(mu[d] - b * mu[c])))
+                copied.add(d)
+                break
+    return found
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), p=st.integers(2, 40), n=st.integers(3, 60),
+       copies=st.integers(0, 6), log_scale=st.floats(-150, 150), near=st.booleans())
+def test_the_screened_copy_search_finds_what_every_pair_finds(seed, p, n, copies, log_scale,
+                                                              near):
+    """Copies planted anywhere, in any units (scales 1e-150..1e150), some of copies, some only
+    nearly copies (a perturbation of 1e-6 or 1e-4 of the spread, either side of the tolerance):
+    the screened search returns exactly what the exact test of every pair returns."""
+    rng = np.random.default_rng(seed)
+    Z = rng.normal(size=(n, p)) * 10.0 ** rng.uniform(-3, 3, p) * 10.0 ** log_scale
+    for _ in range(copies):
+        d, c = sorted(rng.choice(p, 2, replace=False))[::-1] if p > 1 else (0, 0)
+        Z[:, d] = rng.uniform(-5, 5) * Z[:, c] + rng.normal() * 10.0 ** log_scale
+        if near:
+            Z[:, d] += rng.choice([1e-6, 1e-4]) * rng.normal(size=n) * Z[:, c].std()
+    assert find_copies(Z) == _copies_pair_by_pair(Z)
+
+
+def test_a_log_with_fewer_rows_than_channels_is_refused_before_any_copy_search(monkeypatch):
+    """20 readings of 1,000 channels (a transposed log): the fit's one-line shape refusal, and
+    the copy search (which costs p^2 pairs) never runs."""
+    import calib.data.copies as copies
+    from calib import CalibrationError, fit_bias, fit_joint
+
+    def searched(*a, **k):
+        raise AssertionError("the copy search ran on a log with fewer rows than channels")
+
+    monkeypatch.setattr(copies, "find_combinations", searched)
+    Z = np.random.default_rng(0).normal(size=(20, 1_000))
+    for fit in (lambda: fit_bias(Z, 3), lambda: fit_joint(Z, Z[:4], np.eye(3)[[0, 1, 2, 0]], 3)):
+        with pytest.raises(CalibrationError, match="at least as many samples as channels"):
+            fit()
