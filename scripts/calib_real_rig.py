@@ -41,10 +41,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.estimators import rig as rig_mod  # noqa: E402
 from calib.estimators.bias import fit_bias  # noqa: E402
 from calib.estimators.least_squares import fit_least_squares  # noqa: E402
 from calib.estimators.models import fit_model  # noqa: E402
+from calib.estimators.rig.fit import rig_pose_loads  # noqa: E402
+from calib.estimators.rig.model import ForwardModel, IndexModel  # noqa: E402
 from calib.routes.crosscheck import crosscheck  # noqa: E402
 from calib.routes.joint import choose_known_poses, fit_joint  # noqa: E402
 from calib.verdict.reliability import assess  # noqa: E402
@@ -69,7 +70,7 @@ def _traceless(M, g):
     return np.column_stack([x * x - y * y, x * x + y * y - 2 * z * z, x * y, x * z, y * z])
 
 
-class _QuadraticForward(rig_mod.ForwardModel):
+class _QuadraticForward(ForwardModel):
     """zbar = A m + o + Q q(m) per channel (q: the traceless quadratic forms): the most a
     second-order sensor model adds; used only to show whether it is identifiable here."""
 
@@ -134,7 +135,7 @@ def diagnose(Z, M, pose, tr, te, loads, means, kn, base) -> str:
         cal = fit_least_squares(Z[tr], pose_loads[pose][tr], bias=True)
         return float(np.sqrt(np.mean(np.sum((cal.apply(Z[te]) - M[te]) ** 2, axis=1)))) / base
 
-    s1 = rig_mod.rig_pose_loads(Z[tr], pose[tr], means[kn], loads[kn])
+    s1 = rig_pose_loads(Z[tr], pose[tr], means[kn], loads[kn])
     pd, fin, W2 = s1["pd"], s1["final"], s1["W2"]
     truth = loads[pd.unknown] / np.linalg.norm(loads[pd.unknown], axis=1, keepdims=True)
     idx = s1["index"]
@@ -144,10 +145,10 @@ def diagnose(Z, M, pose, tr, te, loads, means, kn, base) -> str:
     if idx.get("used"):
         M_true = fin["M"].copy()
         M_true[pd.unknown] = truth * idx["g"]
-        t = rig_mod.IndexModel(pd, idx["g"], M_true).solve(idx["degree"] - 1, s1["W_final"])
+        t = IndexModel(pd, idx["g"], M_true).solve(idx["degree"] - 1, s1["W_final"])
         parts.append(f"index model from true directions {ratio(t['M']):.2f}x cost {t['cost']:.3g}")
     for name, bend in (("affine", False), ("bent", True)):
-        fm = rig_mod.ForwardModel(pd)
+        fm = ForwardModel(pd)
         fm.bend = bend
         t = fm.solve(truth, fin["g"], W2)
         parts.append(f"{name} from true directions {ratio(t['M']):.2f}x cost {t['cost']:.3g}")
