@@ -124,7 +124,6 @@ def payload_rigs():
     return out
 
 
-@pytest.mark.xdist_group("forward_payload_rigs")
 def test_payload_rigs_within_oracle_and_least_squares(payload_rigs):
     """Simulated robot-held payload rigs (the 40 of ``payload_rigs``), one reading per pose, 4
     known loads: the joint fit is within 1.2x of the same model fitted from the true directions
@@ -138,7 +137,6 @@ def test_payload_rigs_within_oracle_and_least_squares(payload_rigs):
     assert np.percentile(ratios, 95) <= 1.5
 
 
-@pytest.mark.xdist_group("forward_payload_rigs")
 def test_predicted_error_interval_covers_the_heldout_error(payload_rigs):
     """On simulated payload rigs (the 40 of ``payload_rigs``) the measured held-out error lies
     in the predicted 95 % interval (the printed one, ``INTERVAL_COVERAGE``) for at least 35 of
