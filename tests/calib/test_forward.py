@@ -282,7 +282,7 @@ def test_stated_load_accuracy_widens_the_interval_to_cover_kinematic_errors():
     them as exact misses many held-out errors measured against them; stating their accuracy
     (``load_sd``, the per-component error 0.5 deg gives; ``known_sigma`` of the joint route)
     brings the coverage back near 90 % (at least 70 % of 24, against at most 60 % without: a
-    90 % interval covers 14 or fewer of 24 with probability 1e-4). Measured (stop 53, the
+    90 % interval covers 14 or fewer of 24 with probability 1e-4). Measured (the
     variances' degrees of freedom as the rounds give them): 19 and 13 of 24."""
     n, inside_exact, inside_stated = 24, 0, 0
     for seed in range(n):

@@ -1,4 +1,4 @@
-"""Readings far from the fitted model in a log of single readings (stop 67): a spike, a glitch,
+"""Readings far from the fitted model in a log of single readings: a spike, a glitch,
 a known load stated for another reading.
 
 Found on payload rigs with one reading of all channels 30 noise standard deviations off: on one
