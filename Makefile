@@ -29,12 +29,14 @@ demo: $(STAMP)
 # state, and a Ray head started from an xdist worker does not answer), their output held back and
 # printed after the others'. Mostly waiting on Ray's start-up, they cost the others little: 385 s
 # for both against 368 + 70 s one after the other. Fails if either part fails. The 25 slowest
-# tests are listed (the suite aims at ten minutes on 2 cores).
+# tests are listed (the suite aims at ten minutes on 2 cores). `--dist loadscope` keeps each test
+# module on one worker, so a module- or session-scoped fixture (the calib studies' shared fits,
+# the quick demo) is computed once, not once per worker that happens to run one of its tests.
 TEST_ENV := SDL_VIDEODRIVER=dummy MPLBACKEND=Agg OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 test: $(STAMP)
 	@log=$$(mktemp); \
 	$(TEST_ENV) $(BIN)/python -m pytest -q -p no:cacheprovider -m ray tests >$$log 2>&1 & ray=$$!; \
-	$(TEST_ENV) $(BIN)/python -m pytest -q -n 2 --durations=25 -m "not ray" tests; main=$$?; \
+	$(TEST_ENV) $(BIN)/python -m pytest -q -n 2 --dist loadscope --durations=25 -m "not ray" tests; main=$$?; \
 	wait $$ray; rayrc=$$?; \
 	echo "--- the Ray tests (run beside the others; exit $$rayrc) ---"; cat $$log; rm -f $$log; \
 	test $$main -eq 0 && test $$rayrc -eq 0

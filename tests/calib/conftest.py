@@ -11,7 +11,7 @@ import pytest
 SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def load_script():
     """``load_script("calib_real_rig")``: a script of scripts/ imported as a module."""
 

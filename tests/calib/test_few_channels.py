@@ -2,8 +2,9 @@
 do not identify each channel's variance (Ledermann's bound), and the printed interval takes
 the noise level along the load's span from the fit's radial residuals
 (:func:`calib.estimators.forward.shared_noise.range_level`). Seeds 13,000 on: never used while it
-was developed (on the development seeds 10,000-10,029 and 12,000-12,039: 4 channels 24 -> 29 of 30
-and 28 -> 40 of 40 inside the 95 % interval, 5 channels 29 -> 29 and 36 -> 37)."""
+was developed (the development rigs 10,000-10,029 and 12,000-12,039 measured, without the level ->
+with it: 4 channels 24 -> 29 of 30 and 28 -> 40 of 40 inside the 95 % interval, 5 channels 29 -> 29
+and 36 -> 37)."""
 
 import functools
 
@@ -44,20 +45,30 @@ def test_the_interval_holds_where_the_variances_are_not_identified(p, payload_jo
 
 def test_the_radial_level_is_what_brings_the_four_channel_interval_to_its_rate(monkeypatch,
                                                                                payload_joint):
-    """The same 20 four-channel rigs with the level left out (the range level of the shared noise):
-    fewer inside, the misses below the interval (its noise too high: 17 of 20 then, 3 below;
-    20 of 20 with it), so the coverage above is the level's doing."""
+    """The same 20 four-channel rigs with the level left out (the interval as it was without
+    it): fewer inside, the misses below the interval (its noise too high: 17 of 20 then, 3
+    below; 20 of 20 with it), so the coverage above is the level's doing. The rigs without the
+    level are fitted in order and the test stops once the rigs left cannot change its outcome
+    (the verdict is that of all 20)."""
     import calib.verdict.predicted_error
 
-    def inside(res):
-        return sum(pe["interval"][0] <= e <= pe["interval"][1] for e, _, pe in res)
-
     with_level = _rigs(payload_joint, 4)
+    inside_with = sum(pe["interval"][0] <= e <= pe["interval"][1] for e, _, pe in with_level)
+    need_out = len(with_level) + 2 - inside_with  # misses without the level, at least
     monkeypatch.setattr(calib.verdict.predicted_error, "range_level", lambda pr, fit: None)
-    without = [_one(payload_joint, 13_000 + k, 4) for k in range(20)]
-    assert all(pe["range_level"] is None for _, _, pe in without)
-    assert inside(with_level) >= inside(without) + 2
-    assert sum(e < pe["interval"][0] for e, _, pe in without) >= 2
+    out = below = 0
+    for k in range(20):
+        e, _, pe = _one(payload_joint, 13_000 + k, 4)
+        assert pe["range_level"] is None
+        out += not pe["interval"][0] <= e <= pe["interval"][1]
+        below += e < pe["interval"][0]
+        left = 19 - k
+        if below >= 2 and out >= need_out:
+            break  # certain to pass
+        if below + left < 2 or out + left < need_out:
+            break  # certain to fail
+    assert out >= need_out, (inside_with, out, k + 1)
+    assert below >= 2, (below, k + 1)
 
 
 def test_identified_variances_leave_the_interval_as_it_was(payload_joint):

@@ -7,12 +7,19 @@ with a channel more than 20 % of span off accepted without a warning naming it, 
 few fits (on 200 sensors: p95 0.87x the bound, coverage 94.8 %, 0 silent, 2 % warned)."""
 
 import numpy as np
+import pytest
 
 
-def test_joint_reaches_the_bound_and_states_its_errors(monkeypatch, load_script):
+@pytest.fixture(scope="module")
+def sensors(load_script):
+    """The script and its ``one`` of the 24 sensors (seeds 1000-1023) both tests below read,
+    every route fitted once."""
     mod = load_script("calib_low_signal")
-    monkeypatch.setattr(mod, "ROUTES", ("joint",))
-    res = [mod.one(seed) for seed in range(1000, 1024)]
+    return mod, [mod.one(seed) for seed in range(1000, 1024)]
+
+
+def test_joint_reaches_the_bound_and_states_its_errors(sensors):
+    _, res = sensors
     bound = np.concatenate([r["bound"] for r in res])
     fits = [r["joint"] for r in res if r["joint"] is not None]
     assert len(fits) == len(res)
@@ -24,9 +31,8 @@ def test_joint_reaches_the_bound_and_states_its_errors(monkeypatch, load_script)
     assert np.mean([f["warned"] for f in fits]) <= 0.25
 
 
-def test_the_table_reports_every_route(load_script):
-    mod = load_script("calib_low_signal")
-    res = [mod.one(seed) for seed in range(1100, 1103)]
+def test_the_table_reports_every_route(sensors):
+    mod, res = sensors
     text = mod.table(res)
     for name in ("Cramer-Rao bound", "joint", "centered", "paper"):
         assert f"| {name} |" in text

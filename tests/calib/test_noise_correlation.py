@@ -247,9 +247,9 @@ def test_the_complement_test_is_calibrated_and_finds_mixed_gauges():
             corr = noise_correlation(pr, fit_forward(pr, random_starts=2))
         missed += corr["p_gamma"] > CORRELATION_ALPHA  # the regression alone: not found
         assert corr["p_complement"] < CORRELATION_ALPHA / 2 and corr["used"], corr
-    # with the start weights that regress each channel on every other the regression finds 518's and
-    # 539's (p = 0.0005, 0.003); it misses 531's and 534's (p = 0.20, 0.019), which the complement
-    # finds at 3e-8 and 8e-8
+    # with the earlier start weights the regression finds 518's and 539's (p = 0.0005,
+    # 0.003); it misses 531's and 534's (p = 0.20, 0.019), which the complement finds at 3e-8
+    # and 8e-8
     assert missed >= 2
 
 
@@ -356,8 +356,10 @@ def test_the_interval_holds_most_gauge_mixed_fits():
     held-out error lies in the predicted 95 % interval (the printed one) for at least 19 of 24
     fits (79 %): on the 120 development rigs 10,500-10,619 it held 92.5 % (the 90 % interval
     89.2 %), and a 92.5 % rate gives 18 or fewer of 24 with probability 0.007. Seeds used for
-    nothing else (24 of 24 with the 95 % interval; a 90 % interval held 82 % of the development
-    rigs 500-539)."""
+    nothing else (24 of 24 when the interval became 95 %; an earlier 90 % one held 82 % of the
+    development rigs 500-539). The rigs are taken in order and the test stops once the rigs
+    left cannot change its outcome (each could be unpredicted, inside or outside): the verdict is
+    that of all 24."""
     inside = predicted = 0
     for seed in range(24):
         rig = simulate_payload_rig(3_000 + seed, poses=80, wrench=True, gauges=8)
@@ -367,12 +369,16 @@ def test_the_interval_holds_most_gauge_mixed_fits():
             warnings.simplefilter("ignore")
             cal = fit_joint(Z, Z[kn], M[tr][kn], 3, known_samples=1)
         pe = cal.diagnostics["joint"].get("predicted_error")
-        if pe is None:
-            continue
-        predicted += 1
-        lo, hi = pe["interval"]
-        inside += lo <= _err(rig, te, M, cal.C, cal.offset) <= hi
-    assert predicted >= 20 and inside >= 0.79 * predicted, (inside, predicted)
+        if pe is not None:
+            predicted += 1
+            lo, hi = pe["interval"]
+            inside += lo <= _err(rig, te, M, cal.C, cal.offset) <= hi
+        left = 23 - seed
+        if predicted >= 20 and inside >= 0.79 * (predicted + left):
+            break  # certain to pass: even every rig left predicted and outside
+        if predicted + left < 20 or inside + left < 0.79 * (predicted + left):
+            break  # certain to fail: even every rig left predicted and inside
+    assert predicted >= 20 and inside >= 0.79 * predicted, (inside, predicted, seed + 1)
 
 
 def test_the_rounds_take_out_a_shared_part_the_directions_mostly_absorb():

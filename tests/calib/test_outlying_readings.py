@@ -11,6 +11,7 @@ them, refuses the fit where a flagged known reading moves it by more than its ow
 error (``calib.verdict.reliability.KNOWN_INFLUENCE_MAX``), and with ``robust=True`` leaves them out.
 """
 
+import functools
 import json
 import warnings
 
@@ -53,6 +54,15 @@ def _fit(Z, Mt, kn, **kw):
     return cal, [str(w.message) for w in caught]
 
 
+@functools.cache
+def _spiked(seed, where, robust=False):
+    """``_rig(seed, where)`` and ``_fit`` of it (with ``robust``), computed once for the tests
+    that read the same spiked rig: (the ``_rig`` tuple, the calibration, its warnings)."""
+    r = _rig(seed, where)
+    Z, Mt, kn = r[:3]
+    return r, *_fit(Z, Mt, kn, robust=robust)
+
+
 def _fit_argv(tmp_path, Z, Mt, kn):
     """``calib fit --method joint`` on ``Z`` written as a CSV, the rows ``kn`` its known loads."""
     ch = [f"g{i}" for i in range(Z.shape[1])]
@@ -88,8 +98,7 @@ def test_a_spike_on_a_known_reading_is_never_written_far_beyond_least_squares():
     within 1.5x of least squares (measured 0.85-1.32x)."""
     named = 0
     for seed in range(33_010, 33_016):
-        Z, Mt, kn, Zte, Mte, row = _rig(seed, "known")
-        cal, said = _fit(Z, Mt, kn)
+        (Z, Mt, kn, Zte, Mte, row), cal, said = _spiked(seed, "known")
         ls = fit_least_squares(Z, Mt, bias=True)
         ratio = rms(cal.apply(Zte) - Mte) / rms(ls.apply(Zte) - Mte)
         o = cal.diagnostics["joint"]["outlying_readings"]
@@ -99,7 +108,7 @@ def test_a_spike_on_a_known_reading_is_never_written_far_beyond_least_squares():
             assert any(f"known load(s) {k} (counted from 0)" in s for s in said)
         assert assess(cal, Z[kn], Mt[kn]) or ratio <= 3.0, (seed, ratio)
         if list(o["known"]) == [k]:
-            rob, _ = _fit(Z, Mt, kn, robust=True)
+            _, rob, _ = _spiked(seed, "known", robust=True)
             assert rms(rob.apply(Zte) - Mte) <= 1.5 * rms(ls.apply(Zte) - Mte), seed
             assert rob.diagnostics["joint"]["outlier_known_rejected"] == [k]
             assert rob.diagnostics["joint"]["n_known"] == 3
@@ -112,8 +121,7 @@ def test_a_known_reading_that_barely_moves_the_fit_is_told_not_refused(monkeypat
     limit is raised past the measured influence, and the same fit passes."""
     import calib.verdict.reliability as reliability
 
-    Z, Mt, kn, *_ = _rig(33_010, "known")
-    cal, _ = _fit(Z, Mt, kn)
+    (Z, Mt, kn, *_), cal, _ = _spiked(33_010, "known")
     infl = cal.diagnostics["joint"]["outlying_readings"]["known_influence"]
     assert infl > reliability.KNOWN_INFLUENCE_MAX
     assert any("known load" in r for r in assess(cal, Z[kn], Mt[kn]))
@@ -122,8 +130,7 @@ def test_a_known_reading_that_barely_moves_the_fit_is_told_not_refused(monkeypat
 
 
 def test_a_spike_on_an_unknown_reading_is_named_by_its_row_and_left_out_when_asked():
-    Z, Mt, kn, Zte, Mte, row = _rig(33_020, "unknown")
-    cal, said = _fit(Z, Mt, kn)
+    (Z, Mt, kn, Zte, Mte, row), cal, said = _spiked(33_020, "unknown")
     o = cal.diagnostics["joint"]["outlying_readings"]
     assert list(o["rows"]) == [row] and len(o["known"]) == 0
     assert any(f"row(s) {row}, counted from 0" in s for s in said)
@@ -210,8 +217,7 @@ def test_where_readings_are_flagged_the_error_has_no_stated_upper_end(tmp_path, 
     """The predicted error counts noise, not spikes: where unknown readings are flagged its upper
     end is withdrawn (the interval held 1 of 4 spiked sweeps) and the lower end kept, and
     ``calib fit`` says why; with ``--robust`` the interval is stated again."""
-    Z, Mt, kn, Zte, Mte, row = _rig(33_020, "unknown")
-    cal, _ = _fit(Z, Mt, kn)
+    (Z, Mt, kn, Zte, Mte, row), cal, _ = _spiked(33_020, "unknown")
     pe = cal.diagnostics["joint"]["predicted_error"]
     assert pe["upper_bounded"] is False and pe["interval"][1] == np.inf
     assert pe["no_upper_end_because"] == "readings far from the model"
@@ -234,8 +240,7 @@ def test_where_readings_are_flagged_the_error_has_no_stated_upper_end(tmp_path, 
 def test_a_flagged_known_reading_with_no_known_load_to_spare_refuses(tmp_path):
     """3 known loads, one of them spiked: it cannot be left out (the fit needs 3), so there is
     nothing to weigh it against: refused, with robust or not, and no endless refitting."""
-    Z, Mt, kn4, *_ = _rig(33_010, "known")
-    cal4, _ = _fit(Z, Mt, kn4)
+    (Z, Mt, kn4, *_), cal4, _ = _spiked(33_010, "known")
     k = int(cal4.diagnostics["joint"]["outlying_readings"]["known"][0])
     kn = np.r_[kn4[k], np.delete(kn4, k)[:2]]  # the spiked one and two others
     for robust in (False, True):

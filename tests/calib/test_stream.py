@@ -220,8 +220,11 @@ def test_cli_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, bias):
     assert outs[1]["channels"] == CH and outs[1]["diagnostics"]["n_samples"] == N
 
 
-def test_joint_stream_equal_in_memory(data, csv_path):
-    # 4 known pairs: noise-free readings of known loads (the trial's own shape and offsets)
+@pytest.fixture(scope="module")
+def joint_ref(data):
+    """4 known pairs (noise-free readings of known loads: the trial's own shape and offsets) and
+    the in-memory joint fit with them, which the streamed and the CLI's chunked fits below are
+    held to."""
     from calib import fit_joint
     from calib.simulation.simulate import (
         PAPER_FORCE_MAGNITUDE,
@@ -231,8 +234,20 @@ def test_joint_stream_equal_in_memory(data, csv_path):
 
     Mk = PAPER_FORCE_MAGNITUDE * sample_directions(4, 3, np.random.default_rng(1))
     Zk = Mk @ paper_shape_matrix() + data.offset
-    ref, csv, dsk = fits(lambda z, **kw: fit_joint(z, Zk, Mk, **kw), data.Z, csv_path,
-                         known_samples=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)
+        return Zk, Mk, fit_joint(data.Z, Zk, Mk, known_samples=1)
+
+
+def test_joint_stream_equal_in_memory(data, csv_path, joint_ref):
+    from calib import fit_joint
+
+    da = pytest.importorskip("dask.array")
+    Zk, Mk, ref = joint_ref
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)
+        csv = fit_joint(CSVSource(str(csv_path), CHUNK), Zk, Mk, known_samples=1)
+        dsk = fit_joint(da.from_array(data.Z, chunks=(10_007, 5)), Zk, Mk, known_samples=1)
     for cal in (csv, dsk):
         assert close(ref.C, cal.C) and close(ref.offset, cal.offset)
         assert cal.diagnostics["n_samples"] == N
@@ -257,26 +272,19 @@ def test_cli_chunk_rows_errors(tmp_path, capsys, csv_path):
     assert code == 2 and err.count("\n") == 1 and not out.exists()
 
 
-def test_cli_joint_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, data):
-    from calib.simulation.simulate import (
-        PAPER_FORCE_MAGNITUDE,
-        paper_shape_matrix,
-        sample_directions,
-    )
-
-    Mk = PAPER_FORCE_MAGNITUDE * sample_directions(4, 3, np.random.default_rng(2))
-    write_csv(tmp_path / "known.csv", CH + ["Fx", "Fy", "Fz"],
-              np.hstack([Mk @ paper_shape_matrix() + data.offset, Mk]))
-    outs = []
-    for extra in ([], ["--chunk-rows", 9_999]):
-        out = tmp_path / f"cal{len(extra)}.json"
-        code, _, err = run(["fit", csv_path, "--dof", 3, "--bias", "--method", "joint",
-                            "--known", tmp_path / "known.csv", "--known-samples", 1, *extra,
-                            "--out", out], capsys)
-        assert code == 0, err
-        outs.append(json.loads(out.read_text()))
-    assert close(outs[0]["C"], outs[1]["C"]) and close(outs[0]["offset"], outs[1]["offset"])
-    assert outs[1]["method"] == "joint"
+def test_cli_joint_chunk_rows_equals_in_memory(tmp_path, capsys, csv_path, joint_ref):
+    """``calib fit --method joint --chunk-rows`` writes the in-memory joint fit of the same log
+    and known pairs (the CSV holds every value to the bit)."""
+    Zk, Mk, ref = joint_ref
+    write_csv(tmp_path / "known.csv", CH + ["Fx", "Fy", "Fz"], np.hstack([Zk, Mk]))
+    out = tmp_path / "cal.json"
+    code, _, err = run(["fit", csv_path, "--dof", 3, "--bias", "--method", "joint",
+                        "--known", tmp_path / "known.csv", "--known-samples", 1,
+                        "--chunk-rows", 9_999, "--out", out], capsys)
+    assert code == 0, err
+    saved = json.loads(out.read_text())
+    assert close(ref.C, saved["C"]) and close(ref.offset, saved["offset"])
+    assert saved["method"] == "joint"
 
 
 def test_ft6_stream_equal_in_memory(tmp_path):
