@@ -41,7 +41,10 @@ LABELS = RUNNABLE | {"text"}
 # (pattern, replacement, why): applied to blocks marked quick, in this order.
 QUICK = [
     (r"--episodes (\d{2,})", "--episodes 2", "episodes: 2, not tens to 10,000"),
-    (r"--steps \d+ --rounds \d+", "--steps 600 --rounds 2", "DAgger: 600 steps in 2 rounds"),
+    (r"--steps \d+ --rounds \d+", "--steps 600 --rounds 2 --min-updates 50",
+     "DAgger: 600 steps in 2 rounds, 50 minibatch updates per refit instead of 1,000"),
+    (r"(mkv train-bc[^\n#]*?--out \S+)", r"\1 --min-updates 50",
+     "BC: 50 minibatch updates instead of 1,000 (the zip it writes is the same kind)"),
     (r"(mkv train-ppo[^\n#]*?--out \S+)", r"\1 --timesteps 256 --n-envs 2 --eval-episodes 1",
      "PPO: one short rollout instead of 500k steps"),
     (r"\.learn\(100_000\)", ".learn(256)", "SB3 PPO: one rollout"),
@@ -50,7 +53,7 @@ QUICK = [
      "SB3 PPO: 2 envs x 128 steps per rollout instead of 16 x 2048"),
     (r"\n\s*mkv teleop[^\n]*", "",
      "teleop needs a keyboard and a window: tests/mkv_env/test_teleop.py"),
-    (r"--workers 2 --json", "--workers 1 --json", "one worker (the suite already uses the cores)"),
+    (r"--workers 2\b", "--workers 1", "one worker (the suite already uses the cores)"),
     (r"calib trials --out (\S+)", r"calib trials --out \1 --seeds 3 --quiet", "3 seeds, not 200"),
     (r"python scripts/sfm_study.py", "python scripts/sfm_study.py --quick --workers 1 --sets 1",
      "one training set, few episodes"),
@@ -58,10 +61,12 @@ QUICK = [
 
 
 def _quick_sweep(scratch: pathlib.Path) -> None:
-    """sweeps/sample_efficiency.yml cut to one seed, two learners, one budget, 2 episodes."""
+    """sweeps/sample_efficiency.yml cut to one seed, two learners, one budget, 2 episodes, BC
+    fitted with 50 minibatch updates instead of 1,000."""
     spec = yaml.safe_load((ROOT / "sweeps" / "sample_efficiency.yml").read_text())
     spec.update(env=["MKVJam-v1"], seeds=[0], eval={"episodes": 2, "seed": spec["eval"]["seed"]})
     spec["learners"] = {k: spec["learners"][k] for k in ("sfm", "bc")}
+    spec["learners"]["bc"] = {**spec["learners"]["bc"], "min_updates": 50}
     spec["budgets"] = {"sfm": [600], "bc": [600]}
     (scratch / "sweeps").mkdir(exist_ok=True)
     (scratch / "sweeps" / "sample_efficiency.yml").write_text(yaml.safe_dump(spec))

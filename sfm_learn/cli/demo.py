@@ -54,6 +54,9 @@ class Budget:
     held_seed: int = 500
     episode_steps: int | None = None  # None: the env's default (600 steps = 60 s)
     bc_epochs: int = 30
+    min_updates: int | None = None
+    """At least this many minibatch updates per BC and DAgger fit (None: the commands' default,
+    1,000: more epochs on small data)."""
     dagger_rounds: int = 4
     ppo_timesteps: int = 150_000
     """Per PPO run (one on each v1 reward); the sweep uses up to 1,000,000 and 5 seeds."""
@@ -74,7 +77,7 @@ class Budget:
 
 
 QUICK = Budget(train_sets=2, train_episodes=3, held_episodes=1, episode_steps=120, bc_epochs=2,
-               dagger_rounds=2,
+               min_updates=50, dagger_rounds=2,
                ppo_timesteps=1024, ppo_eval_episodes=2, jam_episodes=6, wander_episodes=2,
                study_jam_episodes=4, study_wander_episodes=1, rank_study_ranks=(1, 8, 32),
                calib_seeds=2, workers=2)
@@ -313,28 +316,31 @@ def _run(args, out: str, final: str) -> None:
             "sfm_learn.evaluation.study.run_study (standalone: python scripts/sfm_study.py)",
             run_studies)
 
+    updates = [] if b.min_updates is None else ["--min-updates", str(b.min_updates)]
+    shown_updates = "".join(f" {a}" for a in updates)
+
     def bc_sets():
 
         each(lambda k: mkv(["train-bc", trains[k], "--out", bc[k], "--epochs",
-                             str(b.bc_epochs), "--seed", str(b.train_seed), "--held-out", "0",
-                             "--quiet"]))
+                             str(b.bc_epochs), *updates, "--seed", str(b.train_seed),
+                             "--held-out", "0", "--quiet"]))
 
     st.call("behaviour cloning on every training set",
             f"mkv train-bc data/teacher_train_K.npz --out policies/bc_K.zip --epochs "
-            f"{b.bc_epochs} --held-out 0", bc_sets)
+            f"{b.bc_epochs}{shown_updates} --held-out 0", bc_sets)
     steps_per_set = b.train_episodes * (b.episode_steps or 600)
 
     def dagger_sets():
 
         each(lambda k: mkv(["train-dagger", "--env", TEACHER_ENV, *env_kwargs, "--steps",
                              str(steps_per_set), "--rounds", str(b.dagger_rounds), "--seed",
-                             str(b.train_seeds()[k]), "--epochs", str(b.bc_epochs), "--out",
-                             dagger[k], "--quiet"]))
+                             str(b.train_seeds()[k]), "--epochs", str(b.bc_epochs), *updates,
+                             "--out", dagger[k], "--quiet"]))
 
     st.call("DAgger with the same teacher budget on every training seed",
             f"mkv train-dagger --env {TEACHER_ENV} --steps {steps_per_set} --rounds "
-            f"{b.dagger_rounds} --seed S --epochs {b.bc_epochs} --out policies/dagger_K.zip",
-            dagger_sets)
+            f"{b.dagger_rounds} --seed S --epochs {b.bc_epochs}{shown_updates} "
+            "--out policies/dagger_K.zip", dagger_sets)
     for env_id in (JAM_ENV, WANDER_ENV):
         st.mkv(f"PPO on the {env_id} reward (one seed, reduced budget)", [
             "train-ppo", "--env", env_id, "--timesteps", b.ppo_timesteps, "--out", ppo[env_id],

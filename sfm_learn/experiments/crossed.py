@@ -39,6 +39,8 @@ design finds with 80 % power at that level.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +54,37 @@ MIN_BANKS_AS_LEVEL = 3
 ALPHA = 0.05
 #: The power at which :func:`min_detectable_effect` states the smallest detectable difference.
 POWER = 0.8
+
+
+#: Results of :func:`level` and :func:`paired` already computed in this process, keyed by a
+#: digest of every input (the bootstraps are seeded, so equal inputs give equal results): the
+#: claims tables and sentences state the same levels and pairs, and ``mkv demo`` prints both.
+_MEMO: OrderedDict = OrderedDict()
+_MEMO_SIZE = 512
+
+
+def _digest(*parts) -> bytes:
+    h = hashlib.blake2b(digest_size=20)
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            a = np.ascontiguousarray(part)
+            h.update(repr((a.dtype.str, a.shape)).encode())
+            h.update(a.tobytes())
+        else:
+            h.update(repr(part).encode())
+        h.update(b"\0")
+    return h.digest()
+
+
+def _memo(key: bytes, compute):
+    if key in _MEMO:
+        _MEMO.move_to_end(key)
+        return _MEMO[key]
+    value = compute()
+    _MEMO[key] = value
+    if len(_MEMO) > _MEMO_SIZE:
+        _MEMO.popitem(last=False)
+    return value
 
 
 @dataclass(frozen=True)
@@ -191,6 +224,11 @@ def level(out: Outcomes, seed: int = 0, resamples: int = RESAMPLES,
     interval (at ``confidence``), ``replication`` the interval a rerun of one bank (as many new
     training sets, a new bank of one bank's episodes) lands in, simultaneous over ``family``
     levels (Bonferroni: each at ``1 - (1 - confidence) / family``)."""
+    key = _digest("level", out.sets, out.values, out.banks, seed, resamples, confidence, family)
+    return dict(_memo(key, lambda: _level(out, seed, resamples, confidence, family)))
+
+
+def _level(out: Outcomes, seed: int, resamples: int, confidence: float, family: int) -> dict:
     draws = crossed_bootstrap(out.values, out.banks, seed, resamples)
     rep_level = 1 - (1 - confidence) / max(family, 1)
     # enough draws that each tail of the replication interval holds about 50 of them
@@ -204,6 +242,13 @@ def level(out: Outcomes, seed: int = 0, resamples: int = RESAMPLES,
 def paired(a: Outcomes, b: Outcomes, seed: int = 0, resamples: int = RESAMPLES) -> dict | None:
     """``a - b`` over their common training sets and the shared episodes: mean, bootstrap draws,
     two-sided percentile-bootstrap p-value and standard error; None without a common set."""
+    key = _digest("paired", a.sets, a.values, a.banks, b.sets, b.values, b.banks, seed,
+                  resamples)
+    r = _memo(key, lambda: _paired(a, b, seed, resamples))
+    return None if r is None else {**r, "draws": r["draws"].copy()}
+
+
+def _paired(a: Outcomes, b: Outcomes, seed: int, resamples: int) -> dict | None:
     va, vb = a.common(b)
     if len(va) == 0:
         return None

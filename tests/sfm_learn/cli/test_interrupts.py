@@ -30,13 +30,19 @@ SWEEP = {"name": "interrupt", "teacher_env": "MKV-v1", "env": ["MKVJam-v1"],
          "learners": {"sfm": {}}, "budgets": {"sfm": [20_000]}}
 
 
-def _commands(tmp):
-    """name -> (python -c program, argv, the output it must not leave)."""
-    raw = tmp / "raw.csv"
+@pytest.fixture(scope="module")
+def raw_csv(tmp_path_factory):
+    """A 300,000-row calib log for ``calib fit`` to stream (written once: a second of CPU)."""
+    raw = tmp_path_factory.mktemp("interrupts") / "raw.csv"
     rng = np.random.default_rng(0)
     Z = rng.normal(size=(300_000, 8))
     np.savetxt(raw, Z, delimiter=",", header=",".join(f"z{i}" for i in range(8)),
                comments="", fmt="%.6f")
+    return raw
+
+
+def _commands(tmp, raw):
+    """name -> (python -c program, argv, the output it must not leave)."""
     (tmp / "spec.json").write_text(json.dumps(SWEEP))
     jam = ["--env", "MKVJam-v1"]
     data = tmp / "teacher.npz"
@@ -77,10 +83,11 @@ def _cpu(proc):
 @pytest.mark.parametrize("name", ["mkv eval", "mkv sweep", "mkv record", "mkv train-ppo",
                                   "mkv train-bc", "mkv train-dagger", "mkv demo", "calib fit",
                                   "calib trials"])
-def test_ctrl_c_is_one_line_exit_130_nothing_written_no_process_left(name, to, tmp_path):
+def test_ctrl_c_is_one_line_exit_130_nothing_written_no_process_left(name, to, tmp_path,
+                                                                     raw_csv):
     if name in ("mkv train-ppo", "mkv train-bc", "mkv train-dagger", "mkv demo"):
         pytest.importorskip("stable_baselines3")
-    prog, argv, output = _commands(tmp_path)[name]
+    prog, argv, output = _commands(tmp_path, raw_csv)[name]
     if name == "mkv train-bc":  # a small teacher dataset to clone from
         from mkv_env import dataset as ds
         from mkv_env.recorder import record

@@ -189,3 +189,34 @@ def test_counts_are_add_at_of_ones(resamples, n, k, seed):
     pooled = crossed._counts([rows, rows[:1]], [cols, cols[:1]], (resamples, n))
     np.add.at(expected, (rows[:1], cols[:1]), 1.0)
     np.testing.assert_array_equal(pooled, expected)
+
+
+def test_a_remembered_level_or_pair_is_the_computed_one_and_a_copy():
+    """level and paired remember results by their inputs: a repeat returns what computing gives
+    (a changed value, seed or family is not served from memory), and changing a returned result
+    changes no later one."""
+    rng = np.random.default_rng(3)
+    vals = rng.binomial(1, 0.7, size=(6, 30)).astype(float)
+    banks = np.repeat(np.arange(3), 10)
+    out = crossed.Outcomes(tuple(range(6)), vals, banks)
+    first = crossed.level(out, seed=1)
+    assert first == crossed._level(out, 1, crossed.RESAMPLES, 1 - crossed.ALPHA, 1)
+    first["ci"] = None
+    assert crossed.level(out, seed=1)["ci"] is not None
+    assert crossed.level(out, seed=2) == crossed._level(out, 2, crossed.RESAMPLES,
+                                                       1 - crossed.ALPHA, 1)
+    assert crossed.level(out, seed=1, family=5)["replication"] != \
+        crossed.level(out, seed=1)["replication"]
+    other = vals.copy()
+    other[0, 0] = 1 - other[0, 0]
+    changed = crossed.Outcomes(tuple(range(6)), other, banks)
+    assert crossed.level(changed, seed=1)["mean"] == other.mean() != first["mean"]
+    b = crossed.Outcomes(tuple(range(6)), rng.binomial(1, 0.5, size=(6, 30)).astype(float),
+                         banks)
+    p = crossed.paired(out, b, seed=4)
+    fresh = crossed._paired(out, b, 4, crossed.RESAMPLES)
+    assert {k: v for k, v in p.items() if k != "draws"} == \
+        {k: v for k, v in fresh.items() if k != "draws"}
+    np.testing.assert_array_equal(p["draws"], fresh["draws"])
+    p["draws"][:] = 99.0
+    assert not np.any(crossed.paired(out, b, seed=4)["draws"] == 99.0)
