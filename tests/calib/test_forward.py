@@ -3,6 +3,7 @@ without static
 poses: noise-free recovery, the optimum reached, equivariance to units/order/offsets, the oracle
 ratio and the coverage of the predicted held-out error."""
 
+import functools
 import warnings
 from types import SimpleNamespace
 
@@ -99,53 +100,58 @@ def _joint(Z, Zk, Mk):
 # equivariance to units, order, offsets and a redundant channel, every route: test_equivariance.py
 
 
-@pytest.fixture(scope="module")
-def payload_rigs():
-    """The 40 default payload rigs (seeds 500-539, 60 poses, one reading each, 4 known loads)
-    the oracle and interval tests below share, each fitted once by the joint route. Per rig a
-    namespace: ``cal`` and its held-out error ``e``; ``e_ls``, least squares' with every load
-    known; ``e_or``, the oracle's (the same model fitted from the true directions); ``Zk, Mk``
-    (the known pairs)."""
-    out = []
-    for seed in range(40):
-        d, Z, M, known, Zt, Mt = _payload_split(500 + seed, poses=60)
-        cal = _joint(Z, Z[known], M[known])
-        pr = Problem(np.vstack([Z]), None, None, known, M[known], magnitude=d.magnitude)
-        U = M[pr.unknown] / np.linalg.norm(M[pr.unknown], axis=1, keepdims=True)
-        o = fit_forward(pr, only={"truth": U})
-        C = gls_inverse(o["A"], o["v"])
-        out.append(SimpleNamespace(
-            cal=cal, e=_heldout(cal, Zt, Mt),
-            e_ls=_heldout(fit_least_squares(Z, M, bias=True), Zt, Mt),
-            e_or=float(np.sqrt(np.mean(np.sum(((Zt - o["o"]) @ C.T - Mt) ** 2, axis=1)))),
-            Zk=Z[known], Mk=M[known]))
-    return out
+@functools.cache
+def _payload_rig(seed):
+    """A default payload rig (60 poses, one reading each, 4 known loads) fitted once by the
+    joint route, for the oracle and interval tests below (seeds 500-539): a namespace of
+    ``cal`` and its held-out error ``e``; ``e_ls``, least squares' with every load known;
+    ``e_or``, the oracle's (the same model fitted from the true directions); ``Zk, Mk`` (the
+    known pairs)."""
+    d, Z, M, known, Zt, Mt = _payload_split(seed, poses=60)
+    cal = _joint(Z, Z[known], M[known])
+    pr = Problem(np.vstack([Z]), None, None, known, M[known], magnitude=d.magnitude)
+    U = M[pr.unknown] / np.linalg.norm(M[pr.unknown], axis=1, keepdims=True)
+    o = fit_forward(pr, only={"truth": U})
+    C = gls_inverse(o["A"], o["v"])
+    return SimpleNamespace(
+        cal=cal, e=_heldout(cal, Zt, Mt),
+        e_ls=_heldout(fit_least_squares(Z, M, bias=True), Zt, Mt),
+        e_or=float(np.sqrt(np.mean(np.sum(((Zt - o["o"]) @ C.T - Mt) ** 2, axis=1)))),
+        Zk=Z[known], Mk=M[known])
 
 
-def test_payload_rigs_within_oracle_and_least_squares(payload_rigs):
-    """Simulated robot-held payload rigs (the 40 of ``payload_rigs``), one reading per pose, 4
-    known loads: the joint fit is within 1.2x of the same model fitted from the true directions
-    (median over rigs; 95th percentile within 1.5x), never beyond 3x least squares with every
-    load known with a 'reliable' verdict."""
-    ratios = [r.e / r.e_or for r in payload_rigs]
-    for seed, r in enumerate(payload_rigs):
+def test_payload_rigs_within_oracle_and_least_squares():
+    """Simulated robot-held payload rigs (30: seeds 500-529, which the interval test below
+    shares), one reading per pose, 4 known loads: the joint fit is within 1.2x of the same
+    model fitted from the true directions (median over rigs; 95th percentile within 1.5x),
+    never beyond 3x least squares with every load known with a 'reliable' verdict."""
+    rigs = [_payload_rig(500 + k) for k in range(30)]
+    ratios = [r.e / r.e_or for r in rigs]
+    for k, r in enumerate(rigs):
         if r.e / r.e_ls > 3:
-            assert assess(r.cal, r.Zk, r.Mk), f"rig {500 + seed}: {r.e / r.e_ls:.2f}x passed"
+            assert assess(r.cal, r.Zk, r.Mk), f"rig {500 + k}: {r.e / r.e_ls:.2f}x passed"
     assert np.median(ratios) <= 1.2
     assert np.percentile(ratios, 95) <= 1.5
 
 
-def test_predicted_error_interval_covers_the_heldout_error(payload_rigs):
-    """On simulated payload rigs (the 40 of ``payload_rigs``) the measured held-out error lies
-    in the predicted 95 % interval (the printed one, ``INTERVAL_COVERAGE``) for at least 35 of
-    40 fits: a calibrated 95 % interval covers 34 or fewer with probability 0.014."""
-    inside = 0
-    for r in payload_rigs:
+def test_predicted_error_interval_covers_the_heldout_error():
+    """On simulated payload rigs (seeds 500-539; the first 30 shared with the oracle test) the
+    measured held-out error lies in the predicted 95 % interval (the printed one,
+    ``INTERVAL_COVERAGE``) for at least 35 of 40 fits: a calibrated 95 % interval covers 34 or
+    fewer with probability 0.014. The rigs are taken in order and the test stops once the
+    verdict is certain (35 inside, or 6 outside): the verdict is that of all 40."""
+    inside = outside = 0
+    for k in range(40):
+        r = _payload_rig(500 + k)
         pe = r.cal.diagnostics["joint"]["predicted_error"]
         assert pe["coverage"] == 0.95
         lo, hi = pe["interval"]
-        inside += lo <= r.e <= hi
-    assert inside >= 35, inside
+        ok = lo <= r.e <= hi
+        inside += ok
+        outside += not ok
+        if inside >= 35 or outside >= 6:
+            break
+    assert inside >= 35, (inside, k + 1)
 
 
 def _payload_truth(seed, poses=80):
