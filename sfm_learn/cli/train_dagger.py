@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import argparse
 
+from sfm_learn.baselines import dagger
 from sfm_learn.baselines.bc import MIN_UPDATES
-from sfm_learn.baselines.dagger import DEFAULTS, check_budget, save, train
+from sfm_learn.baselines.dagger import DEFAULTS, check_budget, save
 from sfm_learn.cli.common import (
     CliError,
     add_env_arguments,
@@ -72,9 +73,11 @@ def run(args) -> int:
                           f"({info['episodes']} episodes), teacher agreed with "
                           f"{info['agreement']:.3f}; refit on {info['total_rows']} rows")
         try:
-            policy, meta = train(args.env, args.steps, rounds=args.rounds, seed=args.seed,
-                                 env_kwargs=args.env_kwargs, epochs=args.epochs, lr=args.lr,
-                                 on_round=on_round, min_updates=args.min_updates)
+            # through the module: a test's monkeypatch of dagger.train is seen and never kept
+            policy, meta = dagger.train(args.env, args.steps, rounds=args.rounds, seed=args.seed,
+                                        env_kwargs=args.env_kwargs, epochs=args.epochs,
+                                        lr=args.lr, on_round=on_round,
+                                        min_updates=args.min_updates)
         except ValueError as e:
             raise CliError(one_line(e)) from None
     save(policy, meta, args.out)
