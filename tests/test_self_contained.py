@@ -1,7 +1,7 @@
 """The repository carries what it cites and speaks of itself as it is: no file points at a
 tracker number or at a document outside the project (the architecture notes the code cites live
-in docs/design.md), and none names a step of the project's development ("stop 61", "this
-stop", "an earlier session"): history lives in git log, the reasons for the design in
+in docs/design.md), and none names a step or a working session of the project's development
+(numbered, or "this" and "that" one): history lives in git log, the reasons for the design in
 docs/calib_design.md and docs/design.md."""
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUTSIDE = re.compile(r"\bissues?[- ]#?\d+\b|(?<![\w/])DESIGN\.md|\.\./shared\b"
                      r"|\bshared/(paper|data)\b", re.IGNORECASE)
-# A development step or session named: "stop 61", "stops 55-56", "stop-60", "this stop",
-# "until that stop", "an earlier session", "session 12".
+# A development step or working session named: a numbered one (also a range or hyphenated), or
+# one pointed at ("this", "that", "earlier", "previous", ...); the forms are listed in
+# test_the_pattern_catches_what_it_is_for.
 HISTORY = re.compile(r"\bstops?[- ]\d+|\b(this|that|earlier|previous|next) stop\b"
                      r"|\b(this|that|earlier|previous|next|last) session\b"
                      r"|\bsessions? [1-9]\d*\b(?!\.\d)", re.IGNORECASE)

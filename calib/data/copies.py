@@ -65,6 +65,14 @@ COMBINATION_MIN_DOF = 10
 #: every row): a log of 1e6 readings costs it as much as one of 20,000.
 #: Decision: docs/calib_design.md D5.
 COMBINATION_ROWS = 20_000
+#: The copy search's screen (:func:`_copies`): pairs whose squared correlation is below
+#: ``1 - SCREEN_SLACK`` are not copies (a copy leaves at most ``COPY_TOLERANCE`` = 1e-10 of its
+#: variance, ``r^2 >= 1 - 1e-10``; the Gram entries' rounding is about 1e-15 of their size), and
+#: :data:`SCREEN_BLOCK` channels are screened at a time (a block's Gram columns: p x 512 doubles).
+#: Decision: docs/calib_design.md D4.
+SCREEN_SLACK = 1e-6
+#: Decision: docs/calib_design.md D4.
+SCREEN_BLOCK = 512
 
 
 def _search_rows(Z: np.ndarray):
@@ -143,16 +151,6 @@ def _copies(Z: np.ndarray, search) -> list[tuple[int, int, float, float]]:
             if len(cand):
                 _first_copy(Sc, ss, Z, fin, full, d, cand, copied, found, mu)
     return found
-
-
-#: The copy search's screen (:func:`_copies`): pairs whose squared correlation is below
-#: ``1 - SCREEN_SLACK`` are not copies (a copy leaves at most ``COPY_TOLERANCE`` = 1e-10 of its
-#: variance, ``r^2 >= 1 - 1e-10``; the Gram entries' rounding is about 1e-15 of their size), and
-#: :data:`SCREEN_BLOCK` channels are screened at a time (a block's Gram columns: p x 512 doubles).
-#: Decision: docs/calib_design.md D4.
-SCREEN_SLACK = 1e-6
-#: Decision: docs/calib_design.md D4.
-SCREEN_BLOCK = 512
 
 
 def _first_copy(Sc, ss, Z, fin, full, d, cand, copied, found, mu) -> None:

@@ -163,9 +163,10 @@ def _copies_pair_by_pair(Z):
        copies=st.integers(0, 6), log_scale=st.floats(-150, 150), near=st.booleans())
 def test_the_screened_copy_search_finds_what_every_pair_finds(seed, p, n, copies, log_scale,
                                                               near):
-    """Copies planted anywhere, in any units (scales 1e-150..1e150), some of copies, some only
-    nearly copies (a perturbation of 1e-6 or 1e-4 of the spread, either side of the tolerance):
-    the screened search returns exactly what the exact test of every pair returns."""
+    """Copies planted anywhere, in any units (scales 1e-150..1e150), some copies of copies, some
+    only nearly copies (a perturbation of 1e-6 or 1e-4 of the spread, either side of the
+    tolerance, both inside the screen): the screened search returns exactly what the exact test
+    of every pair returns."""
     rng = np.random.default_rng(seed)
     Z = rng.normal(size=(n, p)) * 10.0 ** rng.uniform(-3, 3, p) * 10.0 ** log_scale
     for _ in range(copies):
