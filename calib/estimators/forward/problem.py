@@ -139,8 +139,13 @@ def sphere_minimum(b, Q):
         mid = 0.5 * (lo + hi)
         n2 = np.sum((c / (lam - mid[:, None])) ** 2, axis=1)
         big = n2 > 1
-        hi = np.where(big, mid, hi)
-        lo = np.where(big, lo, mid)
+        hi1 = np.where(big, mid, hi)
+        lo1 = np.where(big, lo, mid)
+        # a round that moves neither end is a fixed point (the round is a function of the two
+        # ends alone): the rounds left would repeat it, so stopping gives the same bits
+        if np.array_equal(lo1, lo) and np.array_equal(hi1, hi):
+            break
+        lo, hi = lo1, hi1
     x = c / (lam - lo[:, None])
     # the hard case (b orthogonal to the lowest eigenvector): |x| < 1, the rest along it
     short = np.sqrt(np.clip(1 - np.sum(x**2, axis=1), 0, None))
@@ -323,6 +328,7 @@ def _leverage(pr: Problem, W, A, U, g, S, Dinv, B) -> np.ndarray:
     u = pr.unknown
     isu = np.zeros(pr.P, bool)
     isu[u] = True
+    T = tangents(U) if len(u) else None
     # a for every row: -W_jc X_j in channel c's block (and -W_jc a_c.u_j for g, unknown poses)
     for c in range(p):
         sl = slice(c * (r + 1), (c + 1) * (r + 1))
@@ -331,7 +337,6 @@ def _leverage(pr: Problem, W, A, U, g, S, Dinv, B) -> np.ndarray:
         if pr.fit_g:
             a[u, -1] = -W[u, c] * (U @ A[c])
         if len(u):
-            T = tangents(U)
             b = -(W[u, c] * g)[:, None] * (T @ A[c])  # (nu, k)
             Db = np.einsum("jkl,jl->jk", Dinv, b)
             a[u] -= (B @ Db[:, :, None])[:, :, 0]
