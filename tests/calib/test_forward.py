@@ -501,6 +501,43 @@ def test_sphere_minimum_is_the_global_minimum(seed, r, log_scale):
     assert f(u[None])[0] <= f(G).min() + 1e-9 * (np.abs(Q).max() + np.abs(b).max())
 
 
+
+def _sphere_minimum_all_rounds(b, Q):
+    """:func:`sphere_minimum` with every one of its 100 bisection rounds run (no stop at the
+    fixed point): the reference the early stop must equal to the bit."""
+    lam, V = np.linalg.eigh(Q)
+    c = np.einsum("jab,ja->jb", V, b)
+    nb = np.maximum(np.linalg.norm(b, axis=1), 1e-300)
+    lo = lam[:, 0] - nb
+    hi = lam[:, 0] - 1e-15 * np.maximum(np.abs(lam).max(axis=1), nb)
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        big = np.sum((c / (lam - mid[:, None])) ** 2, axis=1) > 1
+        hi, lo = np.where(big, mid, hi), np.where(big, lo, mid)
+    x = c / (lam - lo[:, None])
+    short = np.sqrt(np.clip(1 - np.sum(x**2, axis=1), 0, None))
+    x[:, 0] += np.where(x[:, 0] >= 0, 1.0, -1.0) * short
+    u = np.einsum("jab,jb->ja", V, x)
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), r=st.sampled_from([2, 3]),
+       log_scale=st.floats(-6, 6), m=st.integers(1, 30), hard=st.booleans())
+def test_sphere_minimum_stops_at_its_fixed_point_with_the_same_bits(seed, r, log_scale, m,
+                                                                    hard):
+    """Stopping the bisection once a round moves neither end gives the same bits as all 100
+    rounds, on many rows at once of any scale, the hard case (b orthogonal to Q's lowest
+    eigenvector) included."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(m, 6, r)) * 10.0**log_scale
+    Q = np.einsum("jka,jkb->jab", A, A)
+    b = rng.normal(size=(m, r)) * 10.0**log_scale * rng.uniform(0, 20, size=(m, 1))
+    if hard:
+        low = np.linalg.eigh(Q)[1][:, :, 0]
+        b = b - np.sum(b * low, axis=1, keepdims=True) * low
+    assert np.array_equal(sphere_minimum(b, Q), _sphere_minimum_all_rounds(b, Q))
+
 def test_known_readings_stated_as_means_weigh_more():
     """Known readings that are not rows of the log, each the mean of 100 readings: stated as such
     (known_samples=100) they weigh 100 readings' worth and the fit follows them more closely
