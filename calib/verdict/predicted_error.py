@@ -143,6 +143,59 @@ def _sampler(cov) -> np.ndarray:
         return V * np.sqrt(np.clip(w, 0, None))
 
 
+#: Readings (draws x test readings x channels) :func:`predict_error` holds at once where the
+#: test noise is independent: its Monte Carlo runs in chunks of draws this size (8 MB a chunk).
+#: Decision: docs/calib_design.md D77.
+DRAW_CHUNK = 1_000_000
+
+
+def _independent_draws(rng, rng_lab, m, dof, bias, v, L, Lls, grow, grow_ls, level, truth,
+                       within, sd, L_lab, L_lab_ls, M, A, o, tangent):
+    """``m`` draws of :func:`predict_error`'s Monte Carlo with independent test noise: each
+    draw's random numbers taken from ``rng`` (and ``rng_lab``) in the order a draw at a time
+    takes them, the arithmetic done on all ``m`` at once. Returns the fit's and least squares'
+    errors, (m,) each."""
+    p, r1 = Lls.shape[0], Lls.shape[1]
+    r, P, nth = r1 - 1, len(M), L.shape[0]
+    S, N1, N2 = np.empty((m, p)), np.empty((m, nth)), np.empty((m, p, r1))
+    T, N3 = np.ones(m), np.empty((m, P, p))
+    if sd > 0:
+        La, Lb, LE = np.empty((m, nth)), np.empty((m, nth)), np.empty((m, P, r))
+    for j in range(m):
+        S[j] = rng.chisquare(dof) / dof * bias
+        N1[j] = rng.standard_normal(nth)
+        N2[j] = rng.standard_normal((p, r1))
+        if level is not None:
+            T[j] = level[0] * level[1] / rng.chisquare(level[1])
+        N3[j] = rng.standard_normal((P, p))
+        if sd > 0:
+            La[j] = rng_lab.standard_normal(nth)
+            Lb[j] = rng_lab.standard_normal(nth)
+            LE[j] = _label_error(rng_lab, M, sd, tangent)
+    vi = v / S * T[:, None]  # the variance an estimate of v could have come from
+    # the fit's error scales with the true noise: each channel's block by sqrt(vi / v); least
+    # squares' as the fit's does (both are fitted to the same readings); the noise along the
+    # load's span as its radial parts say (T, where range_level applies)
+    d = (N1 @ L.T).reshape(m, p, r1) * (grow / np.sqrt(S))[:, :, None]
+    dl = (Lls[None] @ N2[..., None])[..., 0] * grow_ls[None, :, None]
+    dl = dl * np.sqrt(1.0 / S)[:, :, None]
+    d, dl = d * np.sqrt(T)[:, None, None], dl * np.sqrt(T)[:, None, None]
+    Z = truth + N3 * np.sqrt(vi + within**2)[:, None, :]  # one reading per test load
+    if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
+        d = d + (La @ L_lab.T).reshape(m, p, r1)
+        dl = dl + (Lb @ L_lab_ls.T).reshape(m, p, r1)
+        Z = Z - LE @ A.T
+
+    def errors(dd):
+        Ah, oh = A + dd[:, :, :r], o + dd[:, :, r]
+        Ai = Ah / v[None, :, None]
+        C = np.linalg.solve(Ah.transpose(0, 2, 1) @ Ai, Ai.transpose(0, 2, 1))  # (m, r, p)
+        E = (Z - oh[:, None, :]) @ C.transpose(0, 2, 1) - M
+        return np.sqrt(np.mean(np.sum(E**2, axis=2), axis=1))
+
+    return errors(d), errors(dl)
+
+
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
                   coverage: float = INTERVAL_COVERAGE, load_sd: float = 0.0,
                   whitened: bool = False, reweight_reps: int = REWEIGHT_REPS,
@@ -271,35 +324,33 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
             Kd = _range_draws(sn, rng, draws)
         except (np.linalg.LinAlgError, ValueError):
             Kd = None
-    for i in range(draws):
+    if sn is None:  # independent test noise: the draws in chunks, the same numbers in order
+        m = max(1, min(draws, DRAW_CHUNK // max(P * p, 1)))
+        for lo_i in range(0, draws, m):
+            hi_i = min(draws, lo_i + m)
+            err[lo_i:hi_i], err_ls[lo_i:hi_i] = _independent_draws(
+                rng, rng_lab, hi_i - lo_i, dof, bias, v, L, Lls, grow, grow_ls, level, truth,
+                pr.within, sd, L_lab if sd > 0 else None, L_lab_ls if sd > 0 else None, M, A, o,
+                tangent)
+    for i in range(draws if sn is not None else 0):  # the shared part's error, a draw at a time
         s = rng.chisquare(dof) / dof * bias
-        vi = v / s  # the variance an estimate of v could have come from
         # the fit's error scales with the true noise: each channel's block by sqrt(vi / v)
         d = (L @ rng.standard_normal(nth)).reshape(p, r + 1) * (grow / np.sqrt(s))[:, None]
         dl = np.einsum("cab,cb->ca", Lls, rng.standard_normal((p, r + 1))) * grow_ls[:, None]
-        if sn is None:
-            # least squares' error scales with the true noise as the fit's does (both are
-            # fitted to the same readings)
-            dl = dl * np.sqrt(1.0 / s)[:, None]
-            if level is not None:  # the noise along the load's span, as its radial parts say
-                t = level[0] * level[1] / rng.chisquare(level[1])
-                vi, d, dl = vi * t, d * np.sqrt(t), dl * np.sqrt(t)
-            Z = truth + rng.standard_normal((P, p)) * np.sqrt(vi + pr.within**2)  # one reading
-            Cw = None
-        else:  # the shared part's error: correlated noise, errors mixed across channels
-            dg = (Lg @ rng.standard_normal(len(Lg))).reshape(r, p - r)
-            q = _radial_share(sn, dg)
-            if q > sn["parts"][2]:  # more than the radial residuals hold: to their variance
-                dg = dg * np.sqrt(sn["parts"][2] / q)
-            Si = _shared_covariance(sn["parts"], dg, None if Kd is None else Kd[i]) / np.sqrt(
-                np.outer(s, s))
-            w, V = np.linalg.eigh(Si)
-            half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T
-            mix = half / sv[None, :]
-            # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
-            d, dl = mix @ (d * np.sqrt(s)[:, None]), mix @ dl
-            Z = truth + rng.standard_normal((P, p)) @ half
-            Cw = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
+        # correlated noise, errors mixed across channels
+        dg = (Lg @ rng.standard_normal(len(Lg))).reshape(r, p - r)
+        q = _radial_share(sn, dg)
+        if q > sn["parts"][2]:  # more than the radial residuals hold: to their variance
+            dg = dg * np.sqrt(sn["parts"][2] / q)
+        Si = _shared_covariance(sn["parts"], dg, None if Kd is None else Kd[i]) / np.sqrt(
+            np.outer(s, s))
+        w, V = np.linalg.eigh(Si)
+        half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T
+        mix = half / sv[None, :]
+        # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
+        d, dl = mix @ (d * np.sqrt(s)[:, None]), mix @ dl
+        Z = truth + rng.standard_normal((P, p)) @ half
+        Cw = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
         if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
             d = d + (L_lab @ rng_lab.standard_normal(nth)).reshape(p, r + 1)
             dl = dl + (L_lab_ls @ rng_lab.standard_normal(nth)).reshape(p, r + 1)
@@ -308,8 +359,7 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
         Ch = gls_inverse(Ah, v)  # the calibration weighs by the estimate, the truth is vi
         err[i] = np.sqrt(np.mean(np.sum(((Z - oh) @ Ch.T - M) ** 2, axis=1)))
         Al, ol = A + dl[:, :r], o + dl[:, r]
-        Cl = (gls_inverse(Al, v) if Cw is None
-              else np.linalg.solve(Al.T @ Cw @ Al, Al.T @ Cw))
+        Cl = np.linalg.solve(Al.T @ Cw @ Al, Al.T @ Cw)
         err_ls[i] = np.sqrt(np.mean(np.sum(((Z - ol) @ Cl.T - M) ** 2, axis=1)))
     lo, hi = np.quantile(err, [(1 - coverage) / 2, (1 + coverage) / 2])
     med, med_ls = float(np.median(err)), float(np.median(err_ls))

@@ -502,9 +502,9 @@ def test_sphere_minimum_is_the_global_minimum(seed, r, log_scale):
 
 
 
-def _sphere_minimum_all_rounds(b, Q):
-    """:func:`sphere_minimum` with every one of its 100 bisection rounds run (no stop at the
-    fixed point): the reference the early stop must equal to the bit."""
+def _sphere_minimum_bisection(b, Q):
+    """The sphere minimum by 100 rounds of bisection on ``mu`` in Q's eigenbasis: the
+    reference :func:`sphere_minimum`'s Newton steps must match."""
     lam, V = np.linalg.eigh(Q)
     c = np.einsum("jab,ja->jb", V, b)
     nb = np.maximum(np.linalg.norm(b, axis=1), 1e-300)
@@ -521,14 +521,18 @@ def _sphere_minimum_all_rounds(b, Q):
     return u / np.linalg.norm(u, axis=1, keepdims=True)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), r=st.sampled_from([2, 3]),
        log_scale=st.floats(-6, 6), m=st.integers(1, 30), hard=st.booleans())
-def test_sphere_minimum_stops_at_its_fixed_point_with_the_same_bits(seed, r, log_scale, m,
-                                                                    hard):
-    """Stopping the bisection once a round moves neither end gives the same bits as all 100
-    rounds, on many rows at once of any scale, the hard case (b orthogonal to Q's lowest
-    eigenvector) included."""
+def test_sphere_minimums_newton_steps_are_never_worse_than_bisection(seed, r, log_scale, m,
+                                                                     hard):
+    """On many rows at once of any scale, the hard case (b orthogonal to Q's lowest
+    eigenvector, to rounding) included: every row's objective at :func:`sphere_minimum`'s
+    point is no higher than at 100 rounds of bisection's, to 1e-13 of the row's scale, and
+    off the hard case the two points agree to 1e-5 (measured on 3,000 random sets: 2e-15 and
+    7e-7; a Newton step that stops one step early, or starts right of the root, fails it).
+    Near the hard case the bisection is the one that is off: its smallest ``t`` sits above the
+    root, and the objective there was up to 6e-4 of the scale worse than Newton's."""
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(m, 6, r)) * 10.0**log_scale
     Q = np.einsum("jka,jkb->jab", A, A)
@@ -536,7 +540,17 @@ def test_sphere_minimum_stops_at_its_fixed_point_with_the_same_bits(seed, r, log
     if hard:
         low = np.linalg.eigh(Q)[1][:, :, 0]
         b = b - np.sum(b * low, axis=1, keepdims=True) * low
-    assert np.array_equal(sphere_minimum(b, Q), _sphere_minimum_all_rounds(b, Q))
+    u, ref = sphere_minimum(b, Q), _sphere_minimum_bisection(b, Q)
+
+    def f(U):
+        return -2 * np.sum(b * U, axis=1) + np.einsum("ja,jab,jb->j", U, Q, U)
+
+    scale = np.abs(Q).max(axis=(1, 2)) + np.abs(b).max(axis=1)
+    np.testing.assert_allclose(np.linalg.norm(u, axis=1), 1.0, atol=1e-12)
+    assert np.all(f(u) <= f(ref) + 1e-13 * scale)
+    if not hard:
+        assert np.abs(u - ref).max() < 1e-5
+
 
 def test_known_readings_stated_as_means_weigh_more():
     """Known readings that are not rows of the log, each the mean of 100 readings: stated as such

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.estimators.forward.lockstep import Batch, feasible_gls_batch, solve_batch
 from calib.estimators.forward.problem import SEARCH_POSES, Problem, _search_pick, solve
 from calib.estimators.forward.variances import _feasible_gls
 
@@ -23,6 +24,16 @@ def reweighting_logs(pr: Problem, fit: dict, reps: int = REWEIGHT_REPS,
     simulated on the search's own strided subset (:func:`fit_forward`'s rounds ran there)."""
     out = _refits(pr, fit, reps, seed)
     return None if out is None else out["logs"]
+
+
+#: Readings (logs x poses x channels) the lockstep refits solve at once (:mod:`.lockstep`): more
+#: logs than that are refitted in groups, and a log of more readings than half this alone. The
+#: lockstep saves per-call overhead, which small logs are made of; large batches cost memory
+#: traffic instead. CPU of 20 refits, serial -> lockstep in groups of this size: 8 channels x
+#: 30 poses 0.31 -> 0.09 s, 8 x 100 0.52 -> 0.35 s, 8 x 400 1.98 -> 1.61 s, 24 x 100 0.75 ->
+#: 0.57 s; 24 x 400 in groups of 2 (20,000) 4.18 -> 5.33 s, hence serial there.
+#: Decision: docs/calib_design.md D77.
+LOCKSTEP_READINGS = 10_000
 
 
 def _lag1(e: np.ndarray) -> np.ndarray:
@@ -79,8 +90,8 @@ def _refits(pr: Problem, fit: dict, reps: int, seed: int, rho=None, n: int = 0,
         W2 = pr.weights(v) ** 2
         H = np.einsum("jc,jd,je->cde", W2, X, X)
     mine = orig < n if rho is not None else np.zeros(pr.P, bool)
-    logs, spread, spread_ls, lag1 = [], [], [], []
-    for _ in range(reps):
+    Ys = []
+    for _ in range(reps):  # every log drawn first, in the order the serial refits drew them
         z = rng.standard_normal(truth.shape)
         if rho is not None and n > 1:
             e = rng.standard_normal((n, p))
@@ -90,16 +101,16 @@ def _refits(pr: Problem, fit: dict, reps: int, seed: int, rho=None, n: int = 0,
                     e[:, c] = lfilter([np.sqrt(1 - a * a)], [1.0, -a], e[:, c],
                                       zi=[a * e[0, c]])[0]
             z[mine] = e[orig[mine]]
-        Y = truth + z * sd
-        q = Problem(Y, pr.counts, pr.within if pr.repeats else None, pr.known, pr.known_M,
-                    pr.magnitude)
-        W0 = (np.broadcast_to(1.0 / q.spread, (q.P, q.p)).copy() if v0 is None
-              else q.weights(np.asarray(v0, float)))
-        try:
-            f = solve(q, U, g, W0, A, o)
-            fb, vb, _ = _feasible_gls(q, f, v0)
-        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        Ys.append(truth + z * sd)
+    try:
+        refitted = _refit_lockstep(pr, np.array(Ys), U, g, A, o, v0)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        refitted = [_refit_one(pr, Y, U, g, A, o, v0) for Y in Ys]  # a log that fails, alone
+    logs, spread, spread_ls, lag1 = [], [], [], []
+    for Y, out in zip(Ys, refitted, strict=True):
+        if out is None:
             continue
+        fb, vb = out
         if not (np.all(np.isfinite(vb)) and np.all(vb > 0)):
             continue
         logs.append(np.log(vb / v))
@@ -118,6 +129,47 @@ def _refits(pr: Problem, fit: dict, reps: int, seed: int, rho=None, n: int = 0,
             "fit_spread": np.mean(spread, axis=0) / (r + 1) if len(spread) >= 3 else None,
             "ls_spread": np.mean(spread_ls, axis=0) / (r + 1) if spread_ls else None,
             "lag1": np.mean(lag1, axis=0) if lag1 else None, "rows": orig}
+
+
+def _start_weights(q: Problem, v0):
+    """The weights the fit's rounds started from: each channel's spread, or ``v0``'s."""
+    return (np.broadcast_to(1.0 / q.spread, (q.P, q.p)).copy() if v0 is None
+            else q.weights(np.asarray(v0, float)))
+
+
+def _refit_one(pr: Problem, Y, U, g, A, o, v0):
+    """One simulated log ``Y`` refitted as the fit was (:func:`solve` from the fit's own
+    point, then the feasible-GLS rounds): ``(fit, v)``, None where the solver fails."""
+    q = Problem(Y, pr.counts, pr.within if pr.repeats else None, pr.known, pr.known_M,
+                pr.magnitude)
+    try:
+        f = solve(q, U, g, _start_weights(q, v0), A, o)
+        fb, vb, _ = _feasible_gls(q, f, v0)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    return fb, vb
+
+
+def _refit_lockstep(pr: Problem, Ys, U, g, A, o, v0) -> list:
+    """:func:`_refit_one` of every log ``Ys`` (b, P, p) at once (:mod:`.lockstep`); raises
+    where any log's solver would fail (the caller then refits them one by one)."""
+    group = max(1, LOCKSTEP_READINGS // (pr.P * pr.p))
+    if group == 1:  # a log this long gains nothing in lockstep
+        return [_refit_one(pr, Y, U, g, A, o, v0) for Y in Ys]
+    if len(Ys) > group:  # a long log: groups of logs that keep the batch small
+        return [out for i in range(0, len(Ys), group)
+                for out in _refit_lockstep(pr, Ys[i:i + group], U, g, A, o, v0)]
+    bt = Batch(pr, Ys)
+    b = bt.b
+    if v0 is None:
+        W0 = np.broadcast_to(1.0 / bt.spread[:, None, :], Ys.shape).copy()
+    else:
+        W0 = np.broadcast_to(pr.weights(np.asarray(v0, float)), Ys.shape).copy()
+    rep = np.broadcast_to
+    f = solve_batch(bt, rep(U, (b, *U.shape)), np.full(b, float(g)), W0, rep(A, (b, *A.shape)),
+                    rep(o, (b, *o.shape)))
+    fb, vb, _ = feasible_gls_batch(bt, f, v0)
+    return [({"A": fb["A"][i], "o": fb["o"][i], "M": fb["M"][i]}, vb[i]) for i in range(b)]
 
 
 def reweighting_dof(pr: Problem, fit: dict, reps: int = REWEIGHT_REPS,
