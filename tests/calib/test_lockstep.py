@@ -84,3 +84,22 @@ def test_solve_batch_stops_where_solve_stops(fit_g):
         assert out["converged"][i] == one["converged"]
         np.testing.assert_allclose(out["cost"][i], one["cost"], rtol=1e-9)
         np.testing.assert_allclose(out["A"][i], one["A"], rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("p,r,fit_g", [(8, 3, False), (5, 3, True), (4, 2, False)])
+def test_the_random_starts_alternate_in_lockstep_as_one_by_one(p, r, fit_g):
+    """Eight random starts alternated at once reach the directions each reaches alone
+    (:func:`alternate`), whichever iteration each stops at (to 1e-6: the alternation stops
+    short of the optimum, where the batched products' rounding moved directions by up to 7e-9;
+    a wrong global step, or a start stopped once its poses move by less than 1e-2, fails it)."""
+    from calib.estimators.forward.lockstep import alternate_batch
+    from calib.estimators.forward.problem import alternate
+
+    pr, fit = _rig(300 + p, p, r, 40, 1, fit_g)
+    rng = np.random.default_rng(8)
+    Us = rng.normal(size=(8, len(pr.unknown), r))
+    Us /= np.linalg.norm(Us, axis=2, keepdims=True)
+    W = pr.weights(fit["v"])
+    together = alternate_batch(pr, Us, 7.5, W)
+    for i, U in enumerate(Us):
+        np.testing.assert_allclose(together[i], alternate(pr, U, 7.5, W), atol=1e-6)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.data.result import CalibrationError
+from calib.estimators.forward.lockstep import alternate_batch
 from calib.estimators.forward.problem import (
     SEARCH_POSES,
     Problem,
@@ -106,12 +107,21 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
         results += run(name, U, W0)
     if only is None:
         pool = []
-        for i in range(random_starts):
+        Us = []
+        for _ in range(random_starts):
             U = rng.standard_normal((len(sp.unknown), sp.r))
-            U /= np.linalg.norm(U, axis=1, keepdims=True)
-            try:
-                Ua = alternate(sp, U, g0, W0)
-            except (np.linalg.LinAlgError, ValueError):
+            Us.append(U / np.linalg.norm(U, axis=1, keepdims=True))
+        try:  # every random start alternated at once; one by one where that fails
+            alts = list(alternate_batch(sp, np.array(Us), g0, W0)) if Us else []
+        except (np.linalg.LinAlgError, ValueError):
+            alts = []
+            for U in Us:
+                try:
+                    alts.append(alternate(sp, U, g0, W0))
+                except (np.linalg.LinAlgError, ValueError):
+                    alts.append(None)
+        for i, Ua in enumerate(alts):
+            if Ua is None:
                 continue
             A, o = linear_fit(sp, sp.loads(Ua, g0), W0)
             pool.append((cost(sp, A, o, sp.loads(Ua, g0), W0), i, Ua))

@@ -1,6 +1,7 @@
-"""Many logs of one rig solved together: :func:`solve` and :func:`_feasible_gls` with a leading
-batch axis, each log stepping through its own Levenberg-Marquardt and feasible-GLS rounds in
-lockstep with the others (its own damping, its own acceptance, its own stopping).
+"""Many logs, or many starts, of one rig solved together: :func:`solve` and
+:func:`_feasible_gls` with a leading batch axis, each log stepping through its own
+Levenberg-Marquardt and feasible-GLS rounds in lockstep with the others (its own damping, its own
+acceptance, its own stopping).
 
 The logs share everything but their readings: the poses, which of them are known and their
 loads, the counts and the within-pose scatter. That is what :func:`~.refits._refits` simulates
@@ -11,7 +12,8 @@ schedule, the same acceptance and stopping rules); the arithmetic is the same up
 summation in the batched products (results agree to about 1e-12 relative; a step that the serial
 solver accepts by less than that can go the other way, which moves the optimum reached by less
 than the convergence tolerance). Any failure the serial solver would raise is raised here too:
-the caller then repeats the logs serially (:func:`~.refits._refits`).
+the caller then repeats the logs serially (:func:`~.refits._refits`). The random starts of
+:func:`~.fit.fit_forward` are alternated the same way (:func:`alternate_batch`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import copy
 
 import numpy as np
 
-from calib.estimators.forward.problem import Problem, tangents
+from calib.estimators.forward.problem import Problem, sphere_minimum, tangents
 from calib.estimators.forward.variances import (
     MAX_REWEIGHT_ROUNDS,
     REWEIGHT_TOL,
@@ -46,11 +48,7 @@ class Batch:
 
     def loads(self, U, g):
         """Every log's loads (b, P, r): the known ones, ``g U`` at the unknown poses."""
-        pr = self.pr
-        M = np.zeros((len(U), pr.P, pr.r))
-        M[:, pr.known] = pr.known_M
-        M[:, pr.unknown] = g[:, None, None] * U
-        return M
+        return _loads(self.pr, U, g)
 
     def weights(self, v):
         """:meth:`Problem.weights` of each log's variances ``v`` (b, p): (b, P, p)."""
@@ -59,6 +57,14 @@ class Batch:
             return 1.0 / np.sqrt(v[:, None, :] + pr.within[None, None, :] ** 2
                                  / pr.counts[None, :, None])
         return np.sqrt(pr.counts[None, :, None] / v[:, None, :])
+
+
+def _loads(pr: Problem, U, g):
+    """:meth:`Problem.loads` of many directions U (b, nu, r) and magnitudes g (b,)."""
+    M = np.zeros((len(U), pr.P, pr.r))
+    M[:, pr.known] = pr.known_M
+    M[:, pr.unknown] = g[:, None, None] * U
+    return M
 
 
 def _cost(Y, A, o, M, W):
@@ -298,3 +304,51 @@ def feasible_gls_batch(bt: Batch, fit: dict, v0=None) -> tuple[dict, np.ndarray,
         stop = (settled & identified) | (rounds[active] >= cap)
         active = active[~stop]
     return fit, vout, rounds
+
+
+def alternate_batch(pr: Problem, U, g, W, iters: int = 15, tol: float = 1e-6) -> np.ndarray:
+    """:func:`~.problem.alternate` of many starts of one rig at once (U (s, nu, r), the same
+    readings and weights W (P, p)): each start's linear fit and global step per pose
+    (:func:`~.problem.sphere_minimum` on every start's poses in one call), each start stopping
+    by the serial rule. Returns the directions (s, nu, r)."""
+    U = np.array(U, float)
+    s, r = len(U), pr.r
+    u = pr.unknown
+    W2 = W**2
+    WY = (W2 * pr.Y).T  # (p, P)
+    WX0 = W2.T[None, :, :, None]
+    last = np.full(s, np.inf)
+    act = np.arange(s)
+    gv = np.full(s, float(g))
+    for _ in range(iters):
+        M = _loads(pr, U[act], gv[act])
+        X = np.concatenate([M, np.ones((len(act), pr.P, 1))], axis=2)
+        H = (WX0 * X[:, None]).transpose(0, 1, 3, 2) @ X[:, None]  # (s, p, r+1, r+1)
+        H += 1e-13 * np.trace(H, axis1=2, axis2=3)[..., None, None] * np.eye(r + 1)
+        th = np.linalg.solve(H, (WY[None] @ X)[..., None])[..., 0]
+        A, o = th[..., :r], th[..., r]
+        c = np.sum((W * (pr.Y - M @ A.transpose(0, 2, 1) - o[:, None, :])) ** 2, axis=(1, 2))
+        go = ~(c > last[act] * (1 - tol))
+        act, A, o = act[go], A[go], o[go]
+        last[act] = c[go]
+        if not len(act):
+            break
+        n = len(act)
+        b = g * ((W2[u][None] * (pr.Y[u][None] - o[:, None, :])) @ A)  # (n, nu, r)
+        AA = (A[:, :, :, None] * A[:, :, None, :]).reshape(n, pr.p, r * r)
+        Q = (g**2 * (W2[u][None] @ AA)).reshape(n, len(u), r, r)
+        new = sphere_minimum(b.reshape(-1, r), Q.reshape(-1, r, r)).reshape(n, len(u), r)
+
+        def per(V, b=b, Q=Q):
+            return (-2 * np.sum(b * V, axis=2)
+                    + (V[..., None, :] @ Q @ V[..., :, None])[..., 0, 0])
+
+        old = U[act]
+        keep = per(old) <= per(new)
+        new[keep] = old[keep]
+        moved = np.max(np.abs(new - old), axis=(1, 2)) >= 1e-12
+        act = act[moved]
+        U[act] = new[moved]
+        if not len(act):
+            break
+    return U
