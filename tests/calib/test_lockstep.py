@@ -103,3 +103,23 @@ def test_the_random_starts_alternate_in_lockstep_as_one_by_one(p, r, fit_g):
     together = alternate_batch(pr, Us, 7.5, W)
     for i, U in enumerate(Us):
         np.testing.assert_allclose(together[i], alternate(pr, U, 7.5, W), atol=1e-6)
+
+
+@pytest.mark.parametrize("fit_g", [False, True])
+def test_the_starts_refitted_under_the_final_weights_are_solves_one_by_one(fit_g):
+    """:func:`fit_forward`'s last step, every start solved again under the final weights, in
+    lockstep: each start's cost, convergence and iterations as :func:`solve` gives them."""
+    from calib.estimators.forward.fit import _refit_starts
+
+    pr, fit = _rig(91, 8, 3, 30, 1, fit_g)
+    rng = np.random.default_rng(2)
+    starts = [{"U": fit["U"] + s * rng.normal(size=fit["U"].shape), "g": 7.0, "start": f"s{i}"}
+              for i, s in enumerate([0.0, 0.05, 0.3, 1.0, 3.0])]
+    W = pr.weights(fit["v"])
+    got = _refit_starts(pr, starts, W)
+    assert [f["start"] for f in got] == [f["start"] for f in starts]
+    for f, s in zip(got, starts, strict=True):
+        one = solve(pr, s["U"], s["g"], W)
+        assert (f["iterations"], f["converged"]) == (one["iterations"], one["converged"])
+        np.testing.assert_allclose(f["cost"], one["cost"], rtol=1e-9)
+        np.testing.assert_allclose(f["M"], one["M"], rtol=1e-6, atol=1e-9)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.data.result import CalibrationError
-from calib.estimators.forward.lockstep import alternate_batch
+from calib.estimators.forward.lockstep import Batch, alternate_batch, solve_batch
 from calib.estimators.forward.problem import (
     SEARCH_POSES,
     Problem,
@@ -33,6 +33,37 @@ def _directions(L):
     if not np.all(np.isfinite(L)) or np.any(n <= 0):
         return None
     return L / n[:, None]
+
+
+def _refit_starts(pr: Problem, starts: list, W) -> list:
+    """Every start's fit (:func:`solve`'s dicts) solved again from its directions under the
+    weights ``W``, in lockstep (:func:`~.lockstep.solve_batch`); one by one where that fails, a
+    start whose solve fails left out."""
+    if not starts:
+        return []
+    try:
+        U = np.array([f["U"] for f in starts], float)
+        U /= np.linalg.norm(U, axis=2, keepdims=True)
+        g = np.array([float(pr.magnitude if not pr.fit_g else f["g"]) for f in starts])
+        Ao = [linear_fit(pr, pr.loads(Ui, gi), W) for Ui, gi in zip(U, g, strict=True)]
+        b = len(starts)
+        out = solve_batch(Batch(pr, np.broadcast_to(pr.Y, (b, *pr.Y.shape))), U, g,
+                          np.broadcast_to(W, (b, *W.shape)), np.array([a for a, _ in Ao]),
+                          np.array([o for _, o in Ao]))
+        return [{"A": out["A"][i], "o": out["o"][i], "g": float(out["g"][i]), "U": out["U"][i],
+                 "M": out["M"][i], "cost": float(out["cost"][i]),
+                 "converged": bool(out["converged"][i]),
+                 "iterations": int(out["iterations"][i]), "W": W, "start": f["start"]}
+                for i, f in enumerate(starts)]
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        pass
+    refit = []
+    for f in starts:
+        try:
+            refit.append({**solve(pr, f["U"], f["g"], W), "start": f["start"]})
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+    return refit
 
 
 def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
@@ -141,15 +172,8 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
     # objective
     best, v, rounds = _feasible_gls(sp, best, v0)
     Wf = sp.weights(v)
-    refit = [best]
-    for f in results:
-        if f["start"] == best["start"]:
-            continue
-        try:
-            refit.append({**solve(sp, f["U"], f["g"], Wf), "start": f["start"]})
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-    results = refit
+    others = [f for f in results if f["start"] != best["start"]]
+    results = [best] + _refit_starts(sp, others, Wf)
     best = min(results, key=lambda f: f["cost"])
     # every pose: the search subset's model placed on the other poses by the global step, then
     # refined together, the variances re-estimated once on every pose (settled on the subset's
