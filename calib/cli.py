@@ -588,12 +588,15 @@ def _evaluate(args) -> str:
         raise CalibrationError(f"{args.test} has no load columns {cols}: give --known KNOWN.csv")
     err = cal.apply(Z) - M
     per_axis = np.sqrt(np.mean(err**2, axis=0))
-    total = float(np.sqrt(np.mean(err**2)))
+    # the rms length of the error vector: the measure of the load rms beside it and of the fit's
+    # predicted held-out error (its components' rms would be sqrt(dof) times smaller)
+    total = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
     mag = float(np.sqrt(np.mean(np.sum(M**2, axis=1))))
     axes = ", ".join(f"{c} {v:.4g}" for c, v in zip(cols, per_axis, strict=True))
     drop = f", dropped {dropped} non-finite row(s)" if dropped else ""
     return (f"{args.test}: {len(Z)} row(s){note}{drop}; held-out load rms {total:.4g} "
-            f"({total / mag:.2%} of the load rms {mag:.4g}); per axis: {axes}")
+            f"(error vector length, as the predicted held-out error; {total / mag:.2%} of the "
+            f"load rms {mag:.4g}); per axis: {axes}")
 
 
 def _plan(args) -> str:

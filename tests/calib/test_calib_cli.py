@@ -307,3 +307,29 @@ def test_trials_command_small(tmp_path, capsys):
     assert "## Trial 4" in text and "Table 1" in text and "gradient descent" in text
     for png in ("singular_values.png", "offset_error_vs_noise.png", "offset_error_vs_cap.png"):
         assert (tmp_path / "tr" / png).stat().st_size > 1000
+
+
+def test_evaluate_states_the_error_vectors_rms_length_as_the_prediction_does(tmp_path, capsys):
+    """``calib evaluate``'s held-out load rms is ``sqrt(mean |m_hat - m|^2)``, the measure of
+    the load rms beside it and of the fit's predicted held-out error (it printed the rms over
+    components, sqrt(3) smaller in 3-D, beside a prediction of the vector's length), and each
+    axis's own rms after it."""
+    from calib import fit_least_squares
+    from calib.data.io import save_calibration
+
+    rng = np.random.default_rng(4)
+    S = rng.normal(size=(3, 8))
+    M = rng.normal(size=(60, 3)) * 5.0
+    Z = M @ S + rng.normal(size=(60, 8)) * 0.05
+    cal = fit_least_squares(Z[:40], M[:40], bias=True)
+    save_calibration(str(tmp_path / "cal.json"), cal, CH)
+    write_csv(tmp_path / "test.csv", CH + ["Fx", "Fy", "Fz"], np.hstack([Z[40:], M[40:]]))
+    code, out, err = run(["evaluate", tmp_path / "cal.json", tmp_path / "test.csv"], capsys)
+    assert code == 0, err
+    e = cal.apply(Z[40:]) - M[40:]
+    length = np.sqrt(np.mean(np.sum(e**2, axis=1)))
+    printed = float(out.split("held-out load rms ")[1].split()[0])
+    assert printed == pytest.approx(length, rel=1e-3)
+    assert printed > 1.5 * np.sqrt(np.mean(e**2))  # not the rms over components
+    axes = [float(out.split(f"{c} ")[-1].split(",")[0]) for c in ("Fx", "Fy", "Fz")]
+    np.testing.assert_allclose(axes, np.sqrt(np.mean(e**2, axis=0)), rtol=1e-3)
