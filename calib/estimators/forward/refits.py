@@ -12,7 +12,8 @@ from calib.estimators.forward.variances import _feasible_gls
 
 #: Logs :func:`reweighting_dof` simulates from a fit (each one solve and the feasible-GLS
 #: rounds from the fit's own start, in lockstep: 0.37 s of CPU for 40 one-reading poses of 8
-#: channels, 2.2 s for 200). With 20 the interval's width moved by up to a fifth between seeds on one rig.
+#: channels, 2.2 s for 200). With 20 the interval's width moved by up to a fifth between seeds
+#: on one rig.
 #: Decision: docs/calib_design.md D57.
 REWEIGHT_REPS = 40
 
