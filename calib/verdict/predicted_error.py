@@ -10,8 +10,6 @@ import numpy as np
 from calib.estimators.forward.problem import Problem, _unit
 from calib.estimators.forward.refits import REWEIGHT_REPS, _global_cov, reweighting_dof
 from calib.estimators.forward.shared_noise import (
-    _radial_share,
-    _shared_covariance,
     attenuation,
     range_level,
     shared_noise,
@@ -196,6 +194,80 @@ def _independent_draws(rng, rng_lab, m, dof, bias, v, L, Lls, grow, grow_ls, lev
     return errors(d), errors(dl)
 
 
+def _shared_draws(rng, rng_lab, m, dof, bias, v, L, Lls, grow, grow_ls, Lg, sn, Kd, truth, sd,
+                  L_lab, L_lab_ls, M, A, o, tangent):
+    """``m`` draws of :func:`predict_error`'s Monte Carlo for a fit in whitened channels
+    (:func:`fit_correlated`): the random numbers a draw at a time in the serial order, the
+    arithmetic on all ``m`` at once. Each draw moves the shared part by its error (the
+    regression's, held to what its residuals leave room for, :func:`_radial_share`), so the
+    test readings' noise is correlated as the calibration does not weigh for and the fits'
+    errors are mixed across channels as that noise is; ``Kd`` (m, r, r) the range's own
+    covariance per draw (None: ``c I``). Returns the fit's and least squares' errors."""
+    p, r1 = Lls.shape[0], Lls.shape[1]
+    r, P, nth, ng = r1 - 1, len(M), L.shape[0], len(Lg)
+    S, N1, N2 = np.empty((m, p)), np.empty((m, nth)), np.empty((m, p, r1))
+    Ng, N3 = np.empty((m, ng)), np.empty((m, P, p))
+    if sd > 0:
+        La, Lb, LE = np.empty((m, nth)), np.empty((m, nth)), np.empty((m, P, r))
+    for j in range(m):
+        S[j] = rng.chisquare(dof) / dof * bias
+        N1[j] = rng.standard_normal(nth)
+        N2[j] = rng.standard_normal((p, r1))
+        Ng[j] = rng.standard_normal(ng)
+        N3[j] = rng.standard_normal((P, p))
+        if sd > 0:
+            La[j] = rng_lab.standard_normal(nth)
+            Lb[j] = rng_lab.standard_normal(nth)
+            LE[j] = _label_error(rng_lab, M, sd, tangent)
+    # the fit's error scales with the true noise: each channel's block by sqrt(vi / v)
+    d = (N1 @ L.T).reshape(m, p, r1) * (grow / np.sqrt(S))[:, :, None]
+    dl = (Lls[None] @ N2[..., None])[..., 0] * grow_ls[None, :, None]
+    Bm, sdv, c, Cxi = sn["parts"]
+    dg = (Ng @ Lg.T).reshape(m, r, p - r)
+    # its share of the radial rows' variance (_radial_share), held to their variance c
+    Ur, wu, Lr, n_known, n = sn["rows"]
+    D = dg @ Cxi @ dg.transpose(0, 2, 1)
+    q = np.sum(D * ((Ur * (wu**2)[:, None]).T @ Ur), axis=(1, 2))
+    if Lr is not None:
+        q = q + n_known * np.sum(D * (Lr @ Lr.T), axis=(1, 2))
+    q = q / n
+    dg = dg * np.where(q > c, np.sqrt(c / np.where(q > 0, q, 1.0)), 1.0)[:, None, None]
+    # the channels' covariance the shared part implies (_shared_covariance), per draw
+    As, Nn = Bm[:, :r], Bm[:, r:]
+    if Kd is None:
+        Qa, _ = np.linalg.qr(As)
+        R = (c * (Qa @ Qa.T))[None]
+    else:
+        Bo = np.linalg.solve(np.linalg.cholesky(As.T @ As), As.T).T  # orthonormal columns
+        R = Bo @ Kd @ Bo.T
+    Kx = As @ dg + Nn
+    Si = (R + Kx @ Cxi @ Kx.transpose(0, 2, 1)) * np.outer(sdv, sdv)
+    Si = 0.5 * (Si + Si.transpose(0, 2, 1))
+    Si = Si / np.sqrt(S[:, :, None] * S[:, None, :])
+    w, V = np.linalg.eigh(Si)
+    half = (V * np.sqrt(np.clip(w, 0, None))[:, None, :]) @ V.transpose(0, 2, 1)
+    mix = half / np.sqrt(v)[None, None, :]
+    # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
+    d, dl = mix @ (d * np.sqrt(S)[:, :, None]), mix @ dl
+    Z = truth + N3 @ half
+    Cw = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
+    if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
+        d = d + (La @ L_lab.T).reshape(m, p, r1)
+        dl = dl + (Lb @ L_lab_ls.T).reshape(m, p, r1)
+        Z = Z - LE @ A.T
+    Ah, oh = A + d[:, :, :r], o + d[:, :, r]
+    Ai = Ah / v[None, :, None]  # the calibration weighs by the estimate, the truth is vi
+    Ch = np.linalg.solve(Ah.transpose(0, 2, 1) @ Ai, Ai.transpose(0, 2, 1))
+    e = np.sqrt(np.mean(np.sum(((Z - oh[:, None, :]) @ Ch.transpose(0, 2, 1) - M) ** 2,
+                               axis=2), axis=1))
+    Al, ol = A + dl[:, :, :r], o + dl[:, :, r]
+    AtC = Al.transpose(0, 2, 1) @ Cw
+    Cl = np.linalg.solve(AtC @ Al, AtC)
+    e_ls = np.sqrt(np.mean(np.sum(((Z - ol[:, None, :]) @ Cl.transpose(0, 2, 1) - M) ** 2,
+                                  axis=2), axis=1))
+    return e, e_ls
+
+
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
                   coverage: float = INTERVAL_COVERAGE, load_sd: float = 0.0,
                   whitened: bool = False, reweight_reps: int = REWEIGHT_REPS,
@@ -319,7 +391,6 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
                 Lg = np.linalg.solve(lam, Lg)
             except np.linalg.LinAlgError:
                 pass
-        sv = np.sqrt(v)
         try:  # the range's own covariance: its posterior given the rows (not one number)
             Kd = _range_draws(sn, rng, draws)
         except (np.linalg.LinAlgError, ValueError):
@@ -332,35 +403,14 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
                 rng, rng_lab, hi_i - lo_i, dof, bias, v, L, Lls, grow, grow_ls, level, truth,
                 pr.within, sd, L_lab if sd > 0 else None, L_lab_ls if sd > 0 else None, M, A, o,
                 tangent)
-    for i in range(draws if sn is not None else 0):  # the shared part's error, a draw at a time
-        s = rng.chisquare(dof) / dof * bias
-        # the fit's error scales with the true noise: each channel's block by sqrt(vi / v)
-        d = (L @ rng.standard_normal(nth)).reshape(p, r + 1) * (grow / np.sqrt(s))[:, None]
-        dl = np.einsum("cab,cb->ca", Lls, rng.standard_normal((p, r + 1))) * grow_ls[:, None]
-        # correlated noise, errors mixed across channels
-        dg = (Lg @ rng.standard_normal(len(Lg))).reshape(r, p - r)
-        q = _radial_share(sn, dg)
-        if q > sn["parts"][2]:  # more than the radial residuals hold: to their variance
-            dg = dg * np.sqrt(sn["parts"][2] / q)
-        Si = _shared_covariance(sn["parts"], dg, None if Kd is None else Kd[i]) / np.sqrt(
-            np.outer(s, s))
-        w, V = np.linalg.eigh(Si)
-        half = (V * np.sqrt(np.clip(w, 0, None))) @ V.T
-        mix = half / sv[None, :]
-        # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
-        d, dl = mix @ (d * np.sqrt(s)[:, None]), mix @ dl
-        Z = truth + rng.standard_normal((P, p)) @ half
-        Cw = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
-        if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
-            d = d + (L_lab @ rng_lab.standard_normal(nth)).reshape(p, r + 1)
-            dl = dl + (L_lab_ls @ rng_lab.standard_normal(nth)).reshape(p, r + 1)
-            Z = Z - _label_error(rng_lab, M, sd, tangent) @ A.T  # the applied, not the stated
-        Ah, oh = A + d[:, :r], o + d[:, r]
-        Ch = gls_inverse(Ah, v)  # the calibration weighs by the estimate, the truth is vi
-        err[i] = np.sqrt(np.mean(np.sum(((Z - oh) @ Ch.T - M) ** 2, axis=1)))
-        Al, ol = A + dl[:, :r], o + dl[:, r]
-        Cl = np.linalg.solve(Al.T @ Cw @ Al, Al.T @ Cw)
-        err_ls[i] = np.sqrt(np.mean(np.sum(((Z - ol) @ Cl.T - M) ** 2, axis=1)))
+    else:  # the shared part's error: the same, its covariance drawn per draw
+        m = max(1, min(draws, DRAW_CHUNK // max(P * p, 1)))
+        for lo_i in range(0, draws, m):
+            hi_i = min(draws, lo_i + m)
+            err[lo_i:hi_i], err_ls[lo_i:hi_i] = _shared_draws(
+                rng, rng_lab, hi_i - lo_i, dof, bias, v, L, Lls, grow, grow_ls, Lg, sn,
+                None if Kd is None else Kd[lo_i:hi_i], truth, sd,
+                L_lab if sd > 0 else None, L_lab_ls if sd > 0 else None, M, A, o, tangent)
     lo, hi = np.quantile(err, [(1 - coverage) / 2, (1 + coverage) / 2])
     med, med_ls = float(np.median(err)), float(np.median(err_ls))
     return {"rms": med, "interval": [float(lo), float(hi)], "coverage": coverage,
