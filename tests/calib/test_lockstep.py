@@ -123,3 +123,26 @@ def test_the_starts_refitted_under_the_final_weights_are_solves_one_by_one(fit_g
         assert (f["iterations"], f["converged"]) == (one["iterations"], one["converged"])
         np.testing.assert_allclose(f["cost"], one["cost"], rtol=1e-9)
         np.testing.assert_allclose(f["M"], one["M"], rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("fit_g", [False, True])
+def test_the_forward_fit_in_lockstep_is_the_fit_one_start_at_a_time(monkeypatch, fit_g):
+    """:func:`fit_forward` with its starts alternated and solved in lockstep, and with the
+    lockstep forced to fail (every start then run one at a time): the same starts in the same
+    order, the same costs (to 1e-9) and the same chosen fit (loads to 1e-6 of their scale)."""
+    import calib.estimators.forward.fit as fit_mod
+
+    pr, _ = _rig(55, 8, 3, 30, 1, fit_g)
+    lock = fit_mod.fit_forward(pr, seed=4)
+
+    def fail(*a, **k):
+        raise ValueError("forced")
+
+    monkeypatch.setattr(fit_mod, "alternate_batch", fail)
+    monkeypatch.setattr(fit_mod, "solve_batch", fail)
+    one = fit_mod.fit_forward(pr, seed=4)
+    assert [s["start"] for s in lock["starts"]] == [s["start"] for s in one["starts"]]
+    np.testing.assert_allclose([s["cost"] for s in lock["starts"]],
+                               [s["cost"] for s in one["starts"]], rtol=1e-9)
+    assert lock["chosen_start"] == one["chosen_start"]
+    np.testing.assert_allclose(lock["M"], one["M"], atol=1e-6 * np.abs(one["M"]).max())

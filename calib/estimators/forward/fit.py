@@ -35,26 +35,33 @@ def _directions(L):
     return L / n[:, None]
 
 
-def _refit_starts(pr: Problem, starts: list, W) -> list:
-    """Every start's fit (:func:`solve`'s dicts) solved again from its directions under the
-    weights ``W``, in lockstep (:func:`~.lockstep.solve_batch`); one by one where that fails, a
-    start whose solve fails left out."""
+def _solve_starts(pr: Problem, starts: list, W) -> list:
+    """:func:`solve` of every start (dicts with ``U``, ``g``, ``start``) under the weights
+    ``W`` from the linear fit at its directions, in lockstep (:func:`~.lockstep.solve_batch`):
+    :func:`solve`'s dicts with the start's name, in order. Raises where any solve would."""
     if not starts:
         return []
+    U = np.array([f["U"] for f in starts], float)
+    U /= np.linalg.norm(U, axis=2, keepdims=True)
+    g = np.array([float(pr.magnitude if not pr.fit_g else f["g"]) for f in starts])
+    Ao = [linear_fit(pr, pr.loads(Ui, gi), W) for Ui, gi in zip(U, g, strict=True)]
+    b = len(starts)
+    out = solve_batch(Batch(pr, np.broadcast_to(pr.Y, (b, *pr.Y.shape))), U, g,
+                      np.broadcast_to(W, (b, *W.shape)), np.array([a for a, _ in Ao]),
+                      np.array([o for _, o in Ao]))
+    return [{"A": out["A"][i], "o": out["o"][i], "g": float(out["g"][i]), "U": out["U"][i],
+             "M": out["M"][i], "cost": float(out["cost"][i]),
+             "converged": bool(out["converged"][i]),
+             "iterations": int(out["iterations"][i]), "W": W, "start": f["start"]}
+            for i, f in enumerate(starts)]
+
+
+def _refit_starts(pr: Problem, starts: list, W) -> list:
+    """Every start's fit solved again from its directions under the weights ``W``
+    (:func:`_solve_starts`); one by one where that fails, a start whose solve fails left
+    out."""
     try:
-        U = np.array([f["U"] for f in starts], float)
-        U /= np.linalg.norm(U, axis=2, keepdims=True)
-        g = np.array([float(pr.magnitude if not pr.fit_g else f["g"]) for f in starts])
-        Ao = [linear_fit(pr, pr.loads(Ui, gi), W) for Ui, gi in zip(U, g, strict=True)]
-        b = len(starts)
-        out = solve_batch(Batch(pr, np.broadcast_to(pr.Y, (b, *pr.Y.shape))), U, g,
-                          np.broadcast_to(W, (b, *W.shape)), np.array([a for a, _ in Ao]),
-                          np.array([o for _, o in Ao]))
-        return [{"A": out["A"][i], "o": out["o"][i], "g": float(out["g"][i]), "U": out["U"][i],
-                 "M": out["M"][i], "cost": float(out["cost"][i]),
-                 "converged": bool(out["converged"][i]),
-                 "iterations": int(out["iterations"][i]), "W": W, "start": f["start"]}
-                for i, f in enumerate(starts)]
+        return _solve_starts(pr, starts, W)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         pass
     refit = []
@@ -134,8 +141,25 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
             pass
         return out
 
-    for name, U in named:
-        results += run(name, U, W0)
+    def run_many(starts, W, alt=True):
+        """:func:`run` of every ``(name, U)`` at once, in the same order: the alternations in
+        lockstep (:func:`~.lockstep.alternate_batch`), every solve in one batch; one by one
+        where that fails."""
+        if not starts:
+            return []
+        try:
+            Ua = alternate_batch(sp, np.array([U for _, U in starts], float), g0, W) if alt \
+                else None
+            todo = []
+            for i, (name, U) in enumerate(starts):
+                todo.append({"U": U, "g": g0, "start": name})
+                if alt and not np.allclose(Ua[i], U):
+                    todo.append({"U": Ua[i], "g": g0, "start": f"{name}, alternated"})
+            return _solve_starts(sp, todo, W)
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+            return [f for name, U in starts for f in run(name, U, W, alt)]
+
+    results += run_many(named, W0)
     if only is None:
         pool = []
         Us = []
@@ -156,15 +180,16 @@ def fit_forward(pr: Problem, start_loads: dict | None = None, seed: int = 0,
                 continue
             A, o = linear_fit(sp, sp.loads(Ua, g0), W0)
             pool.append((cost(sp, A, o, sp.loads(Ua, g0), W0), i, Ua))
-        for _, i, Ua in sorted(pool, key=lambda t: t[:2])[:2]:
-            results += run(f"random directions {i + 1}, alternated", Ua, W0, alt=False)
+        results += run_many([(f"random directions {i + 1}, alternated", Ua)
+                             for _, i, Ua in sorted(pool, key=lambda t: t[:2])[:2]], W0, alt=False)
     if not results:
         raise CalibrationError("no start of the forward fit gave finite directions")
     best = min(results, key=lambda f: f["cost"])
     if only is None:
-        for i in range(restarts):  # every unknown direction turned by about 20 degrees
-            U = best["U"] + rng.normal(scale=0.35, size=best["U"].shape)
-            results += run(f"perturbed restart {i + 1}", U, W0)
+        # every unknown direction turned by about 20 degrees
+        results += run_many([(f"perturbed restart {i + 1}",
+                              best["U"] + rng.normal(scale=0.35, size=best["U"].shape))
+                             for i in range(restarts)], W0)
         best = min(results, key=lambda f: f["cost"])
     # feasible GLS on the search subset: rounds from the best start until the variances settle
     # (variances from its residuals, refit); then every start refitted under those final
