@@ -34,8 +34,9 @@ Schur complement at the optimum (the Cramer-Rao bound of the model at the estima
 :func:`predict_error` turns it into the held-out load error expected of the calibration.
 
 Modules: :mod:`.problem` (the model and its solver), :mod:`.variances` (per-channel noise
-variances), :mod:`.fit` (:func:`~.fit.fit_forward`), :mod:`.refits` (refits of the noise and
-the effective degrees of freedom), :mod:`.shared_noise` (noise shared by channels, range level),
+variances), :mod:`.fit` (:func:`~.fit.fit_forward`), :mod:`.lockstep` (many logs or starts of
+one rig solved at once), :mod:`.refits` (refits of the noise and the effective degrees of
+freedom), :mod:`.shared_noise` (noise shared by channels, range level),
 :mod:`.correlated` (noise correlated across channels and the whitened fit), :mod:`.misfit`
 (readings far from the model; the direction test for a sensor not linear in the load).
 """
