@@ -10,6 +10,8 @@ import numpy as np
 from calib.estimators.forward.problem import Problem, _unit
 from calib.estimators.forward.refits import REWEIGHT_REPS, _global_cov, reweighting_dof
 from calib.estimators.forward.shared_noise import (
+    _radial_share,
+    _shared_covariance,
     attenuation,
     range_level,
     shared_noise,
@@ -147,125 +149,92 @@ def _sampler(cov) -> np.ndarray:
 DRAW_CHUNK = 1_000_000
 
 
-def _independent_draws(rng, rng_lab, m, dof, bias, v, L, Lls, grow, grow_ls, level, truth,
-                       within, sd, L_lab, L_lab_ls, M, A, o, tangent):
-    """``m`` draws of :func:`predict_error`'s Monte Carlo with independent test noise: each
-    draw's random numbers taken from ``rng`` (and ``rng_lab``) in the order a draw at a time
-    takes them, the arithmetic done on all ``m`` at once. Returns the fit's and least squares'
-    errors, (m,) each."""
-    p, r1 = Lls.shape[0], Lls.shape[1]
-    r, P, nth = r1 - 1, len(M), L.shape[0]
-    S, N1, N2 = np.empty((m, p)), np.empty((m, nth)), np.empty((m, p, r1))
-    T, N3 = np.ones(m), np.empty((m, P, p))
+def _random_numbers(rng, rng_lab, m, dof, bias, nth, p, P, r, level, ng, sd, M, tangent):
+    """The random numbers of ``m`` draws of :func:`predict_error`'s Monte Carlo, taken a draw at
+    a time in one fixed order (the variances' chi-square, the fit's and least squares' parameter
+    normals, the range level's chi-square where ``level`` is given, the shared part's ``ng``
+    normals where ``ng``, the test readings' noise; from ``rng_lab`` the stated loads' errors
+    where ``sd > 0``), so that blocks of any size give the same numbers."""
+    out = {"S": np.empty((m, p)), "N1": np.empty((m, nth)), "N2": np.empty((m, p, r + 1)),
+           "T": np.ones(m), "Ng": np.empty((m, ng)), "N3": np.empty((m, P, p))}
     if sd > 0:
-        La, Lb, LE = np.empty((m, nth)), np.empty((m, nth)), np.empty((m, P, r))
+        out.update(La=np.empty((m, nth)), Lb=np.empty((m, nth)), LE=np.empty((m, P, r)))
     for j in range(m):
-        S[j] = rng.chisquare(dof) / dof * bias
-        N1[j] = rng.standard_normal(nth)
-        N2[j] = rng.standard_normal((p, r1))
+        out["S"][j] = rng.chisquare(dof) / dof * bias
+        out["N1"][j] = rng.standard_normal(nth)
+        out["N2"][j] = rng.standard_normal((p, r + 1))
         if level is not None:
-            T[j] = level[0] * level[1] / rng.chisquare(level[1])
-        N3[j] = rng.standard_normal((P, p))
+            out["T"][j] = level[0] * level[1] / rng.chisquare(level[1])
+        if ng:
+            out["Ng"][j] = rng.standard_normal(ng)
+        out["N3"][j] = rng.standard_normal((P, p))
         if sd > 0:
-            La[j] = rng_lab.standard_normal(nth)
-            Lb[j] = rng_lab.standard_normal(nth)
-            LE[j] = _label_error(rng_lab, M, sd, tangent)
-    vi = v / S * T[:, None]  # the variance an estimate of v could have come from
-    # the fit's error scales with the true noise: each channel's block by sqrt(vi / v); least
-    # squares' as the fit's does (both are fitted to the same readings); the noise along the
-    # load's span as its radial parts say (T, where range_level applies)
-    d = (N1 @ L.T).reshape(m, p, r1) * (grow / np.sqrt(S))[:, :, None]
-    dl = (Lls[None] @ N2[..., None])[..., 0] * grow_ls[None, :, None]
-    dl = dl * np.sqrt(1.0 / S)[:, :, None]
-    d, dl = d * np.sqrt(T)[:, None, None], dl * np.sqrt(T)[:, None, None]
-    Z = truth + N3 * np.sqrt(vi + within**2)[:, None, :]  # one reading per test load
-    if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
-        d = d + (La @ L_lab.T).reshape(m, p, r1)
-        dl = dl + (Lb @ L_lab_ls.T).reshape(m, p, r1)
-        Z = Z - LE @ A.T
-
-    def errors(dd):
-        Ah, oh = A + dd[:, :, :r], o + dd[:, :, r]
-        Ai = Ah / v[None, :, None]
-        C = np.linalg.solve(Ah.transpose(0, 2, 1) @ Ai, Ai.transpose(0, 2, 1))  # (m, r, p)
-        E = (Z - oh[:, None, :]) @ C.transpose(0, 2, 1) - M
-        return np.sqrt(np.mean(np.sum(E**2, axis=2), axis=1))
-
-    return errors(d), errors(dl)
+            out["La"][j] = rng_lab.standard_normal(nth)
+            out["Lb"][j] = rng_lab.standard_normal(nth)
+            out["LE"][j] = _label_error(rng_lab, M, sd, tangent)
+    return out
 
 
-def _shared_draws(rng, rng_lab, m, dof, bias, v, L, Lls, grow, grow_ls, Lg, sn, Kd, truth, sd,
-                  L_lab, L_lab_ls, M, A, o, tangent):
-    """``m`` draws of :func:`predict_error`'s Monte Carlo for a fit in whitened channels
-    (:func:`fit_correlated`): the random numbers a draw at a time in the serial order, the
-    arithmetic on all ``m`` at once. Each draw moves the shared part by its error (the
-    regression's, held to what its residuals leave room for, :func:`_radial_share`), so the
-    test readings' noise is correlated as the calibration does not weigh for and the fits'
-    errors are mixed across channels as that noise is; ``Kd`` (m, r, r) the range's own
-    covariance per draw (None: ``c I``). Returns the fit's and least squares' errors."""
-    p, r1 = Lls.shape[0], Lls.shape[1]
-    r, P, nth, ng = r1 - 1, len(M), L.shape[0], len(Lg)
-    S, N1, N2 = np.empty((m, p)), np.empty((m, nth)), np.empty((m, p, r1))
-    Ng, N3 = np.empty((m, ng)), np.empty((m, P, p))
-    if sd > 0:
-        La, Lb, LE = np.empty((m, nth)), np.empty((m, nth)), np.empty((m, P, r))
-    for j in range(m):
-        S[j] = rng.chisquare(dof) / dof * bias
-        N1[j] = rng.standard_normal(nth)
-        N2[j] = rng.standard_normal((p, r1))
-        Ng[j] = rng.standard_normal(ng)
-        N3[j] = rng.standard_normal((P, p))
-        if sd > 0:
-            La[j] = rng_lab.standard_normal(nth)
-            Lb[j] = rng_lab.standard_normal(nth)
-            LE[j] = _label_error(rng_lab, M, sd, tangent)
+def _held_out_errors(A, o, dd, Z, M, weigh):
+    """Each draw's rms load error on its test readings ``Z`` (m, P, p) of the calibration with
+    parameters ``(A, o) + dd`` (dd (m, p, r + 1)), weighing its channels by ``weigh``: the
+    variances (p,) the fit estimated, or per draw the inverse covariance (m, p, p)."""
+    r = A.shape[1]
+    Ah, oh = A + dd[:, :, :r], o + dd[:, :, r]
+    AtW = (np.swapaxes(Ah, 1, 2) / weigh[None, None, :] if weigh.ndim == 1
+           else np.swapaxes(Ah, 1, 2) @ weigh)  # (m, r, p)
+    C = np.linalg.solve(AtW @ Ah, AtW)
+    E = (Z - oh[:, None, :]) @ np.swapaxes(C, 1, 2) - M
+    return np.sqrt(np.mean(np.sum(E**2, axis=2), axis=1))
+
+
+def _draws(rng, rng_lab, m, dof, bias, v, L, Lls, grow, grow_ls, level, truth, within, sd,
+           L_lab, L_lab_ls, M, A, o, tangent, Lg=None, sn=None, Kd=None):
+    """``m`` draws of :func:`predict_error`'s Monte Carlo: the random numbers a draw at a time
+    (:func:`_random_numbers`), the arithmetic on all ``m`` at once. Returns the fit's and least
+    squares' held-out errors, (m,) each.
+
+    Independent test noise (``sn`` None): each channel's true variance ``v / s`` drawn from its
+    scaled chi-square, both fits' parameter errors scaled with it (both are fitted to the same
+    readings), and with the range level's draw where ``level`` is given. For a fit in whitened
+    channels (:func:`fit_correlated`, ``sn`` its :func:`shared_noise`): each draw also moves
+    the shared part by its error ``Lg`` (held to what the regression's residuals leave room
+    for, :func:`_radial_share`), so the test readings' noise is correlated as the calibration
+    does not weigh for and the fits' errors are mixed across channels as that noise is; ``Kd``
+    (m, r, r) the range's own covariance per draw (None: ``c I``)."""
+    p, r = A.shape
+    nth = L.shape[0]
+    x = _random_numbers(rng, rng_lab, m, dof, bias, nth, p, len(M), r, level,
+                        0 if sn is None else len(Lg), sd, M, tangent)
+    S, T = x["S"], x["T"]
     # the fit's error scales with the true noise: each channel's block by sqrt(vi / v)
-    d = (N1 @ L.T).reshape(m, p, r1) * (grow / np.sqrt(S))[:, :, None]
-    dl = (Lls[None] @ N2[..., None])[..., 0] * grow_ls[None, :, None]
-    Bm, sdv, c, Cxi = sn["parts"]
-    dg = (Ng @ Lg.T).reshape(m, r, p - r)
-    # its share of the radial rows' variance (_radial_share), held to their variance c
-    Ur, wu, Lr, n_known, n = sn["rows"]
-    D = dg @ Cxi @ dg.transpose(0, 2, 1)
-    q = np.sum(D * ((Ur * (wu**2)[:, None]).T @ Ur), axis=(1, 2))
-    if Lr is not None:
-        q = q + n_known * np.sum(D * (Lr @ Lr.T), axis=(1, 2))
-    q = q / n
-    dg = dg * np.where(q > c, np.sqrt(c / np.where(q > 0, q, 1.0)), 1.0)[:, None, None]
-    # the channels' covariance the shared part implies (_shared_covariance), per draw
-    As, Nn = Bm[:, :r], Bm[:, r:]
-    if Kd is None:
-        Qa, _ = np.linalg.qr(As)
-        R = (c * (Qa @ Qa.T))[None]
+    d = (x["N1"] @ L.T).reshape(m, p, r + 1) * (grow / np.sqrt(S))[:, :, None]
+    dl = (Lls[None] @ x["N2"][..., None])[..., 0] * grow_ls[None, :, None]
+    if sn is None:
+        vi = v / S * T[:, None]  # the variance an estimate of v could have come from
+        dl = dl * np.sqrt(1.0 / S)[:, :, None]
+        d, dl = d * np.sqrt(T)[:, None, None], dl * np.sqrt(T)[:, None, None]
+        Z = truth + x["N3"] * np.sqrt(vi + within**2)[:, None, :]  # one reading per test load
+        weigh_ls = v
     else:
-        Bo = np.linalg.solve(np.linalg.cholesky(As.T @ As), As.T).T  # orthonormal columns
-        R = Bo @ Kd @ Bo.T
-    Kx = As @ dg + Nn
-    Si = (R + Kx @ Cxi @ Kx.transpose(0, 2, 1)) * np.outer(sdv, sdv)
-    Si = 0.5 * (Si + Si.transpose(0, 2, 1))
-    Si = Si / np.sqrt(S[:, :, None] * S[:, None, :])
-    w, V = np.linalg.eigh(Si)
-    half = (V * np.sqrt(np.clip(w, 0, None))[:, None, :]) @ V.transpose(0, 2, 1)
-    mix = half / np.sqrt(v)[None, None, :]
-    # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
-    d, dl = mix @ (d * np.sqrt(S)[:, :, None]), mix @ dl
-    Z = truth + N3 @ half
-    Cw = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
+        c = sn["parts"][2]
+        dg = (x["Ng"] @ Lg.T).reshape(m, r, p - r)
+        q = _radial_share(sn, dg)  # more than the radial residuals hold: to their variance
+        dg = dg * np.where(q > c, np.sqrt(c / np.where(q > 0, q, 1.0)), 1.0)[:, None, None]
+        Si = _shared_covariance(sn["parts"], dg, Kd) / np.sqrt(S[:, :, None] * S[:, None, :])
+        w, V = np.linalg.eigh(Si)
+        half = (V * np.sqrt(np.clip(w, 0, None))[:, None, :]) @ np.swapaxes(V, 1, 2)
+        mix = half / np.sqrt(v)[None, None, :]
+        # (d's per-channel 1 / sqrt(s) undone first: Si carries the variances' draw)
+        d, dl = mix @ (d * np.sqrt(S)[:, :, None]), mix @ dl
+        Z = truth + x["N3"] @ half
+        weigh_ls = np.linalg.pinv(Si)  # least squares with every load known weighs by the truth
     if sd > 0:  # the fits' share of the stated loads' error; the test loads' own
-        d = d + (La @ L_lab.T).reshape(m, p, r1)
-        dl = dl + (Lb @ L_lab_ls.T).reshape(m, p, r1)
-        Z = Z - LE @ A.T
-    Ah, oh = A + d[:, :, :r], o + d[:, :, r]
-    Ai = Ah / v[None, :, None]  # the calibration weighs by the estimate, the truth is vi
-    Ch = np.linalg.solve(Ah.transpose(0, 2, 1) @ Ai, Ai.transpose(0, 2, 1))
-    e = np.sqrt(np.mean(np.sum(((Z - oh[:, None, :]) @ Ch.transpose(0, 2, 1) - M) ** 2,
-                               axis=2), axis=1))
-    Al, ol = A + dl[:, :, :r], o + dl[:, :, r]
-    AtC = Al.transpose(0, 2, 1) @ Cw
-    Cl = np.linalg.solve(AtC @ Al, AtC)
-    e_ls = np.sqrt(np.mean(np.sum(((Z - ol[:, None, :]) @ Cl.transpose(0, 2, 1) - M) ** 2,
-                                  axis=2), axis=1))
-    return e, e_ls
+        d = d + (x["La"] @ L_lab.T).reshape(m, p, r + 1)
+        dl = dl + (x["Lb"] @ L_lab_ls.T).reshape(m, p, r + 1)
+        Z = Z - x["LE"] @ A.T  # the applied, not the stated
+    # the calibration weighs by the estimate v; the truth is vi
+    return _held_out_errors(A, o, d, Z, M, v), _held_out_errors(A, o, dl, Z, M, weigh_ls)
 
 
 def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
@@ -395,22 +364,14 @@ def predict_error(pr: Problem, fit: dict, draws: int = 2000, seed: int = 0,
             Kd = _range_draws(sn, rng, draws)
         except (np.linalg.LinAlgError, ValueError):
             Kd = None
-    if sn is None:  # independent test noise: the draws in chunks, the same numbers in order
-        m = max(1, min(draws, DRAW_CHUNK // max(P * p, 1)))
-        for lo_i in range(0, draws, m):
-            hi_i = min(draws, lo_i + m)
-            err[lo_i:hi_i], err_ls[lo_i:hi_i] = _independent_draws(
-                rng, rng_lab, hi_i - lo_i, dof, bias, v, L, Lls, grow, grow_ls, level, truth,
-                pr.within, sd, L_lab if sd > 0 else None, L_lab_ls if sd > 0 else None, M, A, o,
-                tangent)
-    else:  # the shared part's error: the same, its covariance drawn per draw
-        m = max(1, min(draws, DRAW_CHUNK // max(P * p, 1)))
-        for lo_i in range(0, draws, m):
-            hi_i = min(draws, lo_i + m)
-            err[lo_i:hi_i], err_ls[lo_i:hi_i] = _shared_draws(
-                rng, rng_lab, hi_i - lo_i, dof, bias, v, L, Lls, grow, grow_ls, Lg, sn,
-                None if Kd is None else Kd[lo_i:hi_i], truth, sd,
-                L_lab if sd > 0 else None, L_lab_ls if sd > 0 else None, M, A, o, tangent)
+    m = max(1, min(draws, DRAW_CHUNK // max(P * p, 1)))  # the draws in blocks
+    for i in range(0, draws, m):
+        j = min(draws, i + m)
+        err[i:j], err_ls[i:j] = _draws(
+            rng, rng_lab, j - i, dof, bias, v, L, Lls, grow, grow_ls, level, truth, pr.within,
+            sd, L_lab if sd > 0 else None, L_lab_ls if sd > 0 else None, M, A, o, tangent,
+            Lg=Lg if sn is not None else None, sn=sn,
+            Kd=None if sn is None or Kd is None else Kd[i:j])
     lo, hi = np.quantile(err, [(1 - coverage) / 2, (1 + coverage) / 2])
     med, med_ls = float(np.median(err)), float(np.median(err_ls))
     return {"rms": med, "interval": [float(lo), float(hi)], "coverage": coverage,

@@ -37,7 +37,7 @@ from calib.simulation.simulate import (
 # Loads agree to TOL of the load magnitude. The Levenberg-Marquardt solves stop where the cost
 # falls by less than 1e-12 of itself, which leaves the parameters uncertain to about
 # sqrt(1e-12) = 1e-6 of their scale: a unit change of 1e-4 on one channel with offsets 300
-# spreads away measured 1.09e-6 (1.19e-6 with the bisection sphere minimum), hence 1e-5. A
+# spreads away measured 1.09e-6, hence 1e-5. A
 # weight that does not scale with the unit (1e-9 added to every variance) was off by 6.7e-3 on
 # that example; start weights that do not scale only by 8e-6 (the rounds reach the same optimum).
 TOL = 1e-5

@@ -7,7 +7,7 @@ import pytest
 
 import calib.estimators.forward.refits as refits
 from calib.estimators.forward.lockstep import Batch, solve_batch
-from calib.estimators.forward.problem import Problem, solve
+from calib.estimators.forward.problem import Problem, curvature, solve
 from calib.routes.joint import choose_known_poses
 from calib.simulation.simulate import sample_directions
 
@@ -44,7 +44,7 @@ def test_the_lockstep_refits_are_the_serial_refits(monkeypatch, p, r, poses, rea
     by 1e-4 or more: a solver stopped one iteration early fails this)."""
     pr, fit = _rig(1000 + p * 10 + poses, p, r, poses, readings, fit_g)
     kw = {"reps": 8, "seed": 3, "rho": np.full(p, 0.3), "n": pr.P, "spreads": True}
-    fit = {**fit, "schur": refits_schur(pr, fit)}
+    fit = {**fit, "schur": curvature(pr, fit)["schur"]}
     lock = refits._refits(pr, fit, **kw)
 
     def fail(*a, **k):
@@ -55,12 +55,6 @@ def test_the_lockstep_refits_are_the_serial_refits(monkeypatch, p, r, poses, rea
     assert lock is not None and serial is not None
     for key in ("logs", "fit_spread", "ls_spread", "lag1"):
         np.testing.assert_allclose(lock[key], serial[key], rtol=1e-7, atol=1e-9, err_msg=key)
-
-
-def refits_schur(pr, fit):
-    from calib.estimators.forward.problem import curvature
-
-    return curvature(pr, fit)["schur"]
 
 
 @pytest.mark.parametrize("fit_g", [False, True])
@@ -146,3 +140,13 @@ def test_the_forward_fit_in_lockstep_is_the_fit_one_start_at_a_time(monkeypatch,
                                [s["cost"] for s in one["starts"]], rtol=1e-9)
     assert lock["chosen_start"] == one["chosen_start"]
     np.testing.assert_allclose(lock["M"], one["M"], atol=1e-6 * np.abs(one["M"]).max())
+
+
+def test_refits_in_groups_are_the_refits_in_one_group(monkeypatch):
+    """More logs than a group holds: refitted group by group, the same logs as in one group
+    (a group boundary that drops, repeats or reorders a log fails it)."""
+    pr, fit = _rig(12, 8, 3, 30, 1, False)
+    one = refits._refits(pr, fit, 20, 3)
+    monkeypatch.setattr(refits, "LOCKSTEP_READINGS", refits.LOCKSTEP_MIN_LOGS * pr.P * pr.p)
+    grouped = refits._refits(pr, fit, 20, 3)  # groups of 8, 8 and 4
+    np.testing.assert_allclose(grouped["logs"], one["logs"], rtol=1e-9, atol=1e-12)

@@ -275,7 +275,6 @@ def feasible_gls_batch(bt: Batch, fit: dict, v0=None) -> tuple[dict, np.ndarray,
     rounds = np.zeros(b, int)
     fit = {k: np.array(val) for k, val in fit.items()}
     active = np.arange(b)
-    vout = np.zeros((b, pr.p))
     while len(active):
         rounds[active] += 1
         sub = Batch(pr, bt.Y[active])
@@ -288,22 +287,20 @@ def feasible_gls_batch(bt: Batch, fit: dict, v0=None) -> tuple[dict, np.ndarray,
             vn[i] = estimate_variances(q, {"M": f["M"][i], "A": f["A"][i], "o": f["o"][i],
                                            "g": f["g"][i], "W": f["W"][i],
                                            "leverage": lev[i]})
-        if v is None:
+        if v is None:  # the first round from no stated variances: never settled
             settled = np.zeros(len(active), bool)
+            v = np.zeros((b, pr.p))
         else:
             dof = np.maximum(pr.P - lev.sum(axis=1), 1.0)
             step = np.abs(np.log(vn / v[active])) / np.sqrt(2.0 / dof)
             settled = np.max(step, axis=1) <= REWEIGHT_TOL
-        if v is None:
-            v = np.zeros((b, pr.p))
         v[active] = vn
-        vout[active] = vn
         new = solve_batch(sub, f["U"], f["g"], sub.weights(vn), f["A"], f["o"])
         for key, val in new.items():
             fit[key][active] = val
         stop = (settled & identified) | (rounds[active] >= cap)
         active = active[~stop]
-    return fit, vout, rounds
+    return fit, v, rounds
 
 
 def alternate_batch(pr: Problem, U, g, W, iters: int = 15, tol: float = 1e-6) -> np.ndarray:

@@ -28,13 +28,18 @@ def reweighting_logs(pr: Problem, fit: dict, reps: int = REWEIGHT_REPS,
 
 
 #: Readings (logs x poses x channels) the lockstep refits solve at once (:mod:`.lockstep`): more
-#: logs than that are refitted in groups, and a log of more readings than half this alone. The
-#: lockstep saves per-call overhead, which small logs are made of; large batches cost memory
-#: traffic instead. CPU of 20 refits, serial -> lockstep in groups of this size: 8 channels x
-#: 30 poses 0.31 -> 0.09 s, 8 x 100 0.52 -> 0.35 s, 8 x 400 1.98 -> 1.61 s, 24 x 100 0.75 ->
-#: 0.57 s; 24 x 400 in groups of 2 (20,000) 4.18 -> 5.33 s, hence serial there.
+#: logs than that are refitted in groups; where fewer than :data:`LOCKSTEP_MIN_LOGS` logs fit
+#: in a group, one at a time. The lockstep saves per-call overhead, which small logs are made
+#: of; large batches cost memory traffic instead. CPU of 20 refits (median of 3 alternating
+#: rounds), serial -> lockstep in groups of this size: 8 channels x 30 poses 0.23 -> 0.08 s,
+#: 8 x 100 0.48 -> 0.36 s; 24 x 100 (groups of 4) 0.68 -> 0.68 s, 8 x 400 (groups of 3) 1.75 ->
+#: 2.26 s, 24 x 400 in groups of 2 (20,000) 5.95 -> 8.14 s.
 #: Decision: docs/calib_design.md D77.
 LOCKSTEP_READINGS = 10_000
+
+
+#: Decision: docs/calib_design.md D77.
+LOCKSTEP_MIN_LOGS = 8
 
 
 def _lag1(e: np.ndarray) -> np.ndarray:
@@ -154,8 +159,8 @@ def _refit_one(pr: Problem, Y, U, g, A, o, v0):
 def _refit_lockstep(pr: Problem, Ys, U, g, A, o, v0) -> list:
     """:func:`_refit_one` of every log ``Ys`` (b, P, p) at once (:mod:`.lockstep`); raises
     where any log's solver would fail (the caller then refits them one by one)."""
-    group = max(1, LOCKSTEP_READINGS // (pr.P * pr.p))
-    if group == 1:  # a log this long gains nothing in lockstep
+    group = LOCKSTEP_READINGS // (pr.P * pr.p)
+    if group < LOCKSTEP_MIN_LOGS:  # logs this long gain nothing in lockstep
         return [_refit_one(pr, Y, U, g, A, o, v0) for Y in Ys]
     if len(Ys) > group:  # a long log: groups of logs that keep the batch small
         return [out for i in range(0, len(Ys), group)

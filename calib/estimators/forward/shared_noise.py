@@ -118,19 +118,20 @@ def _shared_covariance(parts, gamma, K=None) -> np.ndarray:
     is ``c Qa Qa^T + (A_s gamma + N) Cxi (A_s gamma + N)^T`` (``Qa`` an orthonormal basis of
     ``A_s``'s span: ``A_s G0 A_s^T = Qa Qa^T`` without forming ``G0``, which an ill-conditioned
     ``A_s`` makes lose every digit). ``K``: the range's own covariance in place of ``c I`` (in
-    the coordinates where independent noise is white; a draw of :func:`_range_draws`)."""
+    the coordinates where independent noise is white; a draw of :func:`_range_draws`). Many
+    draws at once: ``gamma`` (m, r, p - r) and ``K`` (m, r, r) give (m, p, p)."""
     Bm, sd, c, Cxi = parts
-    r = gamma.shape[0]
+    r = gamma.shape[-2]
     As, N = Bm[:, :r], Bm[:, r:]
-    Qa, _ = np.linalg.qr(As)
     if K is None:
+        Qa, _ = np.linalg.qr(As)
         R = c * (Qa @ Qa.T)
     else:  # K in the coordinates eps' = L^T eps (L L^T = A_s^T A_s): A_s L^-T K L^-1 A_s^T
         B = np.linalg.solve(np.linalg.cholesky(As.T @ As), As.T).T  # orthonormal columns
         R = B @ K @ B.T
     Kx = As @ gamma + N
-    S = (R + Kx @ Cxi @ Kx.T) * np.outer(sd, sd)
-    return 0.5 * (S + S.T)
+    S = (R + Kx @ Cxi @ np.swapaxes(Kx, -1, -2)) * np.outer(sd, sd)
+    return 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
 #: At most this many entries (``(P p)^2``) in :func:`attenuation`'s dense hat matrix (128 MB).
@@ -138,17 +139,18 @@ def _shared_covariance(parts, gamma, K=None) -> np.ndarray:
 HAT_ENTRIES = 16_000_000
 
 
-def _radial_share(sn: dict, delta) -> float:
+def _radial_share(sn: dict, delta):
     """The variance a shared part ``delta`` (r, p - r) left unexplained would add to
     :func:`shared_noise`'s regression rows, on average (``delta Cxi delta^T`` read as each
     row reads the range). It cannot exceed the rows' residual variance ``c``: draws of the
-    shared part's error are held to it (:func:`predict_error`)."""
+    shared part's error are held to it (:func:`predict_error`). Many draws at once: ``delta``
+    (m, r, p - r) gives (m,)."""
     U, wu, L, n_known, n = sn["rows"]
-    D = delta @ sn["parts"][3] @ delta.T
-    q = np.sum(D * ((U * (wu**2)[:, None]).T @ U))  # sum_j wu_j^2 u_j^T D u_j
+    D = delta @ sn["parts"][3] @ np.swapaxes(delta, -1, -2)
+    q = np.sum(D * ((U * (wu**2)[:, None]).T @ U), axis=(-2, -1))  # sum_j wu_j^2 u_j^T D u_j
     if L is not None:
-        q += n_known * np.trace(L.T @ D @ L)
-    return float(q / n)
+        q = q + n_known * np.sum(D * (L @ L.T), axis=(-2, -1))  # trace(L^T D L)
+    return q / n if np.ndim(q) else float(q / n)
 
 
 def _projected_blocks(G4, H, F1, F2) -> np.ndarray:
