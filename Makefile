@@ -46,6 +46,7 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/env_speed.py
+	$(BIN)/python benchmarks/env_scaling.py --png env_scaling.png
 	$(BIN)/python benchmarks/sfm_fit_speed.py --blas-threads 1
 	$(BIN)/python benchmarks/eval_workers.py
 	$(BIN)/python benchmarks/recorder_overhead.py

@@ -55,10 +55,27 @@ from mkv_env.envs import TRAIL_MAX_POINTS as _TRAIL_MAX
 from mkv_env.envs import MKVEnv, MKVEnvV1, MKVJamEnv, MKVJamEnvV1
 from mkv_env.jams import SCENARIO_DTYPE as _SCENARIO_DTYPE
 
-#: The most robots one vector env holds (each is a pymunk world of its own, tens of kB: 65,536
-#: of them are a few GB). Above it the constructor refuses in one line instead of allocating
-#: until the machine runs out of memory.
+#: The most robots one vector env holds. Above it the constructor refuses in one line.
 MAX_ENVS = 65_536
+
+#: Resident memory one robot of a vector env takes (bytes), rounded up from the most measured:
+#: 365 KiB (MKV-v1) and 427 KiB (MKVJam-v1) per env at 4,096 envs, ``benchmarks/env_scaling.py``
+#: (ten 32 KiB buffers of each robot's Chipmunk space make 320 KiB of it). The constructor refuses
+#: in one line where ``num_envs`` of them exceed the memory the machine has available, instead of
+#: allocating until it runs out.
+ENV_BYTES = 448 * 1024
+
+
+def _available_bytes() -> int | None:
+    """The machine's available memory (``MemAvailable`` of /proc/meminfo), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 _MODES = {m.value: m for m in AutoresetMode}
 
@@ -112,6 +129,12 @@ class MKVVectorEnv(VectorEnv):
         if not (isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
                 and 1 <= num_envs <= MAX_ENVS):
             raise ValueError(f"num_envs must be an integer in 1..{MAX_ENVS}, got {num_envs!r}")
+        avail = _available_bytes()
+        if avail is not None and int(num_envs) * ENV_BYTES > avail:
+            raise ValueError(f"num_envs={int(num_envs):,} needs about "
+                             f"{int(num_envs) * ENV_BYTES / 2**30:.3g} GiB "
+                             f"({ENV_BYTES // 1024} KiB per robot); this machine has "
+                             f"{avail / 2**30:.3g} GiB available")
         if max_episode_steps is not None and not (
                 isinstance(max_episode_steps, (int, np.integer)) and max_episode_steps >= 1):
             raise ValueError(f"max_episode_steps must be a positive integer or None, "

@@ -61,6 +61,28 @@ def test_num_envs_out_of_range_is_refused_before_allocating(n):
     _one_line(e.value)
 
 
+def test_num_envs_beyond_the_machines_memory_is_refused_before_allocating(monkeypatch):
+    """The refusal compares num_envs x ENV_BYTES with the memory available: 2 robots are refused
+    where 512 KiB are available and built where 10 MiB are."""
+    from mkv_env import vector
+
+    monkeypatch.setattr(vector, "_available_bytes", lambda: 2**19)
+    with pytest.raises(ValueError, match="num_envs=2 needs about .* GiB available") as e:
+        gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    _one_line(e.value)
+    monkeypatch.setattr(vector, "_available_bytes", lambda: 10 * 2**20)
+    envs = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    envs.close()
+    assert vector._available_bytes() == 10 * 2**20
+
+
+def test_available_memory_is_read_from_the_machine():
+    from mkv_env import vector
+
+    avail = vector._available_bytes()
+    assert avail is None or avail > vector.ENV_BYTES
+
+
 @pytest.mark.parametrize("kw,match", [({"jam_steps": 2**70}, "jam_steps"),
                                       ({"jam_steps": 0}, "jam_steps"),
                                       ({"scenarios": None}, "scenarios"),
