@@ -80,6 +80,15 @@ def _available_bytes() -> int | None:
 _MODES = {m.value: m for m in AutoresetMode}
 
 
+def _check_memory(num_envs: int) -> None:
+    """Refuse, in one line, ``num_envs`` robots whose memory exceeds what the machine has."""
+    avail = _available_bytes()
+    if avail is not None and num_envs * ENV_BYTES > avail:
+        raise ValueError(f"num_envs={num_envs:,} needs about {num_envs * ENV_BYTES / 2**30:.3g} "
+                         f"GiB ({ENV_BYTES // 1024} KiB per robot); this machine has "
+                         f"{avail / 2**30:.3g} GiB available")
+
+
 def _one_thread(method):
     """Refuse a second thread while one is inside this vector env (its kernel state and buffers
     are not shared-safe: two threads stepping one vector env corrupted the heap). A clear
@@ -129,12 +138,7 @@ class MKVVectorEnv(VectorEnv):
         if not (isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
                 and 1 <= num_envs <= MAX_ENVS):
             raise ValueError(f"num_envs must be an integer in 1..{MAX_ENVS}, got {num_envs!r}")
-        avail = _available_bytes()
-        if avail is not None and int(num_envs) * ENV_BYTES > avail:
-            raise ValueError(f"num_envs={int(num_envs):,} needs about "
-                             f"{int(num_envs) * ENV_BYTES / 2**30:.3g} GiB "
-                             f"({ENV_BYTES // 1024} KiB per robot); this machine has "
-                             f"{avail / 2**30:.3g} GiB available")
+        _check_memory(int(num_envs))
         if max_episode_steps is not None and not (
                 isinstance(max_episode_steps, (int, np.integer)) and max_episode_steps >= 1):
             raise ValueError(f"max_episode_steps must be a positive integer or None, "
