@@ -72,8 +72,8 @@ def test_num_envs_beyond_the_machines_memory_is_refused_before_allocating(monkey
     _one_line(e.value)
     monkeypatch.setattr(vector, "_available_bytes", lambda: 10 * 2**20)
     envs = gym.make_vec("MKV-v1", num_envs=2, vectorization_mode="vector_entry_point")
+    assert envs.num_envs == 2
     envs.close()
-    assert vector._available_bytes() == 10 * 2**20
 
 
 def test_available_memory_is_read_from_the_machine():
